@@ -1,0 +1,600 @@
+//! The configuration file (TOML) read by both `ppmd` and `udp-ingress`.
+//!
+//! Every key is optional; a missing key takes the default documented on its
+//! field. Unknown keys are errors, so a typo cannot silently fall back to a
+//! default. [`Config::load`] parses, [`Config::frame_model`] validates the PPM
+//! settings against what real transmitters accept; both errors name the key.
+
+use crate::frame::{FrameModel, Level, MAX_CHANNELS};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+/// Shortest sync gap (period from the last channel's pulse to the next
+/// frame's first pulse) that EdgeTX/OpenTX trainer inputs recognise.
+pub const SYNC_MIN_US: f64 = 4_000.0;
+/// Longest sync gap EdgeTX/OpenTX trainer inputs recognise.
+pub const SYNC_MAX_US: f64 = 19_000.0;
+/// Smallest channel period a transmitter accepts.
+pub const CHANNEL_MIN_US: f64 = 800.0;
+/// Largest channel period a transmitter accepts.
+pub const CHANNEL_MAX_US: f64 = 2_200.0;
+
+/// Why a configuration was refused. Every variant names the file or the key.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file is not valid TOML, has an unknown key or a value of the wrong type.
+    #[error("config file {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    /// A key has a value a transmitter would reject or misread.
+    #[error("config key `{key}`: {message}")]
+    Invalid { key: String, message: String },
+}
+
+impl ConfigError {
+    fn invalid(key: impl Into<String>, message: impl Into<String>) -> Self {
+        ConfigError::Invalid {
+            key: key.into(),
+            message: message.into(),
+        }
+    }
+
+    /// The key this error is about, when it is about one key.
+    pub fn key(&self) -> Option<&str> {
+        match self {
+            ConfigError::Invalid { key, .. } => Some(key),
+            _ => None,
+        }
+    }
+}
+
+/// The whole configuration file.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    /// Name of the output; `udp-ingress` and `ppmd` with the same name find
+    /// each other. Letters, digits, `-` and `_`. Default `"ppm"`.
+    pub name: String,
+    /// The PPM signal.
+    pub ppm: PpmSection,
+    /// The UDP receiver.
+    pub ingress: IngressSection,
+    /// The PPM daemon.
+    pub ppmd: PpmdSection,
+    /// What ppmd does when commands stop.
+    pub failsafe: FailsafeSection,
+    /// Shared memory between the two processes.
+    pub ipc: IpcSection,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            name: "ppm".into(),
+            ppm: PpmSection::default(),
+            ingress: IngressSection::default(),
+            ppmd: PpmdSection::default(),
+            failsafe: FailsafeSection::default(),
+            ipc: IpcSection::default(),
+        }
+    }
+}
+
+/// `[ppm]`: the signal a transmitter's trainer port receives.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PpmSection {
+    /// Number of channels in a frame, 1..=16. Default 8.
+    pub channels: u32,
+    /// Frame length in microseconds (frame start to next frame start). Default 22500.
+    pub frame_us: f64,
+    /// Width of the separator pulse before every channel, in microseconds. Default 300.
+    pub pulse_us: f64,
+    /// Line level between pulses and while silent: `"low"` or `"high"`. Default `"low"`.
+    pub idle_level: Level,
+    /// Channel order of the transmitter, a permutation of the letters A (aileron),
+    /// E (elevator), T (throttle), R (rudder): `"AETR"` (default), `"TAER"`,
+    /// `"ATER"`, ... Channels after the fourth are `aux1`, `aux2`, ...
+    pub order: String,
+    /// Default value of every channel, in microseconds. Default 1500; the
+    /// throttle channel defaults to its minimum instead (zero actuation).
+    pub default_us: f64,
+    /// Lowest value of every channel; commands below it are clamped. Default 1000.
+    pub min_us: f64,
+    /// Highest value of every channel; commands above it are clamped. Default 2000.
+    pub max_us: f64,
+    /// Per-channel overrides, keyed by channel name: `[ppm.channel.thr]`.
+    pub channel: BTreeMap<String, ChannelOverride>,
+}
+
+impl Default for PpmSection {
+    fn default() -> Self {
+        PpmSection {
+            channels: 8,
+            frame_us: 22_500.0,
+            pulse_us: 300.0,
+            idle_level: Level::Low,
+            order: "AETR".into(),
+            default_us: 1_500.0,
+            min_us: 1_000.0,
+            max_us: 2_000.0,
+            channel: BTreeMap::new(),
+        }
+    }
+}
+
+/// `[ppm.channel.NAME]`: limits of one channel; an absent key takes the
+/// `[ppm]` value.
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChannelOverride {
+    /// This channel's default in microseconds.
+    pub default_us: Option<f64>,
+    /// This channel's minimum in microseconds.
+    pub min_us: Option<f64>,
+    /// This channel's maximum in microseconds.
+    pub max_us: Option<f64>,
+}
+
+/// `[ingress]`: the UDP side.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct IngressSection {
+    /// Address and port to receive commands on. Default `"127.0.0.1:5005"`
+    /// (this machine only); use `"0.0.0.0:5005"` to accept a groundstation's.
+    pub listen: SocketAddr,
+    /// Socket receive buffer (SO_RCVBUF) in bytes, 4096..=16777216. Default
+    /// 262144: the kernel drops the newest datagrams when it is full, so it
+    /// must not be tiny.
+    pub recv_buffer_bytes: u32,
+    /// Shortest interval between two log lines about rejected datagrams of one
+    /// reason, in milliseconds. Default 1000.
+    pub reject_log_interval_ms: u64,
+}
+
+impl Default for IngressSection {
+    fn default() -> Self {
+        IngressSection {
+            listen: SocketAddr::from(([127, 0, 0, 1], 5005)),
+            recv_buffer_bytes: 256 * 1024,
+            reject_log_interval_ms: 1_000,
+        }
+    }
+}
+
+/// `[ppmd]`: the daemon that emits the signal.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PpmdSection {
+    /// Where the signal goes: `"sim"` (simulated line, trace in
+    /// `ppm-NAME.trace`), `"sim:PATH"`, or `"gpio:CHIP:LINE"`. Default `"sim"`.
+    pub output: String,
+    /// How long before an edge ppmd stops sleeping and spins on the clock, in
+    /// microseconds, 0..=5000. Default 200.
+    pub spin_us: u32,
+}
+
+impl Default for PpmdSection {
+    fn default() -> Self {
+        PpmdSection {
+            output: "sim".into(),
+            spin_us: 200,
+        }
+    }
+}
+
+/// `[failsafe]`: what happens when commands stop arriving.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FailsafeSection {
+    /// A command older than this (by its ingress receive time) is no longer
+    /// fresh, in milliseconds, 1..=60000. Default 200.
+    pub after_ms: u64,
+    /// What ppmd emits then: `"silence"` (no pulses, the transmitter falls back
+    /// to its own sticks; default), `"hold"` (repeat the last command) or
+    /// `"default"` (the configured default of every channel).
+    pub action: FailsafeAction,
+}
+
+impl Default for FailsafeSection {
+    fn default() -> Self {
+        FailsafeSection {
+            after_ms: 200,
+            action: FailsafeAction::Silence,
+        }
+    }
+}
+
+/// What ppmd emits when commands stop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FailsafeAction {
+    /// Stop the pulses; the line rests at its idle level.
+    Silence,
+    /// Repeat the last command.
+    Hold,
+    /// Emit every channel's default.
+    Default,
+}
+
+/// `[ipc]`: the shared memory between udp-ingress and ppmd.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct IpcSection {
+    /// Directory for the shared-memory bookkeeping files of both processes.
+    /// Both must see the same directory: under systemd with `PrivateTmp=yes`
+    /// pick one outside /tmp (for example `/run/ppm`). Default `/tmp/ppm`.
+    pub root: PathBuf,
+}
+
+impl Default for IpcSection {
+    fn default() -> Self {
+        IpcSection {
+            root: PathBuf::from("/tmp/ppm"),
+        }
+    }
+}
+
+/// Where ppmd sends the signal.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum OutputSpec {
+    /// The simulated line: every edge is written to a trace file.
+    Sim { path: Option<PathBuf> },
+    /// A GPIO line through the GPIO character device.
+    Gpio { chip: String, line: String },
+}
+
+impl std::str::FromStr for OutputSpec {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.split_once(':') {
+            None if s == "sim" => Ok(OutputSpec::Sim { path: None }),
+            Some(("sim", path)) if !path.is_empty() => Ok(OutputSpec::Sim {
+                path: Some(PathBuf::from(path)),
+            }),
+            Some(("gpio", rest)) => match rest.rsplit_once(':') {
+                Some((chip, line)) if !chip.is_empty() && !line.is_empty() => {
+                    Ok(OutputSpec::Gpio {
+                        chip: chip.into(),
+                        line: line.into(),
+                    })
+                }
+                _ => Err(format!(
+                    "`{s}`: a gpio output is gpio:CHIP:LINE, e.g. gpio:gpiochip0:18"
+                )),
+            },
+            _ => Err(format!(
+                "`{s}` is not an output: use sim, sim:PATH or gpio:CHIP:LINE"
+            )),
+        }
+    }
+}
+
+impl Config {
+    /// Reads and parses a configuration file. The PPM settings are checked by
+    /// [`Config::validate`].
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        Config::parse(&text).map_err(|e| match e {
+            ConfigError::Parse { message, .. } => ConfigError::Parse {
+                path: path.to_owned(),
+                message,
+            },
+            other => other,
+        })
+    }
+
+    /// Parses configuration text (see [`Config::load`]).
+    pub fn parse(text: &str) -> Result<Config, ConfigError> {
+        toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: PathBuf::from("<text>"),
+            message: e.to_string().trim_end().replace('\n', " | "),
+        })
+    }
+
+    /// Checks every key and builds the PPM frame model.
+    pub fn validate(&self) -> Result<FrameModel, ConfigError> {
+        validate_name(&self.name)?;
+        let i = &self.ingress;
+        if !(4096..=16 * 1024 * 1024).contains(&i.recv_buffer_bytes) {
+            return Err(ConfigError::invalid(
+                "ingress.recv_buffer_bytes",
+                format!("{} is outside 4096..=16777216 bytes", i.recv_buffer_bytes),
+            ));
+        }
+        self.output()?;
+        if self.ppmd.spin_us > 5_000 {
+            return Err(ConfigError::invalid(
+                "ppmd.spin_us",
+                format!("{} us is outside 0..=5000", self.ppmd.spin_us),
+            ));
+        }
+        if !(1..=60_000).contains(&self.failsafe.after_ms) {
+            return Err(ConfigError::invalid(
+                "failsafe.after_ms",
+                format!("{} ms is outside 1..=60000", self.failsafe.after_ms),
+            ));
+        }
+        if self.ipc.root.as_os_str().is_empty() || !self.ipc.root.is_absolute() {
+            return Err(ConfigError::invalid(
+                "ipc.root",
+                format!(
+                    "`{}` must be an absolute directory path",
+                    self.ipc.root.display()
+                ),
+            ));
+        }
+        FrameModel::from_config(&self.ppm)
+    }
+
+    /// The output named by `ppmd.output`.
+    pub fn output(&self) -> Result<OutputSpec, ConfigError> {
+        self.ppmd
+            .output
+            .parse()
+            .map_err(|m| ConfigError::invalid("ppmd.output", m))
+    }
+}
+
+/// Checks an output name (used in shared-memory service names and file names).
+pub fn validate_name(name: &str) -> Result<(), ConfigError> {
+    let ok = !name.is_empty()
+        && name.len() <= 64
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+    if ok {
+        Ok(())
+    } else {
+        Err(ConfigError::invalid(
+            "name",
+            format!("`{name}` must be 1..=64 letters, digits, `-` or `_`"),
+        ))
+    }
+}
+
+/// Validated per-channel limits, in microseconds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct ChannelLimits {
+    pub default_us: f64,
+    pub min_us: f64,
+    pub max_us: f64,
+}
+
+/// Resolves names and limits of every channel and checks them; used by
+/// [`FrameModel::from_config`].
+pub(crate) fn resolve_channels(
+    ppm: &PpmSection,
+) -> Result<(Vec<String>, Vec<ChannelLimits>), ConfigError> {
+    let n = ppm.channels as usize;
+    if !(1..=MAX_CHANNELS).contains(&n) {
+        return Err(ConfigError::invalid(
+            "ppm.channels",
+            format!("{} is outside 1..={MAX_CHANNELS}", ppm.channels),
+        ));
+    }
+    let names = channel_names(&ppm.order, n)?;
+    for key in ppm.channel.keys() {
+        if !names.iter().any(|n| n == key) {
+            return Err(ConfigError::invalid(
+                format!("ppm.channel.{key}"),
+                format!(
+                    "no channel is named `{key}`; channels are {}",
+                    names.join(", ")
+                ),
+            ));
+        }
+    }
+    let mut limits = Vec::with_capacity(n);
+    for name in &names {
+        let o = ppm.channel.get(name).cloned().unwrap_or_default();
+        let key = |field: &str, overridden: bool| {
+            if overridden {
+                format!("ppm.channel.{name}.{field}")
+            } else {
+                format!("ppm.{field}")
+            }
+        };
+        let min_us = o.min_us.unwrap_or(ppm.min_us);
+        let max_us = o.max_us.unwrap_or(ppm.max_us);
+        let min_key = key("min_us", o.min_us.is_some());
+        let max_key = key("max_us", o.max_us.is_some());
+        check_range(&min_key, min_us)?;
+        check_range(&max_key, max_us)?;
+        if min_us > max_us {
+            return Err(ConfigError::invalid(
+                min_key,
+                format!("{min_us} us is above {max_key} = {max_us} us"),
+            ));
+        }
+        // Throttle's zero actuation is its minimum: a command that leaves
+        // throttle out must not spin motors up.
+        let default_us = match o.default_us {
+            Some(v) => v,
+            None if name == "thr" => min_us,
+            None => ppm.default_us,
+        };
+        let default_key = key("default_us", o.default_us.is_some());
+        if !default_us.is_finite() || default_us < min_us || default_us > max_us {
+            return Err(ConfigError::invalid(
+                default_key,
+                format!("{default_us} us is outside this channel's {min_us}..={max_us} us"),
+            ));
+        }
+        limits.push(ChannelLimits {
+            default_us,
+            min_us,
+            max_us,
+        });
+    }
+    Ok((names, limits))
+}
+
+fn check_range(key: &str, v: f64) -> Result<(), ConfigError> {
+    if v.is_finite() && (CHANNEL_MIN_US..=CHANNEL_MAX_US).contains(&v) {
+        Ok(())
+    } else {
+        Err(ConfigError::invalid(
+            key,
+            format!(
+                "{v} us is outside {CHANNEL_MIN_US}..={CHANNEL_MAX_US} us, the channel periods transmitters accept"
+            ),
+        ))
+    }
+}
+
+/// Channel names in transmitter order: the four stick channels as `order`
+/// places them, then `aux1`, `aux2`, ...
+pub fn channel_names(order: &str, channels: usize) -> Result<Vec<String>, ConfigError> {
+    let letters: Vec<char> = order.chars().map(|c| c.to_ascii_uppercase()).collect();
+    let mut sorted = letters.clone();
+    sorted.sort_unstable();
+    if sorted != ['A', 'E', 'R', 'T'] {
+        return Err(ConfigError::invalid(
+            "ppm.order",
+            format!(
+                "`{order}` must hold each of the letters A, E, T, R once (e.g. AETR, TAER, ATER)"
+            ),
+        ));
+    }
+    Ok((0..channels)
+        .map(|i| match letters.get(i) {
+            Some('A') => "ail".to_string(),
+            Some('E') => "ele".to_string(),
+            Some('T') => "thr".to_string(),
+            Some(_) => "rud".to_string(),
+            None => format!("aux{}", i - 3),
+        })
+        .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_validate() {
+        let c = Config::default();
+        let m = c.validate().unwrap();
+        assert_eq!(m.channels(), 8);
+        assert_eq!(
+            m.names(),
+            ["ail", "ele", "thr", "rud", "aux1", "aux2", "aux3", "aux4"]
+        );
+        assert_eq!(
+            m.default_ns(2),
+            1_000_000,
+            "throttle defaults to its minimum"
+        );
+        assert_eq!(m.default_ns(0), 1_500_000);
+    }
+
+    #[test]
+    fn empty_file_is_the_default() {
+        assert_eq!(Config::parse("").unwrap(), Config::default());
+    }
+
+    #[test]
+    fn unknown_key_is_named() {
+        let e = Config::parse("[ppm]\nframe_len = 20000\n").unwrap_err();
+        assert!(e.to_string().contains("frame_len"), "{e}");
+    }
+
+    #[test]
+    fn wrong_type_is_named() {
+        let e = Config::parse("[ppm]\nchannels = \"eight\"\n").unwrap_err();
+        assert!(e.to_string().contains("channels"), "{e}");
+    }
+
+    #[test]
+    fn orders() {
+        assert_eq!(
+            channel_names("taer", 5).unwrap(),
+            ["thr", "ail", "ele", "rud", "aux1"]
+        );
+        assert_eq!(channel_names("ATER", 2).unwrap(), ["ail", "thr"]);
+        for bad in ["AETX", "AET", "AETRR", "AAER", ""] {
+            let e = channel_names(bad, 4).unwrap_err();
+            assert_eq!(e.key(), Some("ppm.order"), "{bad}");
+        }
+    }
+
+    #[test]
+    fn output_specs() {
+        assert_eq!("sim".parse(), Ok(OutputSpec::Sim { path: None }));
+        assert_eq!(
+            "sim:/tmp/x.trace".parse(),
+            Ok(OutputSpec::Sim {
+                path: Some("/tmp/x.trace".into())
+            })
+        );
+        assert_eq!(
+            "gpio:/dev/gpiochip0:GPIO18".parse(),
+            Ok(OutputSpec::Gpio {
+                chip: "/dev/gpiochip0".into(),
+                line: "GPIO18".into()
+            })
+        );
+        for bad in ["", "sim:", "gpio:", "gpio:chip", "gpio::3", "pwm:1"] {
+            assert!(bad.parse::<OutputSpec>().is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn invalid_keys_are_named() {
+        let cases: &[(&str, &str)] = &[
+            ("name = 'a b'", "name"),
+            ("[ppm]\nchannels = 0", "ppm.channels"),
+            ("[ppm]\nchannels = 17", "ppm.channels"),
+            ("[ppm]\nmin_us = 700", "ppm.min_us"),
+            ("[ppm]\nmax_us = 2300", "ppm.max_us"),
+            (
+                "[ppm]\nmin_us = 1600\ndefault_us = 1500\nmax_us = 2000",
+                "ppm.default_us",
+            ),
+            ("[ppm]\npulse_us = 1000", "ppm.pulse_us"),
+            ("[ppm]\npulse_us = 0", "ppm.pulse_us"),
+            ("[ppm]\nframe_us = 19000", "ppm.frame_us"),
+            ("[ppm]\nchannels = 3", "ppm.frame_us"),
+            ("[ppm.channel.aux9]\nmin_us = 900", "ppm.channel.aux9"),
+            ("[ppm.channel.ail]\nmax_us = 2250", "ppm.channel.ail.max_us"),
+            (
+                "[ppm.channel.ail]\nmin_us = 1900\nmax_us = 1800",
+                "ppm.channel.ail.min_us",
+            ),
+            (
+                "[ingress]\nrecv_buffer_bytes = 100",
+                "ingress.recv_buffer_bytes",
+            ),
+            ("[ppmd]\noutput = 'pwm'", "ppmd.output"),
+            ("[ppmd]\nspin_us = 9000", "ppmd.spin_us"),
+            ("[failsafe]\nafter_ms = 0", "failsafe.after_ms"),
+            ("[ipc]\nroot = 'relative'", "ipc.root"),
+        ];
+        for (text, key) in cases {
+            let c = Config::parse(text).unwrap_or_else(|e| panic!("{text}: {e}"));
+            let e = c.validate().unwrap_err();
+            assert_eq!(e.key(), Some(*key), "{text}: {e}");
+            assert!(e.to_string().contains(key), "{e}");
+        }
+    }
+
+    #[test]
+    fn sync_error_gives_the_numbers() {
+        let c = Config::parse("[ppm]\nframe_us = 19000\n").unwrap();
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("16000") && e.contains("4000"), "{e}");
+    }
+}

@@ -1,0 +1,23 @@
+//! Logic shared by `ppmd` and `udp-ingress`: no I/O beyond reading the
+//! configuration file.
+//!
+//! - [`config`]: the TOML configuration both binaries read, and its validation.
+//! - [`frame`]: the PPM frame model built from that configuration, and the
+//!   encoder that turns channel values into one frame's edge schedule.
+//! - [`decode`]: a decoder with transmitter semantics that reads any waveform back.
+//! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
+//! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
+//! - [`trace`]: the simulated line's trace format.
+
+pub mod config;
+pub mod decode;
+pub mod frame;
+pub mod ipc;
+pub mod protocol;
+pub mod trace;
+
+pub use config::{Config, ConfigError};
+pub use frame::{Channels, Edge, EdgeSchedule, FrameModel, Level, MAX_CHANNELS};
+
+/// Nanoseconds per microsecond.
+pub const NS_PER_US: u64 = 1_000;

@@ -1,0 +1,425 @@
+//! The UDP wire protocol: one datagram is one command, UTF-8 JSON, in one of
+//! three forms.
+//!
+//! - A bare array of channel periods in microseconds, in the transmitter's
+//!   channel order: `[1000, 1200, 1700, 2000]`.
+//! - An object with the same array and an optional sequence number:
+//!   `{"ch": [1000, 1200], "seq": 42}`.
+//! - Named channels, placed through the configured channel order:
+//!   `{"ail": 1500, "thr": 1000, "aux1": 1800}` (a `seq` may be added).
+//!
+//! Channels a command does not give take their configured default. Values may
+//! be fractional and are kept to the nanosecond. A value outside its channel's
+//! limits is clamped (and counted); a command is rejected whole, and never
+//! applied, for any [`RejectReason`].
+
+use crate::frame::{Channels, FrameModel, MAX_CHANNELS};
+use serde_json::Value;
+
+/// Lowest value a command may carry, in microseconds (before clamping).
+pub const VALUE_MIN_US: f64 = 500.0;
+/// Highest value a command may carry, in microseconds (before clamping).
+pub const VALUE_MAX_US: f64 = 2_500.0;
+
+/// A parsed, valid command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Command {
+    /// The sender's sequence number, if it gave one.
+    pub seq: Option<u64>,
+    /// Every channel's value in nanoseconds (defaults filled in, clamped).
+    pub channels: Channels,
+    /// How many of the given values were clamped to their channel's limits.
+    pub clamped: u32,
+}
+
+/// Why a datagram was rejected.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum RejectReason {
+    /// The bytes are not UTF-8.
+    InvalidUtf8,
+    /// The text is not JSON.
+    InvalidJson,
+    /// A channel value is not a number.
+    NotANumber,
+    /// A channel value lies outside 500..=2500 us.
+    OutOfRange,
+    /// More values than the frame has channels.
+    TooManyValues,
+    /// A channel name the configured order does not have.
+    UnknownChannel,
+    /// Valid JSON of any other shape (no channels, a bad `seq`, unexpected keys, ...).
+    BadShape,
+}
+
+impl RejectReason {
+    /// Every reason, in counter order.
+    pub const ALL: [RejectReason; 7] = [
+        RejectReason::InvalidUtf8,
+        RejectReason::InvalidJson,
+        RejectReason::NotANumber,
+        RejectReason::OutOfRange,
+        RejectReason::TooManyValues,
+        RejectReason::UnknownChannel,
+        RejectReason::BadShape,
+    ];
+
+    /// The counter name (`snake_case`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RejectReason::InvalidUtf8 => "invalid_utf8",
+            RejectReason::InvalidJson => "invalid_json",
+            RejectReason::NotANumber => "not_a_number",
+            RejectReason::OutOfRange => "out_of_range",
+            RejectReason::TooManyValues => "too_many_values",
+            RejectReason::UnknownChannel => "unknown_channel",
+            RejectReason::BadShape => "bad_shape",
+        }
+    }
+
+    /// Position in [`RejectReason::ALL`].
+    pub fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// A rejected datagram: the reason (counted) and a detail for the log.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{}: {detail}", reason.as_str())]
+pub struct Reject {
+    /// The counted reason.
+    pub reason: RejectReason,
+    /// What exactly was wrong.
+    pub detail: String,
+}
+
+fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
+    Reject {
+        reason,
+        detail: detail.into(),
+    }
+}
+
+/// Parses one datagram against the frame model.
+pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
+    let text = std::str::from_utf8(datagram)
+        .map_err(|e| reject(RejectReason::InvalidUtf8, e.to_string()))?;
+    let value: Value =
+        serde_json::from_str(text).map_err(|e| reject(RejectReason::InvalidJson, e.to_string()))?;
+    let mut b = Builder::new(model);
+    let seq = match value {
+        Value::Array(items) => {
+            b.positional(&items)?;
+            None
+        }
+        Value::Object(map) => {
+            let seq = map.get("seq").map(parse_seq).transpose()?;
+            if let Some(ch) = map.get("ch") {
+                if let Some(k) = map.keys().find(|k| *k != "ch" && *k != "seq") {
+                    return Err(reject(
+                        RejectReason::BadShape,
+                        format!("unexpected key `{k}` beside `ch`"),
+                    ));
+                }
+                let Value::Array(items) = ch else {
+                    return Err(reject(RejectReason::BadShape, "`ch` must be an array"));
+                };
+                b.positional(items)?;
+            } else {
+                for (k, v) in map.iter().filter(|(k, _)| *k != "seq") {
+                    let i = model.index_of(k).ok_or_else(|| {
+                        reject(
+                            RejectReason::UnknownChannel,
+                            format!(
+                                "no channel `{k}`; channels are {}",
+                                model.names().join(", ")
+                            ),
+                        )
+                    })?;
+                    b.set(i, k, v)?;
+                }
+            }
+            seq
+        }
+        other => {
+            return Err(reject(
+                RejectReason::BadShape,
+                format!("expected an array or an object, got {}", kind(&other)),
+            ))
+        }
+    };
+    if b.given == 0 {
+        return Err(reject(
+            RejectReason::BadShape,
+            "the command gives no channel",
+        ));
+    }
+    Ok(Command {
+        seq,
+        channels: Channels::from_ns(&b.ns[..model.channels()]),
+        clamped: b.clamped,
+    })
+}
+
+struct Builder<'a> {
+    model: &'a FrameModel,
+    ns: [u32; MAX_CHANNELS],
+    given: usize,
+    clamped: u32,
+}
+
+impl<'a> Builder<'a> {
+    fn new(model: &'a FrameModel) -> Self {
+        let mut ns = [0; MAX_CHANNELS];
+        ns[..model.channels()].copy_from_slice(model.defaults().as_ns());
+        Builder {
+            model,
+            ns,
+            given: 0,
+            clamped: 0,
+        }
+    }
+
+    fn positional(&mut self, items: &[Value]) -> Result<(), Reject> {
+        if items.len() > self.model.channels() {
+            return Err(reject(
+                RejectReason::TooManyValues,
+                format!(
+                    "{} values for {} channels",
+                    items.len(),
+                    self.model.channels()
+                ),
+            ));
+        }
+        for (i, v) in items.iter().enumerate() {
+            self.set(i, &format!("channel {}", i + 1), v)?;
+        }
+        Ok(())
+    }
+
+    fn set(&mut self, i: usize, what: &str, v: &Value) -> Result<(), Reject> {
+        let us = v.as_f64().ok_or_else(|| {
+            reject(
+                RejectReason::NotANumber,
+                format!("{what} is {}, not a number", kind(v)),
+            )
+        })?;
+        if !(VALUE_MIN_US..=VALUE_MAX_US).contains(&us) {
+            return Err(reject(
+                RejectReason::OutOfRange,
+                format!("{what} = {us} us is outside {VALUE_MIN_US}..={VALUE_MAX_US}"),
+            ));
+        }
+        let (ns, clamped) = self.model.clamp(i, (us * 1_000.0).round() as u32);
+        self.ns[i] = ns;
+        self.clamped += clamped as u32;
+        self.given += 1;
+        Ok(())
+    }
+}
+
+fn parse_seq(v: &Value) -> Result<u64, Reject> {
+    v.as_u64().ok_or_else(|| {
+        reject(
+            RejectReason::BadShape,
+            format!("`seq` must be an unsigned integer, got {v}"),
+        )
+    })
+}
+
+fn kind(v: &Value) -> &'static str {
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}
+
+/// Drops stale commands: once a command with a `seq` was applied, a command
+/// whose `seq` is not greater is stale. Commands without a `seq` always pass.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SeqGate {
+    last: Option<u64>,
+}
+
+impl SeqGate {
+    /// True (and remembers `seq`) when a command with this `seq` may be applied.
+    pub fn admit(&mut self, seq: Option<u64>) -> bool {
+        match (seq, self.last) {
+            (Some(s), Some(last)) if s <= last => false,
+            (Some(s), _) => {
+                self.last = Some(s);
+                true
+            }
+            (None, _) => true,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+
+    fn model() -> FrameModel {
+        Config::default().validate().unwrap()
+    }
+
+    fn us(v: &[f64]) -> Vec<u32> {
+        v.iter().map(|&u| (u * 1000.0).round() as u32).collect()
+    }
+
+    /// Every accept and reject rule of the wire protocol, one row each.
+    #[test]
+    fn table() {
+        use RejectReason::*;
+        let d = [
+            1500.0, 1500.0, 1000.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0,
+        ];
+        let with = |pairs: &[(usize, f64)]| {
+            let mut v = d;
+            for &(i, x) in pairs {
+                v[i] = x;
+            }
+            us(&v)
+        };
+        type Row = (
+            &'static [u8],
+            Result<(Option<u64>, Vec<u32>, u32), RejectReason>,
+        );
+        let rows: Vec<Row> = vec![
+            // Accepted: the seed's bare array.
+            (
+                b"[1000, 1200, 1700, 2000]",
+                Ok((
+                    None,
+                    with(&[(0, 1000.0), (1, 1200.0), (2, 1700.0), (3, 2000.0)]),
+                    0,
+                )),
+            ),
+            // Fractional values keep 0.1 us (and finer).
+            (
+                b"[1500.25, 1000.1]",
+                Ok((None, with(&[(0, 1500.25), (1, 1000.1)]), 0)),
+            ),
+            // All eight channels.
+            (b"[1,2,3,4,5,6,7,8]", Err(OutOfRange)),
+            (
+                b"[1100,1200,1300,1400,1500,1600,1700,1800]",
+                Ok((
+                    None,
+                    us(&[
+                        1100.0, 1200.0, 1300.0, 1400.0, 1500.0, 1600.0, 1700.0, 1800.0,
+                    ]),
+                    0,
+                )),
+            ),
+            // Object form with and without seq.
+            (
+                br#"{"ch": [1100], "seq": 42}"#,
+                Ok((Some(42), with(&[(0, 1100.0)]), 0)),
+            ),
+            (br#"{"ch": [1100]}"#, Ok((None, with(&[(0, 1100.0)]), 0))),
+            // Named channels through the order; seq allowed.
+            (
+                br#"{"ail": 1600, "thr": 1200, "aux1": 1800}"#,
+                Ok((None, with(&[(0, 1600.0), (2, 1200.0), (4, 1800.0)]), 0)),
+            ),
+            (
+                br#"{"rud": 1400, "seq": 7}"#,
+                Ok((Some(7), with(&[(3, 1400.0)]), 0)),
+            ),
+            // Clamped to min..max and counted (still applied).
+            (
+                b"[900, 2100, 2500, 500]",
+                Ok((
+                    None,
+                    with(&[(0, 1000.0), (1, 2000.0), (2, 2000.0), (3, 1000.0)]),
+                    4,
+                )),
+            ),
+            // Rejected: not UTF-8.
+            (b"[1500, \xff]", Err(InvalidUtf8)),
+            // Rejected: not JSON.
+            (b"[1500, 1500", Err(InvalidJson)),
+            (b"", Err(InvalidJson)),
+            (b"hello", Err(InvalidJson)),
+            // Rejected: a value that is not a number.
+            (br#"[1500, "1500"]"#, Err(NotANumber)),
+            (b"[1500, null]", Err(NotANumber)),
+            (br#"{"ail": true}"#, Err(NotANumber)),
+            (br#"{"ch": [[1500]]}"#, Err(NotANumber)),
+            // Rejected: outside 500..2500 us.
+            (b"[499.9]", Err(OutOfRange)),
+            (b"[2500.1]", Err(OutOfRange)),
+            (b"[-1500]", Err(OutOfRange)),
+            (b"[1e300]", Err(OutOfRange)),
+            (br#"{"ele": 3000}"#, Err(OutOfRange)),
+            // Rejected: more values than channels.
+            (
+                b"[1500,1500,1500,1500,1500,1500,1500,1500,1500]",
+                Err(TooManyValues),
+            ),
+            (
+                br#"{"ch": [1500,1500,1500,1500,1500,1500,1500,1500,1500]}"#,
+                Err(TooManyValues),
+            ),
+            // Rejected: unknown channel name.
+            (br#"{"aileron": 1500}"#, Err(UnknownChannel)),
+            (br#"{"aux5": 1500}"#, Err(UnknownChannel)),
+            // Rejected: any other shape.
+            (b"1500", Err(BadShape)),
+            (br#""[1500]""#, Err(BadShape)),
+            (b"null", Err(BadShape)),
+            (b"[]", Err(BadShape)),
+            (b"{}", Err(BadShape)),
+            (br#"{"seq": 3}"#, Err(BadShape)),
+            (br#"{"ch": 1500}"#, Err(BadShape)),
+            (br#"{"ch": [1500], "ail": 1500}"#, Err(BadShape)),
+            (br#"{"ch": [1500], "seq": -1}"#, Err(BadShape)),
+            (br#"{"ch": [1500], "seq": 1.5}"#, Err(BadShape)),
+            (br#"{"ch": [1500], "seq": "1"}"#, Err(BadShape)),
+        ];
+        let m = model();
+        for (input, want) in rows {
+            let got = parse(input, &m)
+                .map(|c| (c.seq, c.channels.as_ns().to_vec(), c.clamped))
+                .map_err(|r| r.reason);
+            assert_eq!(got, want, "input {:?}", String::from_utf8_lossy(input));
+        }
+    }
+
+    #[test]
+    fn named_channels_follow_the_order() {
+        let c = Config::parse("[ppm]\norder = 'TAER'\nchannels = 4").unwrap();
+        let m = c.validate().unwrap();
+        let cmd = parse(br#"{"thr": 1100, "rud": 1900}"#, &m).unwrap();
+        assert_eq!(cmd.channels.as_ns(), us(&[1100.0, 1500.0, 1500.0, 1900.0]));
+    }
+
+    #[test]
+    fn reject_detail_is_specific() {
+        let e = parse(br#"{"aileron": 1500}"#, &model()).unwrap_err();
+        assert!(
+            e.to_string().contains("aileron") && e.to_string().contains("ail, ele"),
+            "{e}"
+        );
+        let e = parse(b"[1500, 9000]", &model()).unwrap_err();
+        assert!(e.to_string().contains("channel 2"), "{e}");
+    }
+
+    #[test]
+    fn seq_gate() {
+        let mut g = SeqGate::default();
+        assert!(g.admit(None));
+        assert!(g.admit(Some(5)));
+        assert!(!g.admit(Some(5)));
+        assert!(!g.admit(Some(4)));
+        assert!(g.admit(None));
+        assert!(g.admit(Some(6)));
+        assert!(g.admit(Some(u64::MAX)));
+        assert!(!g.admit(Some(0)));
+    }
+}
