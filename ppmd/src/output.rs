@@ -1,0 +1,161 @@
+//! Output backends: where the edges go. The timing loop calls
+//! [`Output::write`] once per edge; backends must not allocate, block, log
+//! or take a lock there.
+
+use ppm_shared::frame::Level;
+use ppm_shared::trace::TraceEdge;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+/// A failed write in the timing loop (counted, never logged there).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum OutputError {
+    /// The simulated line's trace buffer was full; the edge was not recorded.
+    #[error("trace buffer full, edge not recorded")]
+    BufferFull,
+    /// The line could not be written.
+    #[error("line write failed: {0}")]
+    Write(nix::errno::Errno),
+}
+
+/// One output line.
+pub trait Output: Send {
+    /// Drives the line to `edge.level`. `edge` also carries the scheduled
+    /// time and the time read just before this call.
+    fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError>;
+
+    /// Leaves the line at `level` (at start and at exit, outside the loop).
+    fn park(&mut self, level: Level) -> Result<(), OutputError>;
+}
+
+/// How many edges the simulated line buffers between the loop and the
+/// writer thread: about 40 s of 16-channel frames at 50 Hz.
+const SIM_BUFFER_EDGES: usize = 1 << 16;
+/// How often the writer thread drains the buffer and flushes the file.
+const SIM_FLUSH_EVERY: Duration = Duration::from_millis(50);
+
+/// The simulated line: every edge goes through a lock-free ring buffer to a
+/// writer thread that appends it to a trace file (see `ppm_shared::trace`).
+pub struct SimOutput {
+    producer: rtrb::Producer<TraceEdge>,
+    stop: Arc<AtomicBool>,
+    written: Arc<AtomicU64>,
+    writer: Option<JoinHandle<std::io::Result<()>>>,
+    path: PathBuf,
+}
+
+impl SimOutput {
+    /// Creates (truncates) the trace file, writes `header` as `#` comment
+    /// lines and starts the writer thread.
+    pub fn create(path: &Path, header: &[String]) -> std::io::Result<SimOutput> {
+        let mut file = BufWriter::new(File::create(path)?);
+        for h in header {
+            writeln!(file, "# {h}")?;
+        }
+        file.flush()?;
+        let (producer, mut consumer) = rtrb::RingBuffer::<TraceEdge>::new(SIM_BUFFER_EDGES);
+        let stop = Arc::new(AtomicBool::new(false));
+        let written = Arc::new(AtomicU64::new(0));
+        let (stop2, written2) = (stop.clone(), written.clone());
+        let writer = std::thread::Builder::new()
+            .name("ppmd-sim-writer".into())
+            .spawn(move || -> std::io::Result<()> {
+                loop {
+                    let stopping = stop2.load(Ordering::Acquire);
+                    let mut n = 0;
+                    while let Ok(e) = consumer.pop() {
+                        writeln!(file, "{e}")?;
+                        n += 1;
+                    }
+                    file.flush()?;
+                    written2.fetch_add(n, Ordering::Relaxed);
+                    if stopping {
+                        return file.into_inner().map_err(|e| e.into_error())?.sync_data();
+                    }
+                    std::thread::sleep(SIM_FLUSH_EVERY);
+                }
+            })?;
+        Ok(SimOutput {
+            producer,
+            stop,
+            written,
+            writer: Some(writer),
+            path: path.to_owned(),
+        })
+    }
+
+    /// The trace file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Edges written to the file so far.
+    pub fn written(&self) -> u64 {
+        self.written.load(Ordering::Relaxed)
+    }
+
+    /// Writes every buffered edge, flushes and closes the file.
+    pub fn finish(&mut self) -> std::io::Result<()> {
+        self.stop.store(true, Ordering::Release);
+        match self.writer.take() {
+            Some(h) => h
+                .join()
+                .unwrap_or_else(|_| Err(std::io::Error::other("sim writer thread panicked"))),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for SimOutput {
+    fn drop(&mut self) {
+        let _ = self.finish();
+    }
+}
+
+impl Output for SimOutput {
+    fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError> {
+        self.producer
+            .push(*edge)
+            .map_err(|_| OutputError::BufferFull)
+    }
+
+    fn park(&mut self, _level: Level) -> Result<(), OutputError> {
+        // The trace records edges only; between pulses the line is already idle.
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ppm_shared::trace::Trace;
+
+    #[test]
+    fn sim_writes_every_edge_and_the_header() {
+        let dir = std::env::temp_dir().join(format!("ppmd-sim-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("t.trace");
+        let mut out = SimOutput::create(&path, &["idle_level 1".into()]).unwrap();
+        for i in 0..1000u64 {
+            let level = Level::from_bit(i % 2 == 1);
+            out.write(&TraceEdge {
+                scheduled_ns: i * 10,
+                actual_ns: i * 10 + 1,
+                level,
+            })
+            .unwrap();
+        }
+        out.finish().unwrap();
+        assert_eq!(out.written(), 1000);
+        let t = Trace::read(std::io::BufReader::new(File::open(&path).unwrap())).unwrap();
+        assert_eq!(t.idle_level, Some(Level::High));
+        assert_eq!(t.edges.len(), 1000);
+        assert_eq!(t.edges[999].actual_ns, 9991);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}

@@ -1,0 +1,180 @@
+//! Property tests: for random valid configurations and commands the decoder
+//! reads back exactly what the encoder was given, and every invalid
+//! configuration is refused with a message naming its key.
+
+use ppm_shared::config::{ChannelOverride, Config, PpmSection};
+use ppm_shared::decode::{decode, DecoderLimits};
+use ppm_shared::frame::{Channels, FrameModel, Level};
+use ppm_shared::protocol;
+use proptest::prelude::*;
+
+/// Per-channel limits in tenths of a microsecond: (min, default, max).
+fn limits() -> impl Strategy<Value = (u32, u32, u32)> {
+    (8_000u32..=16_000)
+        .prop_flat_map(|min| (Just(min), min..=22_000))
+        .prop_flat_map(|(min, max)| (Just(min), min..=max, Just(max)))
+}
+
+fn order() -> impl Strategy<Value = String> {
+    Just(vec!['A', 'E', 'T', 'R'])
+        .prop_shuffle()
+        .prop_map(|v| v.into_iter().collect())
+}
+
+/// A valid `[ppm]` section, built from its constraints.
+fn ppm_section() -> impl Strategy<Value = PpmSection> {
+    (
+        prop::collection::vec(limits(), 1..=16),
+        order(),
+        any::<bool>(),
+        0.0f64..1.0,
+        0.0f64..1.0,
+    )
+        .prop_filter_map(
+            "no frame length fits both sync limits",
+            |(lims, order, high, frame_pick, pulse_pick)| {
+                let us = |t: u32| t as f64 / 10.0;
+                let sum_max: f64 = lims.iter().map(|l| us(l.2)).sum();
+                let sum_min: f64 = lims.iter().map(|l| us(l.0)).sum();
+                let (lo, hi) = (sum_max + 4_000.0, sum_min + 19_000.0);
+                if lo > hi {
+                    return None;
+                }
+                let frame_us = (lo + (hi - lo) * frame_pick).round();
+                let smallest_min = lims.iter().map(|l| us(l.0)).fold(f64::MAX, f64::min);
+                let pulse_us = (50.0 + (smallest_min - 51.0) * pulse_pick).floor();
+                let names =
+                    ppm_shared::config::channel_names(&order, lims.len()).expect("valid order");
+                let channel = names
+                    .iter()
+                    .zip(&lims)
+                    .map(|(n, l)| {
+                        let o = ChannelOverride {
+                            min_us: Some(us(l.0)),
+                            default_us: Some(us(l.1)),
+                            max_us: Some(us(l.2)),
+                        };
+                        (n.clone(), o)
+                    })
+                    .collect();
+                Some(PpmSection {
+                    channels: lims.len() as u32,
+                    frame_us: if frame_us < lo {
+                        lo.ceil()
+                    } else {
+                        frame_us.min(hi)
+                    },
+                    pulse_us,
+                    idle_level: if high { Level::High } else { Level::Low },
+                    order,
+                    channel,
+                    ..PpmSection::default()
+                })
+            },
+        )
+}
+
+/// A model and values for every channel within its limits (ns).
+fn model_and_values() -> impl Strategy<Value = (FrameModel, Vec<u32>)> {
+    ppm_section()
+        .prop_map(|s| FrameModel::from_config(&s).expect("generated config is valid"))
+        .prop_flat_map(|m| {
+            let ranges: Vec<_> = (0..m.channels())
+                .map(|i| m.min_ns(i)..=m.max_ns(i))
+                .collect();
+            (Just(m), ranges)
+        })
+}
+
+/// Three consecutive frames on one timeline, plus the next frame's first edge.
+fn waveform(m: &FrameModel, frames: &[Channels]) -> Vec<(u64, Level)> {
+    let mut out = vec![];
+    for (k, c) in frames.iter().enumerate() {
+        let start = k as u64 * m.frame_ns();
+        out.extend(
+            m.encode(c)
+                .edges()
+                .iter()
+                .map(|e| (start + e.at_ns, e.level)),
+        );
+    }
+    out.push((
+        frames.len() as u64 * m.frame_ns(),
+        m.idle_level().opposite(),
+    ));
+    out
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(512))]
+
+    #[test]
+    fn decode_encode_is_identity((m, values) in model_and_values()) {
+        let c = Channels::from_ns(&values);
+        let edges = waveform(&m, &[c, c, c]);
+        let frames = decode(edges, m.idle_level().opposite(), DecoderLimits::default());
+        // The first frame has no sync before it; a transmitter reads the next two.
+        prop_assert_eq!(frames.len(), 2);
+        for (k, f) in frames.iter().enumerate() {
+            let want: Vec<u64> = values.iter().map(|&v| v as u64).collect();
+            prop_assert_eq!(&f.channels_ns, &want);
+            prop_assert!(f.complete);
+            prop_assert_eq!(f.start_ns, (k as u64 + 1) * m.frame_ns());
+        }
+    }
+
+    #[test]
+    fn wire_to_line_keeps_a_tenth_of_a_microsecond(
+        (m, values) in model_and_values(),
+        give in 1usize..=16,
+    ) {
+        // Values with one decimal, as a sender would write them.
+        let give = give.min(m.channels());
+        let tenths: Vec<u64> = values[..give].iter().map(|&v| (v as u64 + 50) / 100).collect();
+        let text = format!(
+            "[{}]",
+            tenths.iter().map(|t| format!("{}.{}", t / 10, t % 10)).collect::<Vec<_>>().join(",")
+        );
+        let cmd = protocol::parse(text.as_bytes(), &m).expect("valid command");
+        let frames = decode(
+            waveform(&m, &[cmd.channels, cmd.channels]),
+            m.idle_level().opposite(),
+            DecoderLimits::default(),
+        );
+        prop_assert_eq!(frames.len(), 1);
+        for i in 0..m.channels() {
+            let want = match tenths.get(i) {
+                Some(t) => m.clamp(i, (*t * 100) as u32).0 as u64,
+                None => m.default_ns(i) as u64,
+            };
+            prop_assert_eq!(frames[0].channels_ns[i], want, "channel {}", i + 1);
+        }
+    }
+
+    #[test]
+    fn invalid_configs_name_their_key(s in ppm_section(), which in 0usize..10, pick in 0usize..16) {
+        let names = ppm_shared::config::channel_names(&s.order, s.channels as usize).unwrap();
+        let name = names[pick % names.len()].clone();
+        let mut bad = s.clone();
+        let o = bad.channel.get_mut(&name).unwrap();
+        let (min, max) = (o.min_us.unwrap(), o.max_us.unwrap());
+        let smallest_min = s.channel.values().map(|o| o.min_us.unwrap()).fold(f64::MAX, f64::min);
+        let sum = |f: fn(&ChannelOverride) -> f64| -> f64 { s.channel.values().map(f).sum() };
+        let key = match which {
+            0 => { bad.channels = if pick % 2 == 0 { 0 } else { 17 + pick as u32 }; "ppm.channels".to_string() }
+            1 => { bad.pulse_us = smallest_min + pick as f64; "ppm.pulse_us".into() }
+            2 => { bad.frame_us = sum(|o| o.max_us.unwrap()) + 4_000.0 - 1.0 - pick as f64; "ppm.frame_us".into() }
+            3 => { bad.frame_us = sum(|o| o.min_us.unwrap()) + 19_000.0 + 1.0 + pick as f64; "ppm.frame_us".into() }
+            4 => { o.min_us = Some(799.9 - pick as f64); format!("ppm.channel.{name}.min_us") }
+            5 => { o.max_us = Some(2_200.1 + pick as f64); format!("ppm.channel.{name}.max_us") }
+            6 => { o.default_us = Some(if pick % 2 == 0 { min - 0.1 } else { max + 0.1 }); format!("ppm.channel.{name}.default_us") }
+            7 => { o.min_us = Some(max + 0.1); format!("ppm.channel.{name}.min_us") }
+            8 => { bad.order = ["AETRA", "AER", "XETR", "aetr x"][pick % 4].into(); "ppm.order".into() }
+            _ => { bad.channel.insert(format!("aux{}", 13 + pick), ChannelOverride::default()); format!("ppm.channel.aux{}", 13 + pick) }
+        };
+        let cfg = Config { ppm: bad, ..Config::default() };
+        let err = cfg.validate().expect_err("mutated config must be refused");
+        prop_assert_eq!(err.key(), Some(key.as_str()), "{}", err);
+        prop_assert!(err.to_string().contains(&key), "{}", err);
+    }
+}
