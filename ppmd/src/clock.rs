@@ -1,23 +1,8 @@
 //! CLOCK_MONOTONIC time in nanoseconds and absolute-deadline sleeps.
 
 use nix::sys::time::TimeSpec;
-use nix::time::{clock_gettime, clock_nanosleep, ClockId, ClockNanosleepFlags};
-
-/// CLOCK_MONOTONIC now, in nanoseconds (a vDSO read: no system call).
-pub fn now_ns() -> u64 {
-    read(ClockId::CLOCK_MONOTONIC)
-}
-
-/// CLOCK_REALTIME now, in nanoseconds since the Unix epoch.
-pub fn realtime_ns() -> u64 {
-    read(ClockId::CLOCK_REALTIME)
-}
-
-fn read(clock: ClockId) -> u64 {
-    // Both clocks always exist on Linux; the read cannot fail.
-    let t = clock_gettime(clock).expect("clock_gettime");
-    t.tv_sec() as u64 * 1_000_000_000 + t.tv_nsec() as u64
-}
+use nix::time::{clock_nanosleep, ClockId, ClockNanosleepFlags};
+pub use ppm_shared::time::{now_ns, realtime_ns};
 
 /// Sleeps until CLOCK_MONOTONIC reaches `deadline_ns` (an absolute deadline,
 /// so a late wake-up never shifts later deadlines). Resumes after signals.

@@ -8,12 +8,14 @@
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
+//! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
 
 pub mod config;
 pub mod decode;
 pub mod frame;
 pub mod ipc;
 pub mod protocol;
+pub mod time;
 pub mod trace;
 
 pub use config::{Config, ConfigError};

@@ -1,1 +1,181 @@
-fn main() {}
+//! `udp-ingress`: receives JSON commands over UDP and publishes the newest
+//! valid one to ppmd through iceoryx2 shared memory.
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use iceoryx2::port::update_connections::UpdateConnections;
+use mio::net::UdpSocket;
+use mio::{Events, Interest, Poll, Token};
+use ppm_shared::config::Config;
+use ppm_shared::ipc::{self, CommandSample};
+use ppm_shared::time::{now_ns, realtime_ns};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use udp_ingress::{Intake, Outcome};
+
+/// UDP command receiver: keeps the newest valid command and hands it to ppmd
+/// through shared memory.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Cli {
+    /// Configuration file (TOML); every key has a default.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Output name; must match ppmd's. Overrides `name`.
+    #[arg(long)]
+    name: Option<String>,
+    /// Address and port to receive on. Overrides `ingress.listen`.
+    #[arg(long, value_name = "ADDR:PORT")]
+    listen: Option<SocketAddr>,
+}
+
+const SOCKET: Token = Token(0);
+/// Longest wait for datagrams; on each wake-up the publisher also offers its
+/// last sample to subscribers that connected since (a restarted ppmd).
+const POLL_TIMEOUT: Duration = Duration::from_millis(20);
+/// Largest UDP payload.
+const MAX_DATAGRAM: usize = 65_536;
+/// How often the counters are logged while datagrams arrive.
+const REPORT_EVERY: Duration = Duration::from_secs(60);
+
+type Publisher =
+    iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, CommandSample, ()>;
+
+fn main() {
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("info"))
+        .format_timestamp_millis()
+        .init();
+    ipc::init_ipc_logging();
+    if let Err(e) = run(Cli::parse()) {
+        log::error!("{e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let mut cfg = match &cli.config {
+        Some(path) => Config::load(path)?,
+        None => Config::default(),
+    };
+    if let Some(name) = cli.name {
+        cfg.name = name;
+    }
+    if let Some(listen) = cli.listen {
+        cfg.ingress.listen = listen;
+    }
+    let model = cfg.validate()?;
+    let listen = cfg.ingress.listen;
+
+    let std_socket = std::net::UdpSocket::bind(listen).with_context(|| {
+        format!("cannot listen on {listen} (another udp-ingress there? set ingress.listen or --listen)")
+    })?;
+    std_socket.set_nonblocking(true)?;
+    let rcvbuf = set_receive_buffer(&std_socket, cfg.ingress.recv_buffer_bytes)?;
+    let mut socket = UdpSocket::from_std(std_socket);
+
+    let node = ipc::create_node(&cfg.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
+    let service = ipc::open_command_service(&node, &cfg.name)?;
+    let publisher: Publisher = service
+        .publisher_builder()
+        .create()
+        .map_err(|e| anyhow::anyhow!("creating publisher on `{}`: {e:?}", ipc::command_service_name(&cfg.name)))?;
+
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;
+    }
+
+    let mut poll = Poll::new().context("creating mio poll")?;
+    poll.registry()
+        .register(&mut socket, SOCKET, Interest::READABLE)?;
+    log::info!(
+        "listening on {} (receive buffer {} bytes), {} channels ({}); publishing to `{}` (ipc root {})",
+        socket.local_addr()?,
+        rcvbuf,
+        model.channels(),
+        model.names().join(" "),
+        ipc::command_service_name(&cfg.name),
+        cfg.ipc.root.display()
+    );
+
+    let mut intake = Intake::new(
+        model,
+        Duration::from_millis(cfg.ingress.reject_log_interval_ms),
+    );
+    let mut events = Events::with_capacity(8);
+    let mut buf = vec![0u8; MAX_DATAGRAM];
+    let mut ingress_seq = 0u64;
+    let mut publish_errors = 0u64;
+    let mut last_report = Instant::now();
+    let mut reported_received = 0;
+    while !stop.load(Relaxed) {
+        if let Err(e) = poll.poll(&mut events, Some(POLL_TIMEOUT)) {
+            if e.kind() == std::io::ErrorKind::Interrupted {
+                continue;
+            }
+            return Err(e).context("waiting for datagrams");
+        }
+        // Drain everything pending: only the newest valid command is published.
+        loop {
+            match socket.recv_from(&mut buf) {
+                Ok((n, from)) => {
+                    let (mono, real) = (now_ns(), realtime_ns());
+                    match intake.offer(&buf[..n], from, mono, real, Instant::now()) {
+                        Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
+                        Outcome::Stale => log::debug!("stale command from {from} dropped"),
+                        _ => {}
+                    }
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => {
+                    log::warn!("receive error: {e}");
+                    break;
+                }
+            }
+        }
+        if let Some(r) = intake.take() {
+            ingress_seq += 1;
+            let sample = CommandSample::new(&r.command, ingress_seq, r.mono_ns, r.real_ns);
+            let sent = publisher
+                .loan_uninit()
+                .map(|s| s.write_payload(sample))
+                .map_err(|e| format!("{e:?}"))
+                .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
+            if let Err(e) = sent {
+                publish_errors += 1;
+                log::warn!("publishing command failed: {e}");
+            }
+        } else if let Err(e) = publisher.update_connections() {
+            log::debug!("updating connections: {e:?}");
+        }
+        let received = intake.counters().received;
+        if last_report.elapsed() >= REPORT_EVERY && received != reported_received {
+            log::info!("{}", intake.counters().summary());
+            last_report = Instant::now();
+            reported_received = received;
+        }
+    }
+    log::info!(
+        "stopped: {}, publish errors {publish_errors}",
+        intake.counters().summary()
+    );
+    Ok(())
+}
+
+/// Sets SO_RCVBUF and returns what the kernel granted (it doubles the
+/// request and caps it at net.core.rmem_max).
+fn set_receive_buffer(socket: &std::net::UdpSocket, bytes: u32) -> Result<usize> {
+    use nix::sys::socket::{getsockopt, setsockopt, sockopt::RcvBuf};
+    setsockopt(socket, RcvBuf, &(bytes as usize)).context("setting SO_RCVBUF")?;
+    let granted = getsockopt(socket, RcvBuf).context("reading SO_RCVBUF")?;
+    if granted < bytes as usize {
+        log::warn!(
+            "receive buffer is {granted} bytes, less than the {bytes} asked for: raise net.core.rmem_max"
+        );
+    }
+    Ok(granted)
+}

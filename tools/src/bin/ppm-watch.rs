@@ -1,0 +1,138 @@
+//! `ppm-watch`: decodes the simulated line's trace as a transmitter would and
+//! shows the channel values, live or once.
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use ppm_shared::decode::{DecodedFrame, Decoder, DecoderLimits};
+use ppm_shared::frame::Level;
+use ppm_shared::trace::{parse_line, Trace};
+use ppm_tools::parse_duration;
+use std::fs::File;
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+/// Decode a ppmd sim trace with transmitter semantics and print the channels.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Cli {
+    /// The trace file written by `ppmd --output sim:PATH`.
+    trace: PathBuf,
+    /// Decode the whole file once, print every frame, and exit.
+    #[arg(long)]
+    once: bool,
+    /// While following, print at most one frame per this interval.
+    #[arg(long, default_value = "200ms", value_parser = parse_duration)]
+    every: Duration,
+    /// Decode by actual edge times instead of scheduled times.
+    #[arg(long)]
+    actual: bool,
+}
+
+fn main() {
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("ppm-watch: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    if cli.once {
+        let text = std::fs::read_to_string(&cli.trace)
+            .with_context(|| format!("reading {}", cli.trace.display()))?;
+        let mut header = Header::default();
+        text.lines().for_each(|l| header.take(l));
+        let trace = Trace::read(text.as_bytes())?;
+        let mut out = std::io::stdout().lock();
+        for f in trace.decode(cli.actual) {
+            if writeln!(out, "{}", header.format(&f)).is_err() {
+                break; // reader went away (e.g. `| head`)
+            }
+        }
+        return Ok(());
+    }
+    follow(&cli)
+}
+
+/// What the trace's `#` header says.
+#[derive(Default)]
+struct Header {
+    idle: Option<Level>,
+    names: Vec<String>,
+}
+
+impl Header {
+    fn take(&mut self, line: &str) {
+        if let Some(v) = line.strip_prefix("# idle_level ") {
+            self.idle = Some(Level::from_bit(v.trim() == "1"));
+        } else if let Some(v) = line.strip_prefix("# channels ") {
+            self.names = v.trim().split(',').map(str::to_string).collect();
+        }
+    }
+
+    fn format(&self, f: &DecodedFrame) -> String {
+        let mut s = format!("{:>14.6} s ", f.start_ns as f64 / 1e9);
+        for (i, ns) in f.channels_ns.iter().enumerate() {
+            let name = self.names.get(i).cloned().unwrap_or_else(|| format!("ch{}", i + 1));
+            s += &format!(" {name} {:7.1}", *ns as f64 / 1e3);
+        }
+        if !f.complete {
+            s += "  (incomplete)";
+        }
+        s
+    }
+}
+
+/// Follows the file as ppmd writes it (like `tail -f`), starting over when
+/// ppmd restarts and truncates it.
+fn follow(cli: &Cli) -> Result<()> {
+    let mut file = loop {
+        match File::open(&cli.trace) {
+            Ok(f) => break f,
+            Err(_) => std::thread::sleep(Duration::from_millis(200)),
+        }
+    };
+    eprintln!("watching {} (Ctrl-C to stop)", cli.trace.display());
+    let mut header = Header::default();
+    let mut decoder: Option<Decoder> = None;
+    let mut pending = String::new();
+    let mut offset = 0u64;
+    let mut last_print: Option<Instant> = None;
+    let mut last_edge = Instant::now();
+    let mut silent = true;
+    let mut buf = Vec::new();
+    loop {
+        let len = file.metadata()?.len();
+        if len < offset {
+            file.seek(SeekFrom::Start(0))?;
+            (offset, header, decoder) = (0, Header::default(), None);
+            pending.clear();
+            eprintln!("trace restarted");
+        }
+        buf.clear();
+        offset += file.read_to_end(&mut buf)? as u64;
+        pending.push_str(&String::from_utf8_lossy(&buf));
+        while let Some(nl) = pending.find('\n') {
+            let line: String = pending.drain(..=nl).collect();
+            header.take(line.trim_end());
+            let Some(Ok(edge)) = parse_line(&line) else { continue };
+            last_edge = Instant::now();
+            let d = decoder.get_or_insert_with(|| {
+                Decoder::new(header.idle.unwrap_or(Level::Low).opposite(), DecoderLimits::default())
+            });
+            let t = if cli.actual { edge.actual_ns } else { edge.scheduled_ns };
+            if let Some(frame) = d.push(t, edge.level) {
+                silent = false;
+                if last_print.is_none_or(|p| p.elapsed() >= cli.every) {
+                    println!("{}", header.format(&frame));
+                    last_print = Some(Instant::now());
+                }
+            }
+        }
+        if !silent && last_edge.elapsed() > Duration::from_secs(1) {
+            println!("line silent: no pulses");
+            silent = true;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
