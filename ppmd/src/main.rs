@@ -126,8 +126,11 @@ fn spawn_reporter(stats: Arc<Stats>, stop: Arc<AtomicBool>) -> std::thread::Join
         .spawn(move || {
             let mut state = LineState::Silent;
             let mut mismatched = 0;
-            while !stop.load(Relaxed) {
+            loop {
                 std::thread::sleep(Duration::from_millis(100));
+                if stop.load(Relaxed) {
+                    break;
+                }
                 let now = stats.state();
                 if now != state {
                     match now {

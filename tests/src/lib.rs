@@ -1,1 +1,237 @@
-//! Helpers for the whole-system tests.
+//! Helpers for the whole-system tests: build and locate the real binaries,
+//! run them as separate processes in an isolated temporary directory (own
+//! shared-memory root, own output name, own UDP port), and stop them.
+
+use std::fs::File;
+use std::net::{SocketAddr, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+/// The directory holding the workspace's binaries, built once per test run
+/// with the same profile as the tests.
+pub fn bin_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        // target/<profile>/deps/<test binary>
+        let exe = std::env::current_exe().expect("current_exe");
+        let dir = exe
+            .parent()
+            .and_then(Path::parent)
+            .expect("target/<profile>");
+        let release = dir.file_name().is_some_and(|n| n == "release");
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let mut cmd = Command::new(cargo);
+        cmd.args([
+            "build",
+            "--bins",
+            "-p",
+            "ppmd",
+            "-p",
+            "udp-ingress",
+            "-p",
+            "ppm-tools",
+        ]);
+        if release {
+            cmd.arg("--release");
+        }
+        let status = cmd
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .status()
+            .expect("running cargo build for the binaries");
+        assert!(status.success(), "building the binaries failed");
+        dir.to_owned()
+    })
+}
+
+/// Path of one of the workspace's binaries.
+pub fn bin(name: &str) -> PathBuf {
+    bin_dir().join(name)
+}
+
+/// A fresh directory for one test, removed when the test passes.
+pub struct Sandbox {
+    /// The directory.
+    pub dir: PathBuf,
+    /// A unique output name for this test.
+    pub name: String,
+    /// A free UDP port on 127.0.0.1 for udp-ingress.
+    pub port: u16,
+}
+
+impl Sandbox {
+    /// A new sandbox for the test `label`.
+    pub fn new(label: &str) -> Sandbox {
+        static NEXT: AtomicU32 = AtomicU32::new(0);
+        let name = format!(
+            "t{}x{}",
+            std::process::id(),
+            NEXT.fetch_add(1, Ordering::Relaxed)
+        );
+        let dir = std::env::temp_dir().join(format!("ppm-test-{label}-{name}"));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("creating the test directory");
+        Sandbox {
+            dir,
+            name,
+            port: free_udp_port(),
+        }
+    }
+
+    /// Writes `ppm.toml` with this sandbox's name, port and shared-memory
+    /// root, plus `extra` TOML (sections after the top-level keys).
+    pub fn config(&self, extra: &str) -> PathBuf {
+        let path = self.dir.join("ppm.toml");
+        let text = format!(
+            "name = \"{}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n{extra}\n",
+            self.name,
+            self.port,
+            self.dir.join("ipc").display()
+        );
+        std::fs::write(&path, text).expect("writing the config");
+        path
+    }
+
+    /// The ingress's address.
+    pub fn addr(&self) -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], self.port))
+    }
+
+    /// Starts a binary with arguments; its stderr goes to `<dir>/<log>.log`.
+    pub fn spawn(&self, binary: &str, args: &[&str], log: &str) -> Proc {
+        let log_path = self.dir.join(format!("{log}.log"));
+        let child = Command::new(bin(binary))
+            .args(args)
+            .current_dir(&self.dir)
+            .env("RUST_LOG", "info")
+            .stdin(Stdio::null())
+            .stdout(File::create(self.dir.join(format!("{log}.out"))).unwrap())
+            .stderr(File::create(&log_path).unwrap())
+            .spawn()
+            .unwrap_or_else(|e| panic!("starting {binary}: {e}"));
+        Proc {
+            child: Some(child),
+            log: log_path,
+        }
+    }
+}
+
+impl Drop for Sandbox {
+    /// Removes the directory unless the test failed (then it is kept for a look).
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
+}
+
+/// A port that was free a moment ago.
+pub fn free_udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .expect("binding an ephemeral port")
+        .port()
+}
+
+/// A running process, killed when dropped.
+pub struct Proc {
+    child: Option<Child>,
+    /// Its stderr log.
+    pub log: PathBuf,
+}
+
+impl Proc {
+    /// Sends `signal` and waits up to `timeout` for the exit.
+    pub fn signal_and_wait(
+        &mut self,
+        signal: nix::sys::signal::Signal,
+        timeout: Duration,
+    ) -> ExitStatus {
+        let child = self.child.as_mut().expect("process already reaped");
+        let pid = nix::unistd::Pid::from_raw(child.id() as i32);
+        nix::sys::signal::kill(pid, signal).expect("sending a signal");
+        self.wait(timeout)
+    }
+
+    /// Waits up to `timeout` for the process to exit by itself.
+    pub fn wait(&mut self, timeout: Duration) -> ExitStatus {
+        let mut child = self.child.take().expect("process already reaped");
+        let end = Instant::now() + timeout;
+        loop {
+            if let Some(status) = child.try_wait().expect("waiting") {
+                return status;
+            }
+            if Instant::now() > end {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!(
+                    "process did not exit within {timeout:?}; log:\n{}",
+                    self.log_text()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    /// Kills the process with SIGKILL (as a crash would).
+    pub fn kill(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+
+    /// Its stderr so far.
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Waits until its log contains `needle`.
+    pub fn wait_for_log(&self, needle: &str, timeout: Duration) {
+        let end = Instant::now() + timeout;
+        while !self.log_text().contains(needle) {
+            assert!(
+                Instant::now() < end,
+                "`{needle}` did not appear in {} within {timeout:?}:\n{}",
+                self.log.display(),
+                self.log_text()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// Sends datagrams from one socket.
+pub struct Sender {
+    socket: UdpSocket,
+    to: SocketAddr,
+}
+
+impl Sender {
+    /// A sender to `to`.
+    pub fn new(to: SocketAddr) -> Sender {
+        Sender {
+            socket: UdpSocket::bind("127.0.0.1:0").expect("binding a sender socket"),
+            to,
+        }
+    }
+
+    /// Sends one datagram.
+    pub fn send(&self, bytes: &[u8]) {
+        self.socket.send_to(bytes, self.to).expect("sending");
+    }
+}
+
+/// Reads and decodes a sim trace by scheduled time.
+pub fn read_trace(path: &Path) -> ppm_shared::trace::Trace {
+    let f = File::open(path).unwrap_or_else(|e| panic!("opening {}: {e}", path.display()));
+    ppm_shared::trace::Trace::read(std::io::BufReader::new(f)).expect("reading the trace")
+}

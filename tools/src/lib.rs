@@ -54,7 +54,10 @@ mod tests {
     #[test]
     fn seq_is_added() {
         let a: serde_json::Value = serde_json::from_str("[1000, 1200]").unwrap();
-        assert_eq!(with_seq(&a, 7).unwrap().to_string(), r#"{"ch":[1000,1200],"seq":7}"#);
+        assert_eq!(
+            with_seq(&a, 7).unwrap().to_string(),
+            r#"{"ch":[1000,1200],"seq":7}"#
+        );
         let o: serde_json::Value = serde_json::from_str(r#"{"ail":1500,"seq":1}"#).unwrap();
         assert_eq!(with_seq(&o, 9).unwrap()["seq"], 9);
         assert!(with_seq(&serde_json::json!(5), 1).is_err());

@@ -202,7 +202,10 @@ mod tests {
     use ppm_shared::config::Config;
 
     fn intake() -> Intake {
-        Intake::new(Config::default().validate().unwrap(), Duration::from_secs(1))
+        Intake::new(
+            Config::default().validate().unwrap(),
+            Duration::from_secs(1),
+        )
     }
 
     fn from() -> SocketAddr {
@@ -228,19 +231,34 @@ mod tests {
         assert_eq!(r.mono_ns, 2);
         assert_eq!(i.take(), None, "published once");
         let c = i.counters();
-        assert_eq!((c.received, c.published, c.superseded, c.rejected_total()), (4, 1, 1, 2));
+        assert_eq!(
+            (c.received, c.published, c.superseded, c.rejected_total()),
+            (4, 1, 1, 2)
+        );
     }
 
     #[test]
     fn stale_seq_is_dropped_across_wakeups() {
         let mut i = intake();
         let t = Instant::now();
-        assert_eq!(i.offer(br#"{"ch":[1100],"seq":5}"#, from(), 1, 1, t), Outcome::Accepted);
+        assert_eq!(
+            i.offer(br#"{"ch":[1100],"seq":5}"#, from(), 1, 1, t),
+            Outcome::Accepted
+        );
         i.take();
-        assert_eq!(i.offer(br#"{"ch":[1200],"seq":5}"#, from(), 2, 2, t), Outcome::Stale);
-        assert_eq!(i.offer(br#"{"ch":[1200],"seq":4}"#, from(), 3, 3, t), Outcome::Stale);
+        assert_eq!(
+            i.offer(br#"{"ch":[1200],"seq":5}"#, from(), 2, 2, t),
+            Outcome::Stale
+        );
+        assert_eq!(
+            i.offer(br#"{"ch":[1200],"seq":4}"#, from(), 3, 3, t),
+            Outcome::Stale
+        );
         assert_eq!(i.take(), None);
-        assert_eq!(i.offer(br#"{"ch":[1300],"seq":6}"#, from(), 4, 4, t), Outcome::Accepted);
+        assert_eq!(
+            i.offer(br#"{"ch":[1300],"seq":6}"#, from(), 4, 4, t),
+            Outcome::Accepted
+        );
         assert_eq!(i.take().unwrap().command.seq, Some(6));
         assert_eq!(i.counters().stale, 2);
     }
@@ -249,7 +267,10 @@ mod tests {
     fn clamps_are_counted() {
         let mut i = intake();
         i.offer(b"[900, 2100, 1500]", from(), 1, 1, Instant::now());
-        assert_eq!((i.counters().clamped_commands, i.counters().clamped_values), (1, 2));
+        assert_eq!(
+            (i.counters().clamped_commands, i.counters().clamped_values),
+            (1, 2)
+        );
         assert!(i.counters().summary().contains("clamped 1 (values 2)"));
     }
 
@@ -258,9 +279,21 @@ mod tests {
         let mut l = RejectLog::new(Duration::from_secs(1));
         let t = Instant::now();
         assert_eq!(l.note(RejectReason::InvalidJson, t), Some(0));
-        assert_eq!(l.note(RejectReason::InvalidJson, t + Duration::from_millis(10)), None);
-        assert_eq!(l.note(RejectReason::InvalidJson, t + Duration::from_millis(20)), None);
-        assert_eq!(l.note(RejectReason::BadShape, t + Duration::from_millis(30)), Some(0));
-        assert_eq!(l.note(RejectReason::InvalidJson, t + Duration::from_millis(1001)), Some(2));
+        assert_eq!(
+            l.note(RejectReason::InvalidJson, t + Duration::from_millis(10)),
+            None
+        );
+        assert_eq!(
+            l.note(RejectReason::InvalidJson, t + Duration::from_millis(20)),
+            None
+        );
+        assert_eq!(
+            l.note(RejectReason::BadShape, t + Duration::from_millis(30)),
+            Some(0)
+        );
+        assert_eq!(
+            l.note(RejectReason::InvalidJson, t + Duration::from_millis(1001)),
+            Some(2)
+        );
     }
 }

@@ -70,7 +70,9 @@ fn run(cli: Cli) -> Result<()> {
     let listen = cfg.ingress.listen;
 
     let std_socket = std::net::UdpSocket::bind(listen).with_context(|| {
-        format!("cannot listen on {listen} (another udp-ingress there? set ingress.listen or --listen)")
+        format!(
+            "cannot listen on {listen} (another udp-ingress there? set ingress.listen or --listen)"
+        )
     })?;
     std_socket.set_nonblocking(true)?;
     let rcvbuf = set_receive_buffer(&std_socket, cfg.ingress.recv_buffer_bytes)?;
@@ -78,10 +80,12 @@ fn run(cli: Cli) -> Result<()> {
 
     let node = ipc::create_node(&cfg.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
     let service = ipc::open_command_service(&node, &cfg.name)?;
-    let publisher: Publisher = service
-        .publisher_builder()
-        .create()
-        .map_err(|e| anyhow::anyhow!("creating publisher on `{}`: {e:?}", ipc::command_service_name(&cfg.name)))?;
+    let publisher: Publisher = service.publisher_builder().create().map_err(|e| {
+        anyhow::anyhow!(
+            "creating publisher on `{}`: {e:?}",
+            ipc::command_service_name(&cfg.name)
+        )
+    })?;
 
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {

@@ -83,8 +83,14 @@ fn run(cli: Cli) -> Result<()> {
             let start = Instant::now();
             let fixed = encode(command)?; // also checks COMMAND before the first send
             while !done(sent) {
-                let bytes = if cli.seq { encode(command)? } else { fixed.clone() };
-                socket.send_to(&bytes, to).with_context(|| format!("sending to {to}"))?;
+                let bytes = if cli.seq {
+                    encode(command)?
+                } else {
+                    fixed.clone()
+                };
+                socket
+                    .send_to(&bytes, to)
+                    .with_context(|| format!("sending to {to}"))?;
                 sent += 1;
                 let next = start + period.mul_f64(sent as f64);
                 if let Some(wait) = next.checked_duration_since(Instant::now()) {
@@ -103,7 +109,9 @@ fn run(cli: Cli) -> Result<()> {
                 }
                 match encode(&line) {
                     Ok(bytes) => {
-                        socket.send_to(&bytes, to).with_context(|| format!("sending to {to}"))?;
+                        socket
+                            .send_to(&bytes, to)
+                            .with_context(|| format!("sending to {to}"))?;
                         sent += 1;
                     }
                     Err(e) => eprintln!("ppm-send: skipped: {e:#}"),

@@ -73,7 +73,11 @@ impl Header {
     fn format(&self, f: &DecodedFrame) -> String {
         let mut s = format!("{:>14.6} s ", f.start_ns as f64 / 1e9);
         for (i, ns) in f.channels_ns.iter().enumerate() {
-            let name = self.names.get(i).cloned().unwrap_or_else(|| format!("ch{}", i + 1));
+            let name = self
+                .names
+                .get(i)
+                .cloned()
+                .unwrap_or_else(|| format!("ch{}", i + 1));
             s += &format!(" {name} {:7.1}", *ns as f64 / 1e3);
         }
         if !f.complete {
@@ -115,12 +119,21 @@ fn follow(cli: &Cli) -> Result<()> {
         while let Some(nl) = pending.find('\n') {
             let line: String = pending.drain(..=nl).collect();
             header.take(line.trim_end());
-            let Some(Ok(edge)) = parse_line(&line) else { continue };
+            let Some(Ok(edge)) = parse_line(&line) else {
+                continue;
+            };
             last_edge = Instant::now();
             let d = decoder.get_or_insert_with(|| {
-                Decoder::new(header.idle.unwrap_or(Level::Low).opposite(), DecoderLimits::default())
+                Decoder::new(
+                    header.idle.unwrap_or(Level::Low).opposite(),
+                    DecoderLimits::default(),
+                )
             });
-            let t = if cli.actual { edge.actual_ns } else { edge.scheduled_ns };
+            let t = if cli.actual {
+                edge.actual_ns
+            } else {
+                edge.scheduled_ns
+            };
             if let Some(frame) = d.push(t, edge.level) {
                 silent = false;
                 if last_print.is_none_or(|p| p.elapsed() >= cli.every) {

@@ -1,0 +1,231 @@
+//! The whole pipeline with the real binaries as separate processes:
+//! UDP datagrams in, udp-ingress, shared memory, ppmd, the simulated line's
+//! trace out, decoded with transmitter semantics.
+
+use nix::sys::signal::Signal;
+use ppm_shared::time::now_ns;
+use ppm_tests::{read_trace, Sandbox, Sender};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+const FRAME_NS: u64 = 22_500_000;
+const SECOND: Duration = Duration::from_secs(1);
+
+fn start_pipeline(
+    sb: &Sandbox,
+    extra_config: &str,
+    trace: &str,
+) -> (ppm_tests::Proc, ppm_tests::Proc) {
+    let cfg = sb.config(extra_config);
+    let cfg = cfg.to_str().unwrap();
+    let output = format!("sim:{}", sb.dir.join(trace).display());
+    let ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
+    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
+    ppmd.wait_for_log("commands from", 30 * SECOND);
+    ingress.wait_for_log("listening on", 30 * SECOND);
+    (ppmd, ingress)
+}
+
+/// Sends `send(i)` for i = 0.. at 50 Hz until `n` datagram slots have passed.
+fn at_50hz(n: u64, mut send: impl FnMut(u64)) {
+    let start = now_ns();
+    for i in 0..n {
+        send(i);
+        let next = start + (i + 1) * 20_000_000;
+        let now = now_ns();
+        if next > now {
+            std::thread::sleep(Duration::from_nanos(next - now));
+        }
+    }
+}
+
+#[test]
+fn commands_reach_the_line_and_malformed_datagrams_change_nothing() {
+    let sb = Sandbox::new("e2e");
+    let (mut ppmd, mut ingress) = start_pipeline(&sb, "", "line.trace");
+    let malformed: [(&[u8], &str); 8] = [
+        (b"\xff\xfe[1500]", "invalid_utf8"),
+        (b"[1000, 1200", "invalid_json"),
+        (br#"[1000, "1200"]"#, "not_a_number"),
+        (b"[1000, 1200, 2600]", "out_of_range"),
+        (
+            b"[1500,1500,1500,1500,1500,1500,1500,1500,1500]",
+            "too_many_values",
+        ),
+        (br#"{"yaw": 1500}"#, "unknown_channel"),
+        (b"{}", "bad_shape"),
+        (b"1500", "bad_shape"),
+    ];
+    let sender = Sender::new(sb.addr());
+    let first = now_ns();
+    let mut bad_sent = 0;
+    at_50hz(75, |i| {
+        sender.send(b"[1000,1200,1700,2000]");
+        if i % 3 == 1 {
+            sender.send(malformed[bad_sent % malformed.len()].0);
+            bad_sent += 1;
+        }
+    });
+    let last = now_ns();
+    std::thread::sleep(Duration::from_millis(100));
+    assert!(
+        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
+        "{}",
+        ppmd.log_text()
+    );
+    assert!(ingress
+        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
+        .success());
+
+    let trace = read_trace(&sb.dir.join("line.trace"));
+    let frames = trace.decode(false);
+    let want_ns: Vec<u64> = [1000, 1200, 1700, 2000, 1500, 1500, 1500, 1500]
+        .iter()
+        .map(|us| us * 1_000)
+        .collect();
+    // 1.5 s of commands: about 66 frames, the first one unreadable (no sync before it).
+    assert!(frames.len() >= 55, "only {} frames decoded", frames.len());
+    assert!(
+        frames[0].start_ns <= first + 3 * FRAME_NS,
+        "first readable frame starts {} ms after the first datagram",
+        (frames[0].start_ns as i64 - first as i64) / 1_000_000
+    );
+    for (k, f) in frames.iter().enumerate() {
+        // Scheduled times are exact: compare to the nanosecond (well within 1 us).
+        assert_eq!(f.channels_ns, want_ns, "frame {k} at {}", f.start_ns);
+        if k > 0 {
+            // Frames sit on one grid (a frame whose start a loaded machine
+            // missed is skipped whole, never shifted).
+            assert_eq!((f.start_ns - frames[k - 1].start_ns) % FRAME_NS, 0);
+        }
+    }
+    assert!(frames.last().unwrap().start_ns >= last - 2 * FRAME_NS);
+    // The line ends at its idle level (low).
+    assert_eq!(trace.edges.last().unwrap().level.as_u8(), 0);
+
+    // Every malformed datagram was counted under its reason.
+    let log = ingress.log_text();
+    let summary = log
+        .lines()
+        .find(|l| l.contains("stopped:"))
+        .expect("ingress summary");
+    assert!(
+        summary.contains(&format!("rejected {bad_sent} ")),
+        "{summary}"
+    );
+    for (_, reason) in &malformed[..bad_sent.min(malformed.len())] {
+        assert!(
+            summary.contains(&format!("{reason}=")),
+            "{reason} missing: {summary}"
+        );
+    }
+    assert!(summary.contains("received 100 "), "{summary}");
+}
+
+#[test]
+fn stale_seq_never_reaches_the_line() {
+    let sb = Sandbox::new("stale");
+    let (mut ppmd, _ingress) = start_pipeline(&sb, "", "line.trace");
+    let sender = Sender::new(sb.addr());
+    at_50hz(50, |i| {
+        sender.send(format!(r#"{{"ch": [1100], "seq": {}}}"#, 100 + i).as_bytes());
+        sender.send(br#"{"ch": [1900], "seq": 50}"#);
+    });
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    assert!(frames.len() >= 30, "{} frames", frames.len());
+    assert!(frames.iter().all(|f| f.channels_us()[0] == 1100));
+}
+
+#[test]
+fn either_start_order_and_restarts_of_either_process() {
+    let sb = Sandbox::new("restart");
+    let cfg = sb.config("");
+    let cfg = cfg.to_str().unwrap();
+    // Ingress first, with commands already flowing before ppmd exists.
+    let mut ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress1");
+    ingress.wait_for_log("listening on", 30 * SECOND);
+    let value = Arc::new(AtomicU64::new(1100));
+    let stop = Arc::new(AtomicBool::new(false));
+    let feeder = {
+        let (value, stop, addr) = (value.clone(), stop.clone(), sb.addr());
+        std::thread::spawn(move || {
+            let s = Sender::new(addr);
+            while !stop.load(Ordering::Relaxed) {
+                s.send(format!("[{}]", value.load(Ordering::Relaxed)).as_bytes());
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        })
+    };
+    std::thread::sleep(Duration::from_millis(300));
+    let sim = |n: u32| format!("sim:{}", sb.dir.join(format!("line{n}.trace")).display());
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &sim(1)], "ppmd1");
+    std::thread::sleep(Duration::from_millis(700));
+
+    // Ingress crashes; ppmd goes silent but keeps running; a new ingress resumes it.
+    ingress.kill();
+    std::thread::sleep(Duration::from_millis(500));
+    value.store(1300, Ordering::Relaxed);
+    let ingress2 = sb.spawn("udp-ingress", &["--config", cfg], "ingress2");
+    ingress2.wait_for_log("listening on", 30 * SECOND);
+    std::thread::sleep(Duration::from_millis(700));
+
+    // ppmd restarts; the new one takes the newest command from the running ingress.
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    value.store(1700, Ordering::Relaxed);
+    let mut ppmd2 = sb.spawn("ppmd", &["--config", cfg, "--output", &sim(2)], "ppmd2");
+    std::thread::sleep(Duration::from_millis(700));
+    assert!(ppmd2
+        .signal_and_wait(Signal::SIGTERM, 10 * SECOND)
+        .success());
+    stop.store(true, Ordering::Relaxed);
+    feeder.join().unwrap();
+
+    let first = read_trace(&sb.dir.join("line1.trace")).decode(false);
+    let ch1: Vec<u64> = first.iter().map(|f| f.channels_us()[0]).collect();
+    let gap = first
+        .windows(2)
+        .position(|w| w[1].start_ns - w[0].start_ns > FRAME_NS);
+    assert!(
+        ch1.iter().take_while(|&&v| v == 1100).count() >= 15,
+        "{ch1:?}"
+    );
+    assert!(
+        gap.is_some(),
+        "the line fell silent while no ingress ran: {ch1:?}"
+    );
+    assert!(
+        ch1.iter().rev().take_while(|&&v| v == 1300).count() >= 15,
+        "{ch1:?}"
+    );
+    assert!(ch1.iter().all(|&v| v == 1100 || v == 1300), "{ch1:?}");
+
+    let second = read_trace(&sb.dir.join("line2.trace")).decode(false);
+    assert!(
+        second.len() >= 15,
+        "{} frames after the ppmd restart",
+        second.len()
+    );
+    assert!(second.iter().all(|f| f.channels_us()[0] == 1700));
+}
+
+#[test]
+fn bad_config_stops_both_at_start_naming_the_key() {
+    let sb = Sandbox::new("badcfg");
+    for (extra, key) in [
+        ("[ppm]\nframe_us = 19000", "ppm.frame_us"),
+        ("[ppm]\nchanels = 8", "chanels"),
+        ("[ppm.channel.thr]\nmax_us = 2400", "ppm.channel.thr.max_us"),
+    ] {
+        let cfg = sb.config(extra);
+        let cfg = cfg.to_str().unwrap();
+        for bin in ["ppmd", "udp-ingress"] {
+            let mut p = sb.spawn(bin, &["--config", cfg], bin);
+            let status = p.wait(10 * SECOND);
+            assert!(!status.success(), "{bin} accepted {extra:?}");
+            let log = p.log_text();
+            assert!(log.contains(key), "{bin} did not name {key}: {log}");
+        }
+    }
+}
