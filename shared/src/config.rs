@@ -502,6 +502,12 @@ mod tests {
     }
 
     #[test]
+    fn example_file_lists_the_defaults() {
+        let text = include_str!("../../ppm.example.toml");
+        assert_eq!(Config::parse(text).unwrap(), Config::default());
+    }
+
+    #[test]
     fn empty_file_is_the_default() {
         assert_eq!(Config::parse("").unwrap(), Config::default());
     }
