@@ -2,7 +2,7 @@
 //!
 //! Every key is optional; a missing key takes the default documented on its
 //! field. Unknown keys are errors, so a typo cannot silently fall back to a
-//! default. [`Config::load`] parses, [`Config::frame_model`] validates the PPM
+//! default. [`Config::load`] parses, [`Config::validate`] validates the PPM
 //! settings against what real transmitters accept; both errors name the key.
 
 use crate::frame::{FrameModel, Level, MAX_CHANNELS};
