@@ -2,6 +2,8 @@
 //! [`Output::write`] once per edge; backends must not allocate, block, log
 //! or take a lock there.
 
+pub mod gpio;
+
 use ppm_shared::frame::Level;
 use ppm_shared::trace::TraceEdge;
 use std::fs::File;

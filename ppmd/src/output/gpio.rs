@@ -1,0 +1,1 @@
+//! The GPIO output: one line through the Linux GPIO character device (uAPI v2).
