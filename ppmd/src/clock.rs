@@ -24,19 +24,95 @@ pub fn sleep_until(deadline_ns: u64) {
     }
 }
 
-/// Sleeps until `spin_ns` before `deadline_ns`, then spins on the clock until
-/// the deadline. Returns the time read when the deadline was reached.
-pub fn wait_until(deadline_ns: u64, spin_ns: u64) -> u64 {
-    let wake = deadline_ns.saturating_sub(spin_ns);
-    if now_ns() < wake {
-        sleep_until(wake);
-    }
-    loop {
-        let now = now_ns();
-        if now >= deadline_ns {
-            return now;
+/// How far before an edge the timer stops sleeping and spins.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Margin {
+    /// Always this many nanoseconds.
+    Fixed(u64),
+    /// Follows the observed wake-up lateness, between `min_ns` and `max_ns`
+    /// (starting at `max_ns`).
+    Auto { min_ns: u64, max_ns: u64 },
+}
+
+/// A wake-up lateness decays out of the automatic margin with a half-life of
+/// about this many later wake-ups (1 - 2^-11 per wake-up: ~1400).
+const PEAK_DECAY_SHIFT: u32 = 11;
+/// Headroom the automatic margin keeps above the decayed peak lateness.
+const AUTO_HEADROOM_NS: u64 = 10_000;
+
+/// What one wait measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Waited {
+    /// CLOCK_MONOTONIC read when the deadline was reached (never before it).
+    pub now_ns: u64,
+    /// How late the sleep woke after its wake-up time, if it slept.
+    pub woke_late_ns: Option<u64>,
+    /// Time spent spinning.
+    pub spun_ns: u64,
+}
+
+/// Sleep-then-spin waits: an absolute sleep until a margin before the
+/// deadline, then a spin on CLOCK_MONOTONIC. The sleep's wake-up lateness is
+/// what the margin has to cover; with [`Margin::Auto`] the margin follows a
+/// slowly decaying peak of the lateness actually observed.
+#[derive(Debug, Clone)]
+pub struct EdgeTimer {
+    margin: Margin,
+    margin_ns: u64,
+    peak_late_ns: u64,
+}
+
+impl EdgeTimer {
+    /// A timer with this margin policy.
+    pub fn new(margin: Margin) -> EdgeTimer {
+        let margin_ns = match margin {
+            Margin::Fixed(ns) => ns,
+            Margin::Auto { max_ns, .. } => max_ns,
+        };
+        EdgeTimer {
+            margin,
+            margin_ns,
+            peak_late_ns: 0,
         }
-        std::hint::spin_loop();
+    }
+
+    /// The current margin in nanoseconds.
+    pub fn margin_ns(&self) -> u64 {
+        self.margin_ns
+    }
+
+    /// Waits until `deadline_ns`. Never returns early.
+    pub fn wait(&mut self, deadline_ns: u64) -> Waited {
+        let wake = deadline_ns.saturating_sub(self.margin_ns);
+        let mut woke_late_ns = None;
+        let mut spin_start = now_ns();
+        if spin_start < wake {
+            sleep_until(wake);
+            spin_start = now_ns();
+            let late = spin_start - wake;
+            woke_late_ns = Some(late);
+            self.observe(late);
+        }
+        loop {
+            let now = now_ns();
+            if now >= deadline_ns {
+                return Waited {
+                    now_ns: now,
+                    woke_late_ns,
+                    spun_ns: now.saturating_sub(spin_start),
+                };
+            }
+            std::hint::spin_loop();
+        }
+    }
+
+    fn observe(&mut self, late_ns: u64) {
+        if let Margin::Auto { min_ns, max_ns } = self.margin {
+            let decayed = self.peak_late_ns - (self.peak_late_ns >> PEAK_DECAY_SHIFT);
+            self.peak_late_ns = decayed.max(late_ns);
+            let want = self.peak_late_ns + self.peak_late_ns / 4 + AUTO_HEADROOM_NS;
+            self.margin_ns = want.clamp(min_ns, max_ns);
+        }
     }
 }
 
@@ -46,18 +122,51 @@ mod tests {
 
     #[test]
     fn never_returns_early() {
-        for spin in [0, 200_000] {
-            let deadline = now_ns() + 2_000_000;
-            let t = wait_until(deadline, spin);
-            assert!(t >= deadline);
-            assert!(now_ns() >= deadline);
+        for margin in [
+            Margin::Fixed(0),
+            Margin::Fixed(200_000),
+            Margin::Auto {
+                min_ns: 20_000,
+                max_ns: 500_000,
+            },
+        ] {
+            let mut t = EdgeTimer::new(margin);
+            for _ in 0..20 {
+                let deadline = now_ns() + 1_000_000;
+                let w = t.wait(deadline);
+                assert!(w.now_ns >= deadline);
+                assert!(w.woke_late_ns.is_some(), "it slept");
+            }
         }
     }
 
     #[test]
     fn past_deadline_returns_at_once() {
+        let mut t = EdgeTimer::new(Margin::Fixed(0));
         let t0 = now_ns();
-        let t = wait_until(t0 - 1_000_000, 0);
-        assert!(t >= t0);
+        let w = t.wait(t0 - 1_000_000);
+        assert!(w.now_ns >= t0);
+        assert_eq!(w.woke_late_ns, None, "no sleep");
+        assert!(w.spun_ns < 1_000_000);
+    }
+
+    #[test]
+    fn auto_margin_follows_lateness_within_bounds() {
+        let mut t = EdgeTimer::new(Margin::Auto {
+            min_ns: 20_000,
+            max_ns: 1_000_000,
+        });
+        assert_eq!(t.margin_ns(), 1_000_000, "starts at the maximum");
+        t.observe(40_000);
+        assert_eq!(t.margin_ns(), 40_000 + 10_000 + 10_000);
+        t.observe(5_000_000);
+        assert_eq!(t.margin_ns(), 1_000_000, "capped");
+        for _ in 0..100_000 {
+            t.observe(1_000);
+        }
+        assert_eq!(t.margin_ns(), 20_000, "decays to the minimum");
+        let mut f = EdgeTimer::new(Margin::Fixed(300_000));
+        f.observe(900_000);
+        assert_eq!(f.margin_ns(), 300_000);
     }
 }

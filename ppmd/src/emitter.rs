@@ -1,35 +1,40 @@
-//! The timing loop. Once per frame, [`LEAD_NS`] before the frame starts, it
-//! takes the newest command, decides what the frame carries (the command, or
-//! the failsafe action when the command is too old), encodes it and emits
-//! every edge at its scheduled time: an absolute sleep until `spin_ns` before
-//! the edge, a spin on CLOCK_MONOTONIC, then one write.
+//! The timing loop. Once per frame, as late as possible before the frame's
+//! first edge (the spin margin plus [`DECIDE_NS`]), it takes the newest
+//! command, decides what the frame carries (the command, or the failsafe
+//! action when the command is too old), encodes it and emits every edge at its
+//! scheduled time through an [`EdgeTimer`]: an absolute sleep until a margin
+//! before the edge, a spin on CLOCK_MONOTONIC, then one write.
 //!
-//! Frames sit on a fixed grid (`start_k = start_0 + k * frame`): a late edge
-//! never shifts later ones, and a frame whose start was missed is skipped and
-//! counted. Nothing inside the loop allocates, logs or takes a lock; it only
-//! updates the atomic counters in [`Stats`].
+//! Frames sit on a fixed grid (`start_k = start_0 + k * frame`), so a late
+//! edge never shifts later ones. When a frame's start has already passed, the
+//! frame is moved later as a whole if the sync gaps on both sides stay within
+//! what transmitters accept (counted as a late frame: its channel values stay
+//! exact); otherwise it is skipped (counted as an overrun). Nothing inside the
+//! loop allocates, logs or takes a lock; it updates atomic counters in
+//! [`Stats`] and histograms in a [`Meter`].
 
-use crate::clock;
+use crate::clock::{self, EdgeTimer, Margin};
+use crate::meter::Meter;
 use crate::output::Output;
 use crate::source::CommandSource;
-use ppm_shared::config::FailsafeAction;
-use ppm_shared::frame::{Channels, FrameModel};
+use ppm_shared::config::{FailsafeAction, SYNC_MAX_US, SYNC_MIN_US};
+use ppm_shared::frame::{us_to_ns, Channels, FrameModel};
 use ppm_shared::ipc::CommandSample;
 use ppm_shared::trace::TraceEdge;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering::Relaxed};
 
-/// How long before a frame starts its command is taken and encoded.
-pub const LEAD_NS: u64 = 1_000_000;
+/// Time budget to take the command and encode the frame, before the margin.
+pub const DECIDE_NS: u64 = 100_000;
 /// How often the loop looks for a command while the line is silent.
 pub const IDLE_POLL_NS: u64 = 2_000_000;
 /// An edge written later than this after its scheduled time counts as late.
-pub const LATE_EDGE_NS: u64 = 50_000;
+pub const LATE_EDGE_NS: u64 = 10_000;
 
 /// Settings of the loop, resolved from the configuration.
 #[derive(Debug, Clone, Copy)]
 pub struct EmitterConfig {
-    /// Spin this long before each edge instead of sleeping.
-    pub spin_ns: u64,
+    /// How far before each edge the loop stops sleeping and spins.
+    pub margin: Margin,
     /// A command older than this (by its ingress receive time) is not fresh.
     pub failsafe_after_ns: u64,
     /// What to emit when the newest command is not fresh.
@@ -69,8 +74,10 @@ pub struct Stats {
     pub commands: AtomicU64,
     /// Samples whose channel count did not match this daemon's configuration.
     pub mismatched: AtomicU64,
-    /// Frames skipped because their start had already passed.
-    pub skipped_frames: AtomicU64,
+    /// Frames skipped because their start had passed beyond what moving them allows.
+    pub overruns: AtomicU64,
+    /// Frames moved later as a whole because their start had passed.
+    pub late_frames: AtomicU64,
     /// Edges written more than [`LATE_EDGE_NS`] after their time.
     pub late_edges: AtomicU64,
     /// Largest edge error seen (actual minus scheduled), ns.
@@ -79,6 +86,10 @@ pub struct Stats {
     pub write_errors: AtomicU64,
     /// Times the loop went from fresh commands to the failsafe action.
     pub failsafe_entries: AtomicU64,
+    /// Current spin margin, ns.
+    pub margin_ns: AtomicU64,
+    /// Total time spent spinning, ns.
+    pub spin_ns: AtomicU64,
     /// The current [`LineState`].
     state: AtomicU8,
 }
@@ -103,17 +114,25 @@ pub fn run(
     out: &mut dyn Output,
     stop: &AtomicBool,
     stats: &Stats,
+    meter: &mut Meter,
 ) {
     let frame_ns = model.frame_ns();
+    let (sync_min_ns, sync_max_ns) = (us_to_ns(SYNC_MIN_US), us_to_ns(SYNC_MAX_US));
+    let mut timer = EdgeTimer::new(cfg.margin);
     let mut newest: Option<(CommandSample, Channels)> = None;
     let mut next_start: Option<u64> = None;
+    // Sync gap after the previous frame's last pulse, when frames are running.
+    let mut prev_sync_ns = 0;
     let mut state = LineState::Silent;
+    meter.start(clock::now_ns());
     while !stop.load(Relaxed) {
+        let lead = timer.margin_ns() + DECIDE_NS;
         match next_start {
-            Some(start) => clock::sleep_until(start.saturating_sub(LEAD_NS)),
+            Some(start) => clock::sleep_until(start.saturating_sub(lead)),
             None => clock::sleep_until(clock::now_ns() + IDLE_POLL_NS),
         }
         let now = clock::now_ns();
+        meter.maybe_hand_over(now);
         if let Some(sample) = source.newest() {
             match sample.channels(model) {
                 Some(ch) => {
@@ -145,14 +164,40 @@ pub fn run(
             next_start = None;
             continue;
         };
-        let mut start = next_start.unwrap_or(now + LEAD_NS);
-        if now > start {
-            let missed = (now - start) / frame_ns + 1;
-            add(&stats.skipped_frames, missed);
-            start += missed * frame_ns;
+        let schedule = model.encode(&channels);
+        let edges = schedule.edges();
+        let last_pulse = edges[edges.len() - 2].at_ns;
+        let sync_ns = frame_ns - last_pulse;
+        let mut start = match next_start {
+            Some(s) => s,
+            None => {
+                prev_sync_ns = 0;
+                now + lead
+            }
+        };
+        let ready = clock::now_ns() + DECIDE_NS / 2;
+        if ready > start {
+            // Moving the frame later by `late` lengthens the gap before it and
+            // shortens the one after it: both must stay sync periods.
+            let late = ready - start;
+            let fits_after = sync_ns >= sync_min_ns + late;
+            let fits_before = prev_sync_ns == 0 || prev_sync_ns + late <= sync_max_ns;
+            if fits_after && fits_before {
+                add(&stats.late_frames, 1);
+                start += late;
+            } else {
+                let missed = late / frame_ns + 1;
+                add(&stats.overruns, missed);
+                next_start = Some(start + missed * frame_ns);
+                prev_sync_ns = 0;
+                continue;
+            }
         }
-        emit_frame(model, &channels, start, cfg.spin_ns, out, stats);
-        next_start = Some(start + frame_ns);
+        let grid_start = next_start.unwrap_or(start);
+        emit_frame(edges, start, &mut timer, out, stats, meter);
+        next_start = Some(grid_start + frame_ns);
+        prev_sync_ns = grid_start + frame_ns - (start + last_pulse);
+        stats.margin_ns.store(timer.margin_ns(), Relaxed);
     }
     if out.park(model.idle_level()).is_err() {
         add(&stats.write_errors, 1);
@@ -161,32 +206,40 @@ pub fn run(
 }
 
 fn emit_frame(
-    model: &FrameModel,
-    channels: &Channels,
+    edges: &[ppm_shared::frame::Edge],
     start: u64,
-    spin_ns: u64,
+    timer: &mut EdgeTimer,
     out: &mut dyn Output,
     stats: &Stats,
+    meter: &mut Meter,
 ) {
-    let schedule = model.encode(channels);
-    for e in schedule.edges() {
+    let mut spun = 0;
+    for e in edges {
         let due = start + e.at_ns;
-        let actual = clock::wait_until(due, spin_ns);
+        let w = timer.wait(due);
         let edge = TraceEdge {
             scheduled_ns: due,
-            actual_ns: actual,
+            actual_ns: w.now_ns,
             level: e.level,
         };
         if out.write(&edge).is_err() {
             add(&stats.write_errors, 1);
         }
-        let err = actual - due;
+        let written = clock::now_ns();
+        let err = w.now_ns - due;
+        meter.edge(err, written - w.now_ns);
+        if let Some(late) = w.woke_late_ns {
+            meter.wake(late);
+        }
+        spun += w.spun_ns;
         stats.max_edge_error_ns.fetch_max(err, Relaxed);
         if err > LATE_EDGE_NS {
             add(&stats.late_edges, 1);
         }
     }
-    add(&stats.edges, schedule.edges().len() as u64);
+    meter.frame(spun);
+    add(&stats.spin_ns, spun);
+    add(&stats.edges, edges.len() as u64);
     add(&stats.frames, 1);
 }
 
@@ -246,13 +299,14 @@ mod tests {
             stop: stop.clone(),
         };
         let cfg = EmitterConfig {
-            spin_ns: 100_000,
+            margin: Margin::Fixed(100_000),
             failsafe_after_ns: after_ms * 1_000_000,
             failsafe_action: action,
         };
         let mut out = Recorder::default();
         let stats = Stats::default();
-        run(&model, &cfg, &mut src, &mut out, &stop, &stats);
+        let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
+        run(&model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter);
         (out.0, stats)
     }
 

@@ -9,5 +9,7 @@
 
 pub mod clock;
 pub mod emitter;
+pub mod meter;
 pub mod output;
+pub mod rt;
 pub mod source;

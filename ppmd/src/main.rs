@@ -1,15 +1,25 @@
 //! `ppmd`: emits the newest command from udp-ingress as a PPM trainer signal.
+//!
+//! Two threads: the timing thread (real-time setup, then the loop in
+//! `ppmd::emitter`) and this main thread, which never touches the line: it
+//! reads the loop's counters and histograms, logs, publishes timing
+//! snapshots and writes the HdrHistogram log.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use clap::Parser;
-use ppm_shared::config::{Config, OutputSpec};
+use ppm_shared::config::{Config, OutputSpec, SpinMargin};
+use ppm_shared::frame::FrameModel;
+use ppm_shared::ipc::{self, Summary, TimingSnapshot};
+use ppmd::clock::{self, Margin};
 use ppmd::emitter::{self, EmitterConfig, LineState, Stats};
+use ppmd::meter::{self, Interval, MeterReader};
 use ppmd::output::{Output, SimOutput};
+use ppmd::rt::{RtSetup, RT_STACK_BYTES};
 use ppmd::source::{CommandSource, IpcSource};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, SystemTime};
 
 /// PPM daemon: takes the newest command from udp-ingress once per frame and
 /// emits it as a PPM trainer signal.
@@ -26,13 +36,28 @@ struct Cli {
     /// Overrides `ppmd.output`.
     #[arg(long, value_name = "SPEC")]
     output: Option<String>,
+    /// Run even when a real-time setting cannot be had (the run is then
+    /// marked degraded). Sets `rt.allow_degraded`.
+    #[arg(long)]
+    allow_degraded: bool,
+    /// Append an HdrHistogram interval log of edge error and write duration
+    /// (nanoseconds, one interval a second) to FILE.
+    #[arg(long, value_name = "FILE")]
+    hdr_log: Option<PathBuf>,
 }
+
+/// How often the main thread reads the loop's measurements.
+const MONITOR_EVERY: Duration = Duration::from_millis(100);
+/// How often a histogram interval is handed over and a snapshot published.
+const SNAPSHOT_EVERY_NS: u64 = 1_000_000_000;
+/// How often the timing summary is logged.
+const LOG_EVERY_NS: u64 = 60_000_000_000;
 
 fn main() {
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("info"))
         .format_timestamp_millis()
         .init();
-    ppm_shared::ipc::init_ipc_logging();
+    ipc::init_ipc_logging();
     if let Err(e) = run(Cli::parse()) {
         log::error!("{e:#}");
         std::process::exit(1);
@@ -50,8 +75,146 @@ fn run(cli: Cli) -> Result<()> {
     if let Some(output) = cli.output {
         cfg.ppmd.output = output;
     }
+    cfg.rt.allow_degraded |= cli.allow_degraded;
     let model = cfg.validate()?;
-    let mut output: Box<dyn Output> = match cfg.output()? {
+    let output = open_output(&cfg, &model)?;
+
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;
+    }
+    let node = ipc::create_node(&cfg.ipc.root, &format!("ppmd-{}", cfg.name))?;
+    let stats_service = ipc::open_stats_service(&node, &cfg.name)?;
+    let publisher = stats_service
+        .publisher_builder()
+        .create()
+        .map_err(|e| anyhow!("creating the timing snapshot publisher: {e:?}"))?;
+
+    let ecfg = EmitterConfig {
+        margin: match cfg.rt.spin_margin_us {
+            SpinMargin::Fixed(us) => Margin::Fixed(us as u64 * 1_000),
+            SpinMargin::Auto => Margin::Auto {
+                min_ns: cfg.rt.spin_margin_min_us as u64 * 1_000,
+                max_ns: cfg.rt.spin_margin_max_us as u64 * 1_000,
+            },
+        },
+        failsafe_after_ns: cfg.failsafe.after_ms * 1_000_000,
+        failsafe_action: cfg.failsafe.action,
+    };
+    let stats = Arc::new(Stats::default());
+    let (mut meter, reader) = meter::meter(SNAPSHOT_EVERY_NS);
+    let setup = RtSetup::from_config(&cfg.rt);
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+    let timing = {
+        let (stats, stop, model, root, name) = (
+            stats.clone(),
+            stop.clone(),
+            model.clone(),
+            cfg.ipc.root.clone(),
+            cfg.name.clone(),
+        );
+        let mut output = output;
+        std::thread::Builder::new()
+            .name("ppmd-timing".into())
+            .stack_size(RT_STACK_BYTES)
+            .spawn(move || -> Result<u64> {
+                let started = IpcSource::open(&root, &name)
+                    .map_err(anyhow::Error::from)
+                    .and_then(|source| Ok((source, setup.apply()?)));
+                let (mut source, obtained) = match started {
+                    Ok(v) => v,
+                    Err(e) => {
+                        let _ = ready_tx.send(None);
+                        return Err(e);
+                    }
+                };
+                let _ = ready_tx.send(Some(Obtained::from(&obtained)));
+                emitter::run(
+                    &model,
+                    &ecfg,
+                    &mut source,
+                    output.as_mut(),
+                    &stop,
+                    &stats,
+                    &mut meter,
+                );
+                drop(output); // sets the line idle, flushes the sim trace
+                drop(obtained); // releases /dev/cpu_dma_latency
+                Ok(source.errors())
+            })
+            .context("spawning the timing thread")?
+    };
+    let Ok(Some(obtained)) = ready_rx.recv() else {
+        return match timing.join() {
+            Ok(Err(e)) => Err(e),
+            _ => bail!("the timing thread stopped at start"),
+        };
+    };
+    log::info!("real-time: {}", obtained.summary);
+    for s in &obtained.shortfalls {
+        log::warn!("DEGRADED RUN: {s}");
+    }
+    log::info!(
+        "{} channels ({}), frame {} us, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
+        model.channels(),
+        model.names().join(" "),
+        model.frame_ns() as f64 / 1e3,
+        model.pulse_ns() as f64 / 1e3,
+        model.idle_level(),
+        ipc::command_service_name(&cfg.name),
+        cfg.ipc.root.display(),
+        cfg.failsafe.action,
+        cfg.failsafe.after_ms,
+        cfg.rt.spin_margin_us,
+    );
+
+    let mut monitor = Monitor::new(
+        &model,
+        &obtained,
+        reader,
+        stats.clone(),
+        cli.hdr_log.as_deref(),
+    )?;
+    while !stop.load(Relaxed) && !timing.is_finished() {
+        std::thread::sleep(MONITOR_EVERY);
+        if let Some(snapshot) = monitor.tick()? {
+            let sent = publisher
+                .loan_uninit()
+                .map(|s| s.write_payload(snapshot))
+                .map_err(|e| format!("{e:?}"))
+                .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
+            if let Err(e) = sent {
+                log::debug!("publishing timing snapshot: {e}");
+            }
+        }
+    }
+    let receive_errors = timing
+        .join()
+        .map_err(|_| anyhow!("the timing thread panicked"))??;
+    monitor.tick()?;
+    let t = &monitor.snapshot;
+    log::info!(
+        "stopped{}: {} frames, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} late frames, {} overruns, {} write errors, {} mismatched samples, {} receive errors",
+        if t.degraded != 0 { " (DEGRADED RUN)" } else { "" },
+        t.frames,
+        t.commands,
+        t.total.p50 as f64 / 1e3,
+        t.total.p99 as f64 / 1e3,
+        t.total.p999 as f64 / 1e3,
+        t.total.max as f64 / 1e3,
+        t.late_edges,
+        emitter::LATE_EDGE_NS / 1_000,
+        t.late_frames,
+        t.overruns,
+        t.write_errors,
+        stats.mismatched.load(Relaxed),
+        receive_errors,
+    );
+    Ok(())
+}
+
+fn open_output(cfg: &Config, model: &FrameModel) -> Result<Box<dyn Output>> {
+    Ok(match cfg.output()? {
         OutputSpec::Sim { path } => {
             let path = path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", cfg.name)));
             let header = [
@@ -71,84 +234,234 @@ fn run(cli: Cli) -> Result<()> {
         OutputSpec::Gpio { chip, line } => bail!(
             "output gpio:{chip}:{line}: this build has no GPIO backend yet; use --output sim[:PATH]"
         ),
-    };
-    let mut source = IpcSource::open(&cfg.ipc.root, &cfg.name)?;
-    log::info!(
-        "{} channels ({}), frame {} us, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms",
-        model.channels(),
-        model.names().join(" "),
-        model.frame_ns() as f64 / 1e3,
-        model.pulse_ns() as f64 / 1e3,
-        model.idle_level(),
-        ppm_shared::ipc::command_service_name(&cfg.name),
-        cfg.ipc.root.display(),
-        cfg.failsafe.action,
-        cfg.failsafe.after_ms,
-    );
-
-    let stop = Arc::new(AtomicBool::new(false));
-    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;
-    }
-    output
-        .park(model.idle_level())
-        .context("setting the line to its idle level")?;
-
-    let ecfg = EmitterConfig {
-        spin_ns: cfg.ppmd.spin_us as u64 * 1_000,
-        failsafe_after_ns: cfg.failsafe.after_ms * 1_000_000,
-        failsafe_action: cfg.failsafe.action,
-    };
-    let stats = Arc::new(Stats::default());
-    let reporter = spawn_reporter(stats.clone(), stop.clone());
-    emitter::run(&model, &ecfg, &mut source, output.as_mut(), &stop, &stats);
-    let _ = reporter.join();
-    drop(output); // flushes and closes the sim trace
-    log::info!(
-        "stopped: {} frames, {} commands, {} late edges (> {} us), max edge error {:.1} us, {} skipped frames, {} write errors, {} mismatched samples, {} receive errors",
-        stats.frames.load(Relaxed),
-        stats.commands.load(Relaxed),
-        stats.late_edges.load(Relaxed),
-        emitter::LATE_EDGE_NS / 1_000,
-        stats.max_edge_error_ns.load(Relaxed) as f64 / 1e3,
-        stats.skipped_frames.load(Relaxed),
-        stats.write_errors.load(Relaxed),
-        stats.mismatched.load(Relaxed),
-        source.errors(),
-    );
-    Ok(())
+    })
 }
 
-/// Logs state changes and anomalies of the loop, from outside it.
-fn spawn_reporter(stats: Arc<Stats>, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<()> {
-    std::thread::Builder::new()
-        .name("ppmd-report".into())
-        .spawn(move || {
-            let mut state = LineState::Silent;
-            let mut mismatched = 0;
-            loop {
-                std::thread::sleep(Duration::from_millis(100));
-                if stop.load(Relaxed) {
-                    break;
-                }
-                let now = stats.state();
-                if now != state {
-                    match now {
-                        LineState::Active => log::info!("commands arriving: emitting frames"),
-                        LineState::Silent => log::warn!("no fresh command: line silent"),
-                        LineState::Failsafe => log::warn!("no fresh command: emitting failsafe frames"),
-                    }
-                    state = now;
-                }
-                let m = stats.mismatched.load(Relaxed);
-                if m != mismatched {
-                    log::warn!(
-                        "{} command(s) ignored: their channel count differs from this daemon's configuration (udp-ingress runs with another config?)",
-                        m - mismatched
-                    );
-                    mismatched = m;
+/// What the timing thread's real-time setup obtained, as the main thread needs it.
+struct Obtained {
+    summary: String,
+    shortfalls: Vec<String>,
+    priority: u8,
+    cpu: Option<usize>,
+    preempt_rt: bool,
+}
+
+impl From<&ppmd::rt::RtObtained> for Obtained {
+    fn from(o: &ppmd::rt::RtObtained) -> Self {
+        Obtained {
+            summary: o.summary(),
+            shortfalls: o.shortfalls.iter().map(|s| s.to_string()).collect(),
+            priority: o.priority,
+            cpu: o.cpu,
+            preempt_rt: o.kernel.preempt_rt,
+        }
+    }
+}
+
+/// The main thread's view of the loop: merges intervals, logs, writes the
+/// HdrHistogram log and builds snapshots.
+struct Monitor {
+    reader: MeterReader,
+    stats: Arc<Stats>,
+    total_error: hdrhistogram::Histogram<u64>,
+    total_write: hdrhistogram::Histogram<u64>,
+    snapshot: TimingSnapshot,
+    start_ns: u64,
+    next_log_ns: u64,
+    state: LineState,
+    mismatched: u64,
+    hdr: Option<HdrLog>,
+}
+
+impl Monitor {
+    fn new(
+        model: &FrameModel,
+        obtained: &Obtained,
+        reader: MeterReader,
+        stats: Arc<Stats>,
+        hdr_log: Option<&std::path::Path>,
+    ) -> Result<Monitor> {
+        let start_ns = clock::now_ns();
+        let hdr = hdr_log.map(HdrLog::open).transpose().with_context(|| {
+            let p = hdr_log.map(|p| p.display().to_string()).unwrap_or_default();
+            format!("opening the HdrHistogram log {p}")
+        })?;
+        Ok(Monitor {
+            reader,
+            stats,
+            total_error: meter::histogram(),
+            total_write: meter::histogram(),
+            snapshot: TimingSnapshot {
+                frame_ns: model.frame_ns(),
+                pid: std::process::id(),
+                priority: obtained.priority as u32,
+                cpu: obtained.cpu.map_or(-1, |c| c as i32),
+                degraded: !obtained.shortfalls.is_empty() as u32,
+                preempt_rt: obtained.preempt_rt as u32,
+                ..TimingSnapshot::default()
+            },
+            start_ns,
+            next_log_ns: start_ns + LOG_EVERY_NS,
+            state: LineState::Silent,
+            mismatched: 0,
+            hdr,
+        })
+    }
+
+    /// Reads what the loop handed over; returns a snapshot when an interval ended.
+    fn tick(&mut self) -> Result<Option<TimingSnapshot>> {
+        let mut intervals = 0;
+        let (mut last, mut hdr_result) = (None, Ok(()));
+        let (total_error, total_write, snap, hdr, start_ns) = (
+            &mut self.total_error,
+            &mut self.total_write,
+            &mut self.snapshot,
+            &mut self.hdr,
+            self.start_ns,
+        );
+        self.reader.drain(|iv: &Interval| {
+            intervals += 1;
+            let _ = total_error.add(&iv.edge_error);
+            let _ = total_write.add(&iv.write);
+            for v in iv.edge_error.iter_recorded() {
+                let bucket = (v.value_iterated_to() / 1_000) as usize;
+                match snap.hist_us.get_mut(bucket) {
+                    Some(b) => *b += v.count_at_value(),
+                    None => snap.hist_overflow += v.count_at_value(),
                 }
             }
+            last = Some(summarize(&iv.edge_error));
+            if let Some(h) = hdr.as_mut() {
+                if hdr_result.is_ok() {
+                    hdr_result = h.write(iv, start_ns);
+                }
+            }
+        });
+        hdr_result.context("writing the HdrHistogram log")?;
+        self.log_changes();
+        if intervals == 0 {
+            return Ok(None);
+        }
+        let now = clock::now_ns();
+        let s = &self.stats;
+        let snap = &mut self.snapshot;
+        snap.seq += 1;
+        snap.mono_ns = now;
+        snap.uptime_ns = now - self.start_ns;
+        snap.margin_ns = s.margin_ns.load(Relaxed);
+        snap.frames = s.frames.load(Relaxed);
+        snap.edges = s.edges.load(Relaxed);
+        snap.commands = s.commands.load(Relaxed);
+        snap.overruns = s.overruns.load(Relaxed);
+        snap.late_frames = s.late_frames.load(Relaxed);
+        snap.late_edges = s.late_edges.load(Relaxed);
+        snap.write_errors = s.write_errors.load(Relaxed);
+        snap.failsafe_entries = s.failsafe_entries.load(Relaxed);
+        snap.spin_share_ppm = s.spin_ns.load(Relaxed) * 1_000_000 / snap.uptime_ns.max(1);
+        snap.state = s.state() as u32;
+        if let Some(l) = last {
+            snap.last = l;
+        }
+        snap.total = summarize(&self.total_error);
+        snap.write = summarize(&self.total_write);
+        if now >= self.next_log_ns {
+            self.next_log_ns = now + LOG_EVERY_NS;
+            log::info!(
+                "timing: {} frames; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} late frames, {} overruns; spin margin {} us, spinning {:.1}% of the time",
+                snap.frames,
+                snap.total.p50 as f64 / 1e3,
+                snap.total.p99 as f64 / 1e3,
+                snap.total.max as f64 / 1e3,
+                snap.late_frames,
+                snap.overruns,
+                snap.margin_ns / 1_000,
+                snap.spin_share_ppm as f64 / 1e4,
+            );
+        }
+        Ok(Some(*snap))
+    }
+
+    fn log_changes(&mut self) {
+        let now = self.stats.state();
+        if now != self.state {
+            match now {
+                LineState::Active => log::info!("commands arriving: emitting frames"),
+                LineState::Silent => log::warn!("no fresh command: line silent"),
+                LineState::Failsafe => log::warn!("no fresh command: emitting failsafe frames"),
+            }
+            self.state = now;
+        }
+        let m = self.stats.mismatched.load(Relaxed);
+        if m != self.mismatched {
+            log::warn!(
+                "{} command(s) ignored: their channel count differs from this daemon's configuration (udp-ingress runs with another config?)",
+                m - self.mismatched
+            );
+            self.mismatched = m;
+        }
+    }
+}
+
+/// Summary of a histogram (all zero when empty).
+fn summarize(h: &hdrhistogram::Histogram<u64>) -> Summary {
+    if h.is_empty() {
+        return Summary::default();
+    }
+    Summary {
+        count: h.len(),
+        min: h.min(),
+        max: h.max(),
+        mean: h.mean().round() as u64,
+        p50: h.value_at_quantile(0.5),
+        p99: h.value_at_quantile(0.99),
+        p999: h.value_at_quantile(0.999),
+    }
+}
+
+/// An HdrHistogram interval log (the format of HdrHistogram's
+/// HistogramLogProcessor and plotting tools), values in nanoseconds, tags
+/// `edge_error` and `write`.
+struct HdrLog {
+    file: std::fs::File,
+    serializer: hdrhistogram::serialization::V2DeflateSerializer,
+    started: bool,
+}
+
+impl HdrLog {
+    fn open(path: &std::path::Path) -> std::io::Result<HdrLog> {
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)?;
+        Ok(HdrLog {
+            file,
+            serializer: hdrhistogram::serialization::V2DeflateSerializer::new(),
+            started: false,
         })
-        .expect("spawning the report thread")
+    }
+
+    fn write(&mut self, iv: &Interval, start_ns: u64) -> Result<()> {
+        use hdrhistogram::serialization::interval_log::{IntervalLogWriterBuilder, Tag};
+        let mut builder = IntervalLogWriterBuilder::new();
+        if !self.started {
+            let now = SystemTime::now();
+            builder
+                .add_comment("ppmd edge error and write duration, nanoseconds")
+                .with_start_time(now)
+                .with_base_time(now);
+            self.started = true;
+        }
+        let mut w = builder
+            .begin_log_with(&mut self.file, &mut self.serializer)
+            .context("starting the log")?;
+        let from = Duration::from_nanos(iv.start_ns.saturating_sub(start_ns));
+        let length = Duration::from_nanos(iv.end_ns.saturating_sub(iv.start_ns));
+        for (h, tag) in [(&iv.edge_error, "edge_error"), (&iv.write, "write")] {
+            if !h.is_empty() {
+                w.write_histogram(h, from, length, Tag::new(tag))
+                    .map_err(|e| anyhow!("{e:?}"))?;
+            }
+        }
+        Ok(())
+    }
 }

@@ -69,6 +69,8 @@ pub struct Config {
     pub ingress: IngressSection,
     /// The PPM daemon.
     pub ppmd: PpmdSection,
+    /// Real-time setup of ppmd's timing thread.
+    pub rt: RtSection,
     /// What ppmd does when commands stop.
     pub failsafe: FailsafeSection,
     /// Shared memory between the two processes.
@@ -82,6 +84,7 @@ impl Default for Config {
             ppm: PpmSection::default(),
             ingress: IngressSection::default(),
             ppmd: PpmdSection::default(),
+            rt: RtSection::default(),
             failsafe: FailsafeSection::default(),
             ipc: IpcSection::default(),
         }
@@ -177,16 +180,107 @@ pub struct PpmdSection {
     /// Where the signal goes: `"sim"` (simulated line, trace in
     /// `ppm-NAME.trace`), `"sim:PATH"`, or `"gpio:CHIP:LINE"`. Default `"sim"`.
     pub output: String,
-    /// How long before an edge ppmd stops sleeping and spins on the clock, in
-    /// microseconds, 0..=5000. Default 200.
-    pub spin_us: u32,
 }
 
 impl Default for PpmdSection {
     fn default() -> Self {
         PpmdSection {
             output: "sim".into(),
-            spin_us: 200,
+        }
+    }
+}
+
+/// `[rt]`: real-time setup of ppmd's timing thread. When a setting cannot be
+/// had, ppmd stops at start with a message saying how to fix it, unless
+/// `allow_degraded` is set.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RtSection {
+    /// SCHED_FIFO priority 1..=99, or 0 for the normal scheduler. Default 80.
+    pub priority: u8,
+    /// CPU the timing thread is pinned to: a number (an isolated CPU is
+    /// fine), `"last"` (the highest-numbered online CPU, default) or `"none"`.
+    pub cpu: CpuChoice,
+    /// Lock all memory (mlockall) and prefault the stack. Default true.
+    pub mlock: bool,
+    /// Hold /dev/cpu_dma_latency at 0 (no deep CPU idle states). Default true.
+    pub cpu_dma_latency: bool,
+    /// Run on, marked degraded, when a setting cannot be had. Default false.
+    pub allow_degraded: bool,
+    /// How long before each edge ppmd stops sleeping and spins on the clock:
+    /// microseconds 0..=5000, or `"auto"` (default) to follow the wake-up
+    /// lateness actually observed, within the two bounds below.
+    pub spin_margin_us: SpinMargin,
+    /// Smallest automatic margin, microseconds. Default 20.
+    pub spin_margin_min_us: u32,
+    /// Largest automatic margin (and the starting one), microseconds. Default 1000.
+    pub spin_margin_max_us: u32,
+}
+
+impl Default for RtSection {
+    fn default() -> Self {
+        RtSection {
+            priority: 80,
+            cpu: CpuChoice::Last,
+            mlock: true,
+            cpu_dma_latency: true,
+            allow_degraded: false,
+            spin_margin_us: SpinMargin::Auto,
+            spin_margin_min_us: 20,
+            spin_margin_max_us: 1_000,
+        }
+    }
+}
+
+/// Which CPU the timing thread runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "NumberOrWord")]
+pub enum CpuChoice {
+    /// Not pinned.
+    None,
+    /// The highest-numbered online CPU.
+    Last,
+    /// This CPU.
+    Index(usize),
+}
+
+/// The spin margin before each edge.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "NumberOrWord")]
+pub enum SpinMargin {
+    /// Follows the observed wake-up lateness.
+    Auto,
+    /// Fixed, in microseconds.
+    Fixed(u32),
+}
+
+/// A TOML value that is either a whole number or a word.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum NumberOrWord {
+    Number(i64),
+    Word(String),
+}
+
+impl TryFrom<NumberOrWord> for CpuChoice {
+    type Error = String;
+    fn try_from(v: NumberOrWord) -> Result<Self, String> {
+        match v {
+            NumberOrWord::Number(n) if (0..4096).contains(&n) => Ok(CpuChoice::Index(n as usize)),
+            NumberOrWord::Word(w) if w == "last" => Ok(CpuChoice::Last),
+            NumberOrWord::Word(w) if w == "none" => Ok(CpuChoice::None),
+            _ => Err("rt.cpu must be a CPU number, \"last\" or \"none\"".into()),
+        }
+    }
+}
+
+impl TryFrom<NumberOrWord> for SpinMargin {
+    type Error = String;
+    fn try_from(v: NumberOrWord) -> Result<Self, String> {
+        match v {
+            NumberOrWord::Number(n) if (0..=5_000).contains(&n) => Ok(SpinMargin::Fixed(n as u32)),
+            NumberOrWord::Word(w) if w == "auto" => Ok(SpinMargin::Auto),
+            _ => Err("rt.spin_margin_us must be \"auto\" or 0..=5000 microseconds".into()),
         }
     }
 }
@@ -315,10 +409,26 @@ impl Config {
             ));
         }
         self.output()?;
-        if self.ppmd.spin_us > 5_000 {
+        let rt = &self.rt;
+        if rt.priority > 99 {
             return Err(ConfigError::invalid(
-                "ppmd.spin_us",
-                format!("{} us is outside 0..=5000", self.ppmd.spin_us),
+                "rt.priority",
+                format!("{} is outside 0..=99 (0: normal scheduler)", rt.priority),
+            ));
+        }
+        if rt.spin_margin_max_us > 5_000 {
+            return Err(ConfigError::invalid(
+                "rt.spin_margin_max_us",
+                format!("{} us is outside 0..=5000", rt.spin_margin_max_us),
+            ));
+        }
+        if rt.spin_margin_min_us > rt.spin_margin_max_us {
+            return Err(ConfigError::invalid(
+                "rt.spin_margin_min_us",
+                format!(
+                    "{} us is above rt.spin_margin_max_us = {} us",
+                    rt.spin_margin_min_us, rt.spin_margin_max_us
+                ),
             ));
         }
         if !(1..=60_000).contains(&self.failsafe.after_ms) {
@@ -519,6 +629,29 @@ mod tests {
     }
 
     #[test]
+    fn rt_words_and_numbers() {
+        let c = Config::parse("[rt]\ncpu = 3\nspin_margin_us = 150").unwrap();
+        assert_eq!(
+            (c.rt.cpu, c.rt.spin_margin_us),
+            (CpuChoice::Index(3), SpinMargin::Fixed(150))
+        );
+        let c = Config::parse("[rt]\ncpu = 'none'\nspin_margin_us = 'auto'").unwrap();
+        assert_eq!(
+            (c.rt.cpu, c.rt.spin_margin_us),
+            (CpuChoice::None, SpinMargin::Auto)
+        );
+        for (text, key) in [
+            ("[rt]\ncpu = 'first'", "rt.cpu"),
+            ("[rt]\ncpu = -1", "rt.cpu"),
+            ("[rt]\nspin_margin_us = 'fast'", "rt.spin_margin_us"),
+            ("[rt]\nspin_margin_us = 9000", "rt.spin_margin_us"),
+        ] {
+            let e = Config::parse(text).unwrap_err().to_string();
+            assert!(e.contains(key), "{text}: {e}");
+        }
+    }
+
+    #[test]
     fn wrong_type_is_named() {
         let e = Config::parse("[ppm]\nchannels = \"eight\"\n").unwrap_err();
         assert!(e.to_string().contains("channels"), "{e}");
@@ -585,7 +718,12 @@ mod tests {
                 "ingress.recv_buffer_bytes",
             ),
             ("[ppmd]\noutput = 'pwm'", "ppmd.output"),
-            ("[ppmd]\nspin_us = 9000", "ppmd.spin_us"),
+            ("[rt]\npriority = 100", "rt.priority"),
+            ("[rt]\nspin_margin_max_us = 6000", "rt.spin_margin_max_us"),
+            (
+                "[rt]\nspin_margin_min_us = 600\nspin_margin_max_us = 500",
+                "rt.spin_margin_min_us",
+            ),
             ("[failsafe]\nafter_ms = 0", "failsafe.after_ms"),
             ("[ipc]\nroot = 'relative'", "ipc.root"),
         ];

@@ -85,6 +85,125 @@ pub fn command_service_name(name: &str) -> String {
     format!("ppm/{name}/command")
 }
 
+/// The iceoryx2 service carrying ppmd's timing snapshots of output `name`.
+pub fn stats_service_name(name: &str) -> String {
+    format!("ppm/{name}/stats")
+}
+
+/// Buckets of [`TimingSnapshot::hist_us`]: edge error 0..1000 us in 1 us steps.
+pub const HIST_BUCKETS: usize = 1_000;
+
+/// Summary of a distribution, in nanoseconds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[type_name("ppm::Summary")]
+#[repr(C)]
+pub struct Summary {
+    /// Number of values.
+    pub count: u64,
+    /// Smallest.
+    pub min: u64,
+    /// Largest.
+    pub max: u64,
+    /// Mean (rounded).
+    pub mean: u64,
+    /// Median.
+    pub p50: u64,
+    /// 99th percentile.
+    pub p99: u64,
+    /// 99.9th percentile.
+    pub p999: u64,
+}
+
+/// ppmd's timing statistics, published about once a second on
+/// [`stats_service_name`] for `jitter --attach` and status queries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
+#[type_name("ppm::TimingSnapshot")]
+#[repr(C)]
+pub struct TimingSnapshot {
+    /// Snapshot number, 1, 2, ... (restarts with ppmd).
+    pub seq: u64,
+    /// CLOCK_MONOTONIC time of the snapshot, ns.
+    pub mono_ns: u64,
+    /// Time since ppmd started, ns.
+    pub uptime_ns: u64,
+    /// Frame length, ns (the loop's interval).
+    pub frame_ns: u64,
+    /// Current spin margin, ns.
+    pub margin_ns: u64,
+    /// Frames emitted.
+    pub frames: u64,
+    /// Edges written.
+    pub edges: u64,
+    /// Commands taken.
+    pub commands: u64,
+    /// Frames skipped because their start had passed.
+    pub overruns: u64,
+    /// Frames moved later as a whole.
+    pub late_frames: u64,
+    /// Edges written more than 10 us late.
+    pub late_edges: u64,
+    /// Failed writes.
+    pub write_errors: u64,
+    /// Entries into the failsafe action.
+    pub failsafe_entries: u64,
+    /// Time spent spinning as a share of wall time, parts per million.
+    pub spin_share_ppm: u64,
+    /// Edge error (actual minus scheduled) over the last interval.
+    pub last: Summary,
+    /// Edge error since start.
+    pub total: Summary,
+    /// Output write duration since start.
+    pub write: Summary,
+    /// Cumulative edge error counts in 1 us buckets (bucket `i`: `i..i+1` us).
+    pub hist_us: [u64; HIST_BUCKETS],
+    /// Edge errors of 1000 us or more.
+    pub hist_overflow: u64,
+    /// ppmd's process id.
+    pub pid: u32,
+    /// SCHED_FIFO priority obtained (0: normal scheduler).
+    pub priority: u32,
+    /// Pinned CPU, or -1.
+    pub cpu: i32,
+    /// 1 when a real-time setting was missing (a degraded run).
+    pub degraded: u32,
+    /// 1 on a PREEMPT_RT kernel.
+    pub preempt_rt: u32,
+    /// Line state: 0 silent, 1 active, 2 failsafe.
+    pub state: u32,
+}
+
+impl Default for TimingSnapshot {
+    fn default() -> Self {
+        TimingSnapshot {
+            seq: 0,
+            mono_ns: 0,
+            uptime_ns: 0,
+            frame_ns: 0,
+            margin_ns: 0,
+            frames: 0,
+            edges: 0,
+            commands: 0,
+            overruns: 0,
+            late_frames: 0,
+            late_edges: 0,
+            write_errors: 0,
+            failsafe_entries: 0,
+            spin_share_ppm: 0,
+            last: Summary::default(),
+            total: Summary::default(),
+            write: Summary::default(),
+            hist_us: [0; HIST_BUCKETS],
+            hist_overflow: 0,
+            pid: 0,
+            priority: 0,
+            cpu: -1,
+            degraded: 0,
+            preempt_rt: 0,
+            state: 0,
+        }
+    }
+}
+
 /// Setting up shared memory failed.
 #[derive(Debug, thiserror::Error)]
 #[error("shared memory: {what}: {detail}")]
@@ -129,16 +248,42 @@ pub fn create_node(root: &std::path::Path, node_name: &str) -> Result<Node, IpcE
         .map_err(|e| ipc_err(format!("creating node under `{root_str}`"))(&e))
 }
 
-/// Opens (or creates) the newest-only command service of output `name`:
-/// the subscriber holds one sample and the newest overwrites it; a late
-/// subscriber gets the last published sample. Both processes must open it
-/// with these very settings, so both call this function.
+/// Opens (or creates) the newest-only command service of output `name`.
 pub fn open_command_service(node: &Node, name: &str) -> Result<CommandService, IpcError> {
-    let service = command_service_name(name);
+    open_newest_only(node, &command_service_name(name))
+}
+
+/// The timing snapshot service.
+pub type StatsService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+    iceoryx2::service::ipc::Service,
+    TimingSnapshot,
+    (),
+>;
+
+/// Opens (or creates) the newest-only timing snapshot service of output `name`.
+pub fn open_stats_service(node: &Node, name: &str) -> Result<StatsService, IpcError> {
+    open_newest_only(node, &stats_service_name(name))
+}
+
+/// Opens (or creates) a newest-only service: the subscriber holds one sample
+/// and the newest overwrites it; a late subscriber gets the last published
+/// sample. Every process must open it with these very settings, so all call
+/// this function.
+fn open_newest_only<T: ZeroCopySend + std::fmt::Debug + Copy + 'static>(
+    node: &Node,
+    service: &str,
+) -> Result<
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+        iceoryx2::service::ipc::Service,
+        T,
+        (),
+    >,
+    IpcError,
+> {
     let sn =
-        ServiceName::new(&service).map_err(|e| ipc_err(format!("service name `{service}`"))(&e))?;
+        ServiceName::new(service).map_err(|e| ipc_err(format!("service name `{service}`"))(&e))?;
     node.service_builder(&sn)
-        .publish_subscribe::<CommandSample>()
+        .publish_subscribe::<T>()
         .subscriber_max_buffer_size(1)
         .history_size(1)
         .enable_safe_overflow(true)

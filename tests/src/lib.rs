@@ -81,11 +81,18 @@ impl Sandbox {
     }
 
     /// Writes `ppm.toml` with this sandbox's name, port and shared-memory
-    /// root, plus `extra` TOML (sections after the top-level keys).
+    /// root, plus `extra` TOML (sections after the top-level keys). Unless
+    /// `extra` has an `[rt]` section, a degraded run is allowed, so the tests
+    /// also pass without the privileges for real-time scheduling.
     pub fn config(&self, extra: &str) -> PathBuf {
         let path = self.dir.join("ppm.toml");
+        let rt = if extra.contains("[rt]") {
+            ""
+        } else {
+            "[rt]\nallow_degraded = true\n"
+        };
         let text = format!(
-            "name = \"{}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n{extra}\n",
+            "name = \"{}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n{rt}{extra}\n",
             self.name,
             self.port,
             self.dir.join("ipc").display()

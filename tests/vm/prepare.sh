@@ -1,0 +1,271 @@
+#!/usr/bin/env bash
+# tests/vm/prepare.sh FLAVOR      (FLAVOR = std | rt)
+#
+# Prepares everything needed to boot a real Debian 6.1 kernel under QEMU
+# with the gpio-sim driver, without installing any kernel on the host:
+#   - picks a kernel ABI (6.1.0-NN) for which image + headers of BOTH
+#     flavours and the matching linux-source-6.1 / linux-kbuild-6.1 exist
+#     in the configured apt repositories (override: PPM_VM_KABI=NN);
+#   - `apt-get download`s the packages and unpacks them with `dpkg-deb -x`
+#     into a scratch directory of the cache;
+#   - builds gpio-sim.ko and irq_sim.ko out of tree from linux-source-6.1
+#     (Debian builds neither: CONFIG_GPIO_SIM and CONFIG_IRQ_SIM are unset);
+#   - keeps only vmlinuz, the kernel config and the few modules the guest
+#     needs (configfs, virtio-blk for the result disk, irq_sim, gpio-sim,
+#     plus their dependencies), then deletes the downloads and scratch trees.
+#
+# Result (cached, idempotent): $CACHE/<kernel release>/{vmlinuz,config,modules/}
+# and $CACHE/FLAVOR.env, which run.sh sources. CACHE defaults to
+# <workspace>/target/vm/cache; override with PPM_VM_CACHE. A warm run takes
+# well under a second and needs no network.
+#
+# The kernel sources are GPL-2.0: they are fetched here at test time and live
+# only in the cache; never commit them.
+#
+# Host packages needed (Debian 12; install them yourself or in CI, this script
+# never installs anything):
+#   apt-get install -y --no-install-recommends \
+#     qemu-system-x86 busybox-static cpio gzip xz-utils make gcc-12 binutils \
+#     libelf1 libssl3
+# (apt and dpkg are part of every Debian system. `apt-get update` must have
+# run once so that apt-cache / apt-get download know the kernel packages.)
+set -euo pipefail
+
+die() { echo "prepare.sh: error: $*" >&2; exit 1; }
+log() { echo "prepare.sh: $*" >&2; }
+
+[ $# -eq 1 ] || die "usage: $0 std|rt"
+FLAVOR=$1
+case "$FLAVOR" in
+    std) VARIANT=amd64;    COMMON_SUFFIX= ;;
+    rt)  VARIANT=rt-amd64; COMMON_SUFFIX=-rt ;;
+    *) die "FLAVOR must be 'std' or 'rt', got '$FLAVOR'" ;;
+esac
+
+HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+ROOT=$(cd "$HERE/../.." && pwd)
+CACHE=${PPM_VM_CACHE:-$ROOT/target/vm/cache}
+mkdir -p "$CACHE"
+CACHE=$(cd "$CACHE" && pwd)
+
+# Modules (from the image package) that the guest needs besides our two.
+# configfs is =m in Debian's config (gpio-sim is configured through it);
+# virtio_blk/virtio_pci carry the result disk that run.sh reads back.
+# Dependencies are resolved from each module's .modinfo "depends=" field.
+WANTED_IMAGE_MODULES="configfs virtio_pci virtio_blk"
+# Bump when the build recipe changes so that stale caches are rebuilt.
+RECIPE_VERSION=1
+
+# ---------------------------------------------------------------- host tools
+check_tools() {
+    local missing_pkgs=() tool pkg
+    # tool:package pairs
+    for pair in qemu-system-x86_64:qemu-system-x86 cpio:cpio gzip:gzip \
+                xz:xz-utils make:make gcc-12:gcc-12 objcopy:binutils \
+                readelf:binutils dpkg-deb:dpkg apt-get:apt apt-cache:apt; do
+        tool=${pair%%:*}; pkg=${pair#*:}
+        command -v "$tool" >/dev/null 2>&1 || missing_pkgs+=("$pkg")
+    done
+    # The guest needs a *static* busybox (Debian's 'busybox' package is
+    # dynamic and conflicts with busybox-static).
+    if ! BUSYBOX=$(command -v busybox) || ! command -v readelf >/dev/null ||
+       readelf -l "$BUSYBOX" 2>/dev/null | grep -q 'Requesting program interpreter'; then
+        missing_pkgs+=(busybox-static)
+    fi
+    # Runtime libraries of linux-kbuild-6.1's prebuilt modpost/genksyms.
+    for lib in libelf.so.1:libelf1 libssl.so.3:libssl3; do
+        ldconfig -p 2>/dev/null | grep -q "${lib%%:*}" || missing_pkgs+=("${lib#*:}")
+    done
+    if [ ${#missing_pkgs[@]} -gt 0 ]; then
+        die "missing host tools; install them with:
+    apt-get update && apt-get install -y --no-install-recommends $(printf '%s\n' "${missing_pkgs[@]}" | sort -u | tr '\n' ' ')"
+    fi
+}
+
+# ---------------------------------------------------------- kernel selection
+# Prints "NN VERSION" for the newest ABI whose 8 packages all exist at the
+# same Debian version (e.g. "56 6.1.192-2"). Old ABIs vanish from the archive
+# when Debian publishes updates, so we select dynamically instead of pinning.
+# All "package version" pairs apt knows for the candidate ABIs, fetched with
+# a single apt-cache call (one call per package makes a warm run take seconds).
+MADISON=
+load_madison() { # NN...
+    local nn pkgs=(linux-kbuild-6.1 linux-source-6.1)
+    for nn in "$@"; do pkgs+=($(abi_packages "$nn")); done
+    MADISON=$(apt-cache madison "${pkgs[@]}" 2>/dev/null |
+        awk -F'|' '{gsub(/ /,"",$1); gsub(/ /,"",$2); print $1" "$2}' | sort -u)
+}
+pkg_versions() { awk -v p="$1" '$1==p {print $2}' <<<"$MADISON"; }
+abi_packages() { # NN -> the six per-ABI package names
+    echo "linux-image-6.1.0-$1-amd64-unsigned linux-image-6.1.0-$1-rt-amd64-unsigned" \
+         "linux-headers-6.1.0-$1-amd64 linux-headers-6.1.0-$1-rt-amd64" \
+         "linux-headers-6.1.0-$1-common linux-headers-6.1.0-$1-common-rt"
+}
+abi_complete() { # NN VERSION
+    local p
+    for p in $(abi_packages "$1") linux-kbuild-6.1 linux-source-6.1; do
+        grep -qxF "$p $2" <<<"$MADISON" || return 1
+    done
+}
+select_abi() {
+    local nn ver candidates
+    if [ -n "${PPM_VM_KABI:-}" ]; then
+        candidates=$PPM_VM_KABI
+    else
+        candidates=$(apt-cache pkgnames linux-image-6.1.0- 2>/dev/null |
+            sed -n 's/^linux-image-6\.1\.0-\([0-9]\+\)-amd64-unsigned$/\1/p' | sort -rn)
+    fi
+    [ -n "$candidates" ] || return 1
+    load_madison $candidates
+    for nn in $candidates; do
+        for ver in $(pkg_versions "linux-image-6.1.0-$nn-amd64-unsigned"); do
+            abi_complete "$nn" "$ver" && { echo "$nn $ver"; return 0; }
+        done
+    done
+    return 1
+}
+
+# ------------------------------------------------------------------ helpers
+# modinfo without kmod: read the .modinfo section of a .ko.
+modinfo_field() { # FILE FIELD
+    objcopy -O binary -j .modinfo "$1" /dev/stdout 2>/dev/null | tr '\0' '\n' |
+        sed -n "s/^$2=//p" | head -n1
+}
+norm() { echo "$1" | tr '-' '_'; }
+
+# Copies module NAME (and, first, its dependencies) from the unpacked image
+# tree into $MODOUT, appending to $MODOUT/load.order in load order.
+declare -A MODPATH=() DONE=()
+add_module() {
+    local name dep file
+    name=$(norm "$1")
+    [ -z "${DONE[$name]:-}" ] || return 0
+    DONE[$name]=1
+    if grep -q "/$name.ko\$" "$BUILTIN_LIST" 2>/dev/null ||
+       grep -q "/$(echo "$name" | tr '_' '-').ko\$" "$BUILTIN_LIST" 2>/dev/null; then
+        log "  $name is built into the kernel"
+        return 0
+    fi
+    file=${MODPATH[$name]:-}
+    [ -n "$file" ] || die "module $name not found in the image package"
+    for dep in $(modinfo_field "$file" depends | tr ',' ' '); do
+        add_module "$dep"
+    done
+    cp "$file" "$MODOUT/$name.ko"
+    echo "$name" >> "$MODOUT/load.order"
+}
+
+# ---------------------------------------------------------------------- main
+check_tools
+
+ENVFILE=$CACHE/$FLAVOR.env
+if ! sel=$(select_abi); then
+    # No apt lists (or nothing complete): fall back to a previous result.
+    if [ -f "$ENVFILE" ] && [ -z "${PPM_VM_KABI:-}" ]; then
+        log "apt-cache finds no complete 6.1 kernel set; reusing cached $(grep ^KREL= "$ENVFILE")"
+        # shellcheck disable=SC1090
+        . "$ENVFILE"
+        echo "vmlinuz: $VMLINUZ"; echo "modules: $MODDIR"
+        exit 0
+    fi
+    die "no linux-6.1.0-${PPM_VM_KABI:-NN} ABI with image+headers (std and rt), linux-kbuild-6.1 and linux-source-6.1 all at the same version in apt. Run 'apt-get update' first (or set PPM_VM_KABI to an available NN)."
+fi
+read -r NN DEBVER <<<"$sel"
+KREL=6.1.0-$NN-$VARIANT
+KDIR=$CACHE/$KREL
+STAMP="$DEBVER recipe=$RECIPE_VERSION modules=$WANTED_IMAGE_MODULES"
+
+if [ -f "$KDIR/.stamp" ] && [ "$(cat "$KDIR/.stamp")" = "$STAMP" ]; then
+    log "cached: $KREL ($DEBVER)"
+else
+    log "preparing $KREL (Debian $DEBVER) in $KDIR"
+    rm -rf "$KDIR"
+    WORK=$CACHE/.work-$KREL
+    rm -rf "$WORK"; mkdir -p "$WORK/debs" "$WORK/root" "$WORK/src" "$WORK/build"
+    trap 'rm -rf "$WORK"' EXIT
+
+    # --- download (apt-get download writes to the current directory).
+    PKGS="linux-image-$KREL-unsigned linux-headers-$KREL linux-headers-6.1.0-$NN-common$COMMON_SUFFIX linux-kbuild-6.1 linux-source-6.1"
+    ( cd "$WORK/debs" && apt-get download -q $(for p in $PKGS; do printf '%s=%s ' "$p" "$DEBVER"; done) ) \
+        >"$WORK/download.log" 2>&1 || { cat "$WORK/download.log" >&2; die "apt-get download failed"; }
+
+    # --- unpack image, headers, kbuild (not the source: see below).
+    for deb in "$WORK"/debs/linux-{image,headers,kbuild}-*.deb; do
+        dpkg-deb -x "$deb" "$WORK/root"
+    done
+    HDR=$WORK/root/usr/src/linux-headers-$KREL
+    [ -f "$HDR/Makefile" ] || die "headers Makefile missing in $HDR"
+    # Debian's per-flavour Makefile includes the common tree by absolute
+    # path (/usr/src/...); point it at our unpacked copy instead.
+    sed -i "s#^include /usr/src/#include $WORK/root/usr/src/#" "$HDR/Makefile"
+    grep -q "^include $WORK/root/usr/src/" "$HDR/Makefile" ||
+        die "unexpected headers Makefile layout: $(cat "$HDR/Makefile")"
+
+    # --- extract only the three source files we need, streaming the 140 MB
+    # tarball out of the .deb instead of unpacking it.
+    SRCDEB=$(echo "$WORK"/debs/linux-source-6.1_*.deb)
+    dpkg-deb --fsys-tarfile "$SRCDEB" |
+        tar -xOf - ./usr/src/linux-source-6.1.tar.xz |
+        tar -xJf - -C "$WORK/src" \
+            linux-source-6.1/drivers/gpio/gpio-sim.c \
+            linux-source-6.1/drivers/gpio/gpiolib.h \
+            linux-source-6.1/kernel/irq/irq_sim.c
+    B=$WORK/build
+    cp "$WORK/src/linux-source-6.1/drivers/gpio/gpio-sim.c" \
+       "$WORK/src/linux-source-6.1/drivers/gpio/gpiolib.h" \
+       "$WORK/src/linux-source-6.1/kernel/irq/irq_sim.c" "$B/"
+
+    # irq_sim.c is normally built in and calls handle_simple_irq(irq_to_desc(n));
+    # irq_to_desc is not exported to modules. generic_handle_irq(n) does the
+    # same lookup inside the kernel and then calls desc->handle_irq, which
+    # irq_sim_domain_map() set to handle_simple_irq, so behaviour is identical.
+    sed -i 's/handle_simple_irq(irq_to_desc(irqnum));/generic_handle_irq(irqnum);/' "$B/irq_sim.c"
+    grep -q 'generic_handle_irq(irqnum);' "$B/irq_sim.c" || die "could not patch irq_sim.c (source changed?)"
+    grep -q 'irq_to_desc' "$B/irq_sim.c" && die "irq_sim.c still uses irq_to_desc (source changed?)"
+    # Built-in code has no license tag; modules without one cannot use GPL symbols.
+    grep -q MODULE_LICENSE "$B/irq_sim.c" || {
+        printf '\n#include <linux/module.h>\nMODULE_LICENSE("GPL");\nMODULE_DESCRIPTION("Interrupt simulator (out-of-tree build for tests)");\n' >> "$B/irq_sim.c"; }
+    echo 'obj-m := irq_sim.o gpio-sim.o' > "$B/Kbuild"
+    make -C "$HDR" M="$B" -j2 modules >"$WORK/build.log" 2>&1 ||
+        { cat "$WORK/build.log" >&2; die "module build failed (log above)"; }
+    for m in irq_sim gpio-sim; do
+        [ -f "$B/$m.ko" ] || die "$m.ko not built"
+        vm=$(modinfo_field "$B/$m.ko" vermagic)
+        case "$vm" in "$KREL "*) ;; *) die "$m.ko has vermagic '$vm', expected $KREL" ;; esac
+    done
+
+    # --- assemble the result.
+    STAGE=$CACHE/.stage-$KREL
+    rm -rf "$STAGE"; mkdir -p "$STAGE/modules"
+    cp "$WORK/root/boot/vmlinuz-$KREL" "$STAGE/vmlinuz"
+    cp "$WORK/root/boot/config-$KREL" "$STAGE/config"
+    MODOUT=$STAGE/modules
+    BUILTIN_LIST=$WORK/root/lib/modules/$KREL/modules.builtin
+    : > "$MODOUT/load.order"
+    while IFS= read -r -d '' f; do
+        MODPATH[$(norm "$(basename "$f" .ko)")]=$f
+    done < <(find "$WORK/root/lib/modules/$KREL/kernel" -name '*.ko' -print0)
+    MODPATH[irq_sim]=$B/irq_sim.ko
+    MODPATH[gpio_sim]=$B/gpio-sim.ko
+    for m in $WANTED_IMAGE_MODULES irq_sim gpio_sim; do add_module "$m"; done
+
+    # Facts worth failing early on.
+    grep -q '^CONFIG_GPIO_CDEV=y' "$STAGE/config" || die "kernel lacks CONFIG_GPIO_CDEV"
+    grep -q '^CONFIG_TRACING=y' "$STAGE/config" || die "kernel lacks CONFIG_TRACING"
+    grep -q '^CONFIG_DEVTMPFS=y' "$STAGE/config" || die "kernel lacks CONFIG_DEVTMPFS"
+
+    echo "$STAMP" > "$STAGE/.stamp"
+    mv "$STAGE" "$KDIR"
+    rm -rf "$WORK"; trap - EXIT
+fi
+
+{
+    echo "KREL=$KREL"
+    echo "DEBVER=$DEBVER"
+    echo "VMLINUZ=$KDIR/vmlinuz"
+    echo "MODDIR=$KDIR/modules"
+} > "$ENVFILE.tmp"
+mv "$ENVFILE.tmp" "$ENVFILE"
+log "modules (load order): $(tr '\n' ' ' < "$KDIR/modules/load.order")"
+echo "vmlinuz: $KDIR/vmlinuz"
+echo "modules: $KDIR/modules"
