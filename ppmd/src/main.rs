@@ -32,8 +32,9 @@ struct Cli {
     /// Output name; must match udp-ingress's. Overrides `name`.
     #[arg(long)]
     name: Option<String>,
-    /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, or `gpio:CHIP:LINE`.
-    /// Overrides `ppmd.output`.
+    /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, or `gpio:CHIP:LINE` (CHIP:
+    /// a path, name or label such as pinctrl-bcm2711; LINE: an offset or a
+    /// name such as GPIO18). Overrides `ppmd.output`.
     #[arg(long, value_name = "SPEC")]
     output: Option<String>,
     /// Run even when a real-time setting cannot be had (the run is then
@@ -231,9 +232,12 @@ fn open_output(cfg: &Config, model: &FrameModel) -> Result<Box<dyn Output>> {
             log::info!("output sim: trace in {}", path.display());
             Box::new(sim)
         }
-        OutputSpec::Gpio { chip, line } => bail!(
-            "output gpio:{chip}:{line}: this build has no GPIO backend yet; use --output sim[:PATH]"
-        ),
+        OutputSpec::Gpio { chip, line } => {
+            let out = ppmd::output::gpio::open(&chip, &line, model.idle_level())
+                .with_context(|| format!("output gpio:{chip}:{line}"))?;
+            log::info!("output gpio: {}", out.description());
+            Box::new(out)
+        }
     })
 }
 
