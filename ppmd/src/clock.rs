@@ -30,7 +30,9 @@ pub enum Margin {
     /// Always this many nanoseconds.
     Fixed(u64),
     /// Follows the observed wake-up lateness, between `min_ns` and `max_ns`
-    /// (starting at `max_ns`).
+    /// (starting at `max_ns` until the first sleep is observed). Keep
+    /// `max_ns` below the shortest gap the loop sleeps through, or it spins
+    /// without a break.
     Auto { min_ns: u64, max_ns: u64 },
 }
 
@@ -92,6 +94,14 @@ impl EdgeTimer {
             let late = spin_start - wake;
             woke_late_ns = Some(late);
             self.observe(late);
+        } else if let Margin::Auto { min_ns, .. } = self.margin {
+            // Waits that never sleep teach nothing about lateness; without a
+            // first observation the starting (largest) margin would never
+            // shrink, and a loop whose deadlines are closer than it would spin
+            // forever (and meet RT throttling).
+            if self.peak_late_ns == 0 {
+                self.margin_ns = min_ns.max(AUTO_HEADROOM_NS);
+            }
         }
         loop {
             let now = now_ns();
@@ -165,6 +175,13 @@ mod tests {
             t.observe(1_000);
         }
         assert_eq!(t.margin_ns(), 20_000, "decays to the minimum");
+        let mut first = EdgeTimer::new(Margin::Auto {
+            min_ns: 20_000,
+            max_ns: 1_000_000,
+        });
+        let w = first.wait(now_ns() + 100_000);
+        assert_eq!(w.woke_late_ns, None, "inside the starting margin: no sleep");
+        assert_eq!(first.margin_ns(), 20_000, "but the margin left its start");
         let mut f = EdgeTimer::new(Margin::Fixed(300_000));
         f.observe(900_000);
         assert_eq!(f.margin_ns(), 300_000);

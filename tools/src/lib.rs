@@ -1,5 +1,8 @@
 //! Helpers shared by the ppm tools.
 
+pub mod analysis;
+pub mod cyclic;
+
 use anyhow::{bail, Result};
 use std::time::Duration;
 

@@ -564,14 +564,9 @@ fn path_error(spec: &str, path: &Path, e: &gpiocdev::Error) -> GpioError {
 /// chip label (`pinctrl-bcm2711`); LINE is an offset (`18`) or a line name
 /// (`GPIO18`).
 pub fn open(chip: &str, line: &str, idle: Level) -> Result<GpioOutput, GpioError> {
-    let (handle, summary) = open_chip(chip)?;
-    let lines = handle
-        .line_info_iter()
-        .and_then(|it| it.collect::<Result<Vec<_>, _>>())
-        .map_err(|e| chip_error(&summary, "reading line info", &e))?;
-    let info = find_line(&summary, line, &lines)?;
+    let (handle, summary, info) = resolve_line(chip, line)?;
     let offset = info.offset;
-    let title = line_title(info);
+    let title = line_title(&info);
     let request = Request::builder()
         .on_chip(&summary.path)
         .with_consumer(CONSUMER)
@@ -601,6 +596,24 @@ pub fn open(chip: &str, line: &str, idle: Level) -> Result<GpioOutput, GpioError
         idle,
         description: format!("{title} on {summary}"),
     })
+}
+
+/// Finds the chip CHIP and its line LINE (as [`open`] does), for tools that
+/// request the line themselves; returns the open chip, its summary and the
+/// line's info.
+pub fn resolve_line(chip: &str, line: &str) -> Result<(Chip, ChipSummary, LineInfo), GpioError> {
+    let (handle, summary) = open_chip(chip)?;
+    let lines = handle
+        .line_info_iter()
+        .and_then(|it| it.collect::<Result<Vec<_>, _>>())
+        .map_err(|e| chip_error(&summary, "reading line info", &e))?;
+    let info = find_line(&summary, line, &lines)?.clone();
+    Ok((handle, summary, info))
+}
+
+/// `NAME (offset N)` or `offset N` for messages.
+pub fn describe_line(info: &LineInfo) -> String {
+    line_title(info)
 }
 
 #[cfg(test)]
