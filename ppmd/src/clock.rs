@@ -36,11 +36,56 @@ pub enum Margin {
     Auto { min_ns: u64, max_ns: u64 },
 }
 
-/// A wake-up lateness decays out of the automatic margin with a half-life of
-/// about this many later wake-ups (1 - 2^-11 per wake-up: ~1400).
-const PEAK_DECAY_SHIFT: u32 = 11;
-/// Headroom the automatic margin keeps above the decayed peak lateness.
+/// Wake-ups the automatic margin looks back over (about 5 s of frames).
+const WINDOW: usize = 4096;
+/// Resolution of the lateness window.
+const BUCKET_NS: u64 = 5_000;
+/// Lateness buckets (the last one holds everything from 2 ms up).
+const BUCKETS: usize = 400;
+/// Wake-ups of the window the automatic margin may leave uncovered: it
+/// covers the 99.5th percentile of the observed lateness, so rare spikes do
+/// not keep the loop spinning (an edge after such a spike is late, and
+/// counted).
+const UNCOVERED: usize = WINDOW / 200;
+/// Headroom the automatic margin keeps above that percentile.
 const AUTO_HEADROOM_NS: u64 = 10_000;
+
+/// The last [`WINDOW`] wake-up latenesses, as bucket counts. Fixed size:
+/// observing never allocates.
+#[derive(Debug, Clone)]
+struct Window {
+    ring: [u16; WINDOW],
+    counts: [u32; BUCKETS],
+    pos: usize,
+    filled: usize,
+}
+
+impl Window {
+    fn observe(&mut self, late_ns: u64) {
+        let b = ((late_ns / BUCKET_NS) as usize).min(BUCKETS - 1);
+        if self.filled == WINDOW {
+            self.counts[self.ring[self.pos] as usize] -= 1;
+        } else {
+            self.filled += 1;
+        }
+        self.ring[self.pos] = b as u16;
+        self.counts[b] += 1;
+        self.pos = (self.pos + 1) % WINDOW;
+    }
+
+    /// Upper bound of the lateness all but [`UNCOVERED`] of the window stay under.
+    fn covered_ns(&self) -> u64 {
+        let allowed = self.filled * UNCOVERED / WINDOW;
+        let mut above = 0;
+        for b in (0..BUCKETS).rev() {
+            above += self.counts[b] as usize;
+            if above > allowed {
+                return (b as u64 + 1) * BUCKET_NS;
+            }
+        }
+        0
+    }
+}
 
 /// What one wait measured.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -55,13 +100,13 @@ pub struct Waited {
 
 /// Sleep-then-spin waits: an absolute sleep until a margin before the
 /// deadline, then a spin on CLOCK_MONOTONIC. The sleep's wake-up lateness is
-/// what the margin has to cover; with [`Margin::Auto`] the margin follows a
-/// slowly decaying peak of the lateness actually observed.
+/// what the margin has to cover; with [`Margin::Auto`] the margin covers the
+/// 99.5th percentile of the lateness of the last 4096 sleeps, plus 10 us.
 #[derive(Debug, Clone)]
 pub struct EdgeTimer {
     margin: Margin,
     margin_ns: u64,
-    peak_late_ns: u64,
+    window: Option<Window>,
 }
 
 impl EdgeTimer {
@@ -71,10 +116,18 @@ impl EdgeTimer {
             Margin::Fixed(ns) => ns,
             Margin::Auto { max_ns, .. } => max_ns,
         };
+        // Inline, not boxed: the timer lives on the timing thread's stack and
+        // nothing is freed when the loop ends.
+        let window = matches!(margin, Margin::Auto { .. }).then_some(Window {
+            ring: [0; WINDOW],
+            counts: [0; BUCKETS],
+            pos: 0,
+            filled: 0,
+        });
         EdgeTimer {
             margin,
             margin_ns,
-            peak_late_ns: 0,
+            window,
         }
     }
 
@@ -99,7 +152,7 @@ impl EdgeTimer {
             // first observation the starting (largest) margin would never
             // shrink, and a loop whose deadlines are closer than it would spin
             // forever (and meet RT throttling).
-            if self.peak_late_ns == 0 {
+            if self.window.as_ref().is_some_and(|w| w.filled == 0) {
                 self.margin_ns = min_ns.max(AUTO_HEADROOM_NS);
             }
         }
@@ -117,11 +170,9 @@ impl EdgeTimer {
     }
 
     fn observe(&mut self, late_ns: u64) {
-        if let Margin::Auto { min_ns, max_ns } = self.margin {
-            let decayed = self.peak_late_ns - (self.peak_late_ns >> PEAK_DECAY_SHIFT);
-            self.peak_late_ns = decayed.max(late_ns);
-            let want = self.peak_late_ns + self.peak_late_ns / 4 + AUTO_HEADROOM_NS;
-            self.margin_ns = want.clamp(min_ns, max_ns);
+        if let (Margin::Auto { min_ns, max_ns }, Some(w)) = (self.margin, self.window.as_mut()) {
+            w.observe(late_ns);
+            self.margin_ns = (w.covered_ns() + AUTO_HEADROOM_NS).clamp(min_ns, max_ns);
         }
     }
 }
@@ -168,13 +219,20 @@ mod tests {
         });
         assert_eq!(t.margin_ns(), 1_000_000, "starts at the maximum");
         t.observe(40_000);
-        assert_eq!(t.margin_ns(), 40_000 + 10_000 + 10_000);
+        assert_eq!(t.margin_ns(), 45_000 + 10_000, "covers the bucket of 40 us");
         t.observe(5_000_000);
         assert_eq!(t.margin_ns(), 1_000_000, "capped");
-        for _ in 0..100_000 {
+        for _ in 0..WINDOW {
             t.observe(1_000);
         }
-        assert_eq!(t.margin_ns(), 20_000, "decays to the minimum");
+        assert_eq!(t.margin_ns(), 20_000, "the spike left the window: the minimum");
+        // A few spikes in the window stay uncovered; more than 0.1% are covered.
+        for _ in 0..UNCOVERED {
+            t.observe(300_000);
+        }
+        assert_eq!(t.margin_ns(), 20_000);
+        t.observe(300_000);
+        assert_eq!(t.margin_ns(), 305_000 + 10_000);
         let mut first = EdgeTimer::new(Margin::Auto {
             min_ns: 20_000,
             max_ns: 1_000_000,

@@ -330,11 +330,13 @@ mod tests {
         assert!((4..=6).contains(&n), "{n} frames");
         assert_eq!(stats.failsafe_entries.load(Relaxed), 1);
         assert_eq!(edges.len() as u64, n * 18);
-        // Frames sit on one grid.
+        // Frames sit on one grid, but for those moved later as a whole.
         let starts: Vec<u64> = edges.iter().step_by(18).map(|e| e.scheduled_ns).collect();
-        for w in starts.windows(2) {
-            assert_eq!((w[1] - w[0]) % 22_500_000, 0);
-        }
+        let off_grid = starts
+            .iter()
+            .filter(|&&s| (s - starts[0]) % 22_500_000 != 0)
+            .count() as u64;
+        assert!(off_grid <= stats.late_frames.load(Relaxed), "{off_grid} frames off the grid");
         for e in &edges {
             assert!(e.actual_ns >= e.scheduled_ns, "never early");
         }

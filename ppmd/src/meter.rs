@@ -108,6 +108,12 @@ impl Meter {
         self.current.start_ns = now_ns;
     }
 
+    /// The interval being filled (for a caller that reads it in place, such
+    /// as the benchmark, instead of through a [`MeterReader`]).
+    pub fn current(&self) -> &Interval {
+        &self.current
+    }
+
     /// Records one edge's error and write duration.
     #[inline]
     pub fn edge(&mut self, error_ns: u64, write_ns: u64) {
@@ -130,7 +136,7 @@ impl Meter {
 
     /// Hands the interval over when it is due (call between frames).
     pub fn maybe_hand_over(&mut self, now_ns: u64) {
-        if now_ns < self.current.start_ns + self.every_ns {
+        if now_ns < self.current.start_ns.saturating_add(self.every_ns) {
             return;
         }
         match self.empty.pop() {

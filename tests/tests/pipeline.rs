@@ -94,11 +94,6 @@ fn commands_reach_the_line_and_malformed_datagrams_change_nothing() {
     for (k, f) in frames.iter().enumerate() {
         // Scheduled times are exact: compare to the nanosecond (well within 1 us).
         assert_eq!(f.channels_ns, want_ns, "frame {k} at {}", f.start_ns);
-        if k > 0 {
-            // Frames sit on one grid (a frame whose start a loaded machine
-            // missed is skipped whole, never shifted).
-            assert_eq!((f.start_ns - frames[k - 1].start_ns) % FRAME_NS, 0);
-        }
     }
     assert!(frames.last().unwrap().start_ns >= last - 2 * FRAME_NS);
     // The line ends at its idle level (low).

@@ -1,0 +1,161 @@
+//! Nothing allocates in the timing loop after start: the loop runs with the
+//! real iceoryx2 command source (fed by a publisher in another thread), the
+//! sim output and the meter's interval hand-over, under a global allocator
+//! that counts every allocation made on the loop's thread once the first
+//! frames are out.
+
+use ppm_shared::config::{Config, FailsafeAction};
+use ppm_shared::ipc::{self, CommandSample};
+use ppm_shared::protocol::parse;
+use ppmd::clock::{self, Margin};
+use ppmd::emitter::{self, EmitterConfig, Stats};
+use ppmd::output::SimOutput;
+use ppmd::source::{CommandSource, IpcSource};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::Arc;
+use std::time::Duration;
+
+static ALLOCATIONS: AtomicU64 = AtomicU64::new(0);
+
+thread_local! {
+    static COUNTING: Cell<bool> = const { Cell::new(false) };
+}
+
+struct CountingAllocator;
+
+fn note() {
+    if COUNTING.try_with(Cell::get).unwrap_or(false) {
+        ALLOCATIONS.fetch_add(1, Relaxed);
+    }
+}
+
+unsafe impl GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        note();
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        note();
+        unsafe { System.alloc_zeroed(layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        note();
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        note();
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: CountingAllocator = CountingAllocator;
+
+/// Passes the real source through; starts counting after `warmup` frames and
+/// stops the loop after `frames`.
+struct Counted {
+    inner: IpcSource,
+    calls: u64,
+    warmup: u64,
+    frames: u64,
+    stop: Arc<AtomicBool>,
+}
+
+impl CommandSource for Counted {
+    fn newest(&mut self) -> Option<CommandSample> {
+        self.calls += 1;
+        if self.calls == self.warmup {
+            COUNTING.with(|c| c.set(true));
+        }
+        if self.calls >= self.frames {
+            self.stop.store(true, Relaxed);
+        }
+        self.inner.newest()
+    }
+}
+
+#[test]
+fn the_timing_loop_does_not_allocate_after_start() {
+    let dir = std::env::temp_dir().join(format!("ppmd-noalloc-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let root = dir.join("ipc");
+    let name = format!("noalloc{}", std::process::id());
+    let model = Config::default().validate().unwrap();
+
+    // The publisher: a fresh command every 5 ms until told to stop.
+    let done = Arc::new(AtomicBool::new(false));
+    let publisher = {
+        let (done, root, name, model) = (done.clone(), root.clone(), name.clone(), model.clone());
+        std::thread::spawn(move || {
+            let node = ipc::create_node(&root, "noalloc-pub").unwrap();
+            let service = ipc::open_command_service(&node, &name).unwrap();
+            let p = service.publisher_builder().create().unwrap();
+            let mut k = 0u64;
+            while !done.load(Relaxed) {
+                k += 1;
+                let cmd = parse(format!("[{}]", 1000 + k % 1000).as_bytes(), &model).unwrap();
+                let s = CommandSample::new(&cmd, k, clock::now_ns(), 0);
+                p.loan_uninit().unwrap().write_payload(s).send().unwrap();
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        })
+    };
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = Arc::new(Stats::default());
+    let (mut meter, mut reader) = ppmd::meter::meter(100_000_000);
+    let reader_stop = Arc::new(AtomicBool::new(false));
+    let drained = Arc::new(AtomicU64::new(0));
+    let reader_thread = {
+        let (reader_stop, drained) = (reader_stop.clone(), drained.clone());
+        std::thread::spawn(move || {
+            while !reader_stop.load(Relaxed) {
+                reader.drain(|_| {
+                    drained.fetch_add(1, Relaxed);
+                });
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        })
+    };
+    let timing = {
+        let (stop, stats, model, trace) = (stop.clone(), stats.clone(), model.clone(), dir.join("t.trace"));
+        std::thread::spawn(move || {
+            let mut source = Counted {
+                inner: IpcSource::open(&root, &name).unwrap(),
+                calls: 0,
+                warmup: 10,
+                frames: 60,
+                stop: stop.clone(),
+            };
+            let mut out = SimOutput::create(&trace, &["idle_level 0".into()]).unwrap();
+            let cfg = EmitterConfig {
+                margin: Margin::Auto {
+                    min_ns: 20_000,
+                    max_ns: 1_000_000,
+                },
+                failsafe_after_ns: 200_000_000,
+                failsafe_action: FailsafeAction::Hold,
+            };
+            emitter::run(&model, &cfg, &mut source, &mut out, &stop, &stats, &mut meter);
+            COUNTING.with(|c| c.set(false));
+        })
+    };
+    timing.join().unwrap();
+    done.store(true, Relaxed);
+    reader_stop.store(true, Relaxed);
+    publisher.join().unwrap();
+    reader_thread.join().unwrap();
+
+    let frames = stats.frames.load(Relaxed);
+    assert!(frames >= 50, "only {frames} frames");
+    assert!(stats.commands.load(Relaxed) >= 50);
+    assert!(drained.load(Relaxed) >= 5, "the meter handed intervals over");
+    assert_eq!(
+        ALLOCATIONS.load(Relaxed),
+        0,
+        "the timing loop allocated after its first frames"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
