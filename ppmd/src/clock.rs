@@ -225,7 +225,11 @@ mod tests {
         for _ in 0..WINDOW {
             t.observe(1_000);
         }
-        assert_eq!(t.margin_ns(), 20_000, "the spike left the window: the minimum");
+        assert_eq!(
+            t.margin_ns(),
+            20_000,
+            "the spike left the window: the minimum"
+        );
         // A few spikes in the window stay uncovered; more than 0.1% are covered.
         for _ in 0..UNCOVERED {
             t.observe(300_000);

@@ -334,9 +334,12 @@ mod tests {
         let starts: Vec<u64> = edges.iter().step_by(18).map(|e| e.scheduled_ns).collect();
         let off_grid = starts
             .iter()
-            .filter(|&&s| (s - starts[0]) % 22_500_000 != 0)
+            .filter(|&&s| !(s - starts[0]).is_multiple_of(22_500_000))
             .count() as u64;
-        assert!(off_grid <= stats.late_frames.load(Relaxed), "{off_grid} frames off the grid");
+        assert!(
+            off_grid <= stats.late_frames.load(Relaxed),
+            "{off_grid} frames off the grid"
+        );
         for e in &edges {
             assert!(e.actual_ns >= e.scheduled_ns, "never early");
         }

@@ -120,7 +120,12 @@ fn the_timing_loop_does_not_allocate_after_start() {
         })
     };
     let timing = {
-        let (stop, stats, model, trace) = (stop.clone(), stats.clone(), model.clone(), dir.join("t.trace"));
+        let (stop, stats, model, trace) = (
+            stop.clone(),
+            stats.clone(),
+            model.clone(),
+            dir.join("t.trace"),
+        );
         std::thread::spawn(move || {
             let mut source = Counted {
                 inner: IpcSource::open(&root, &name).unwrap(),
@@ -138,7 +143,15 @@ fn the_timing_loop_does_not_allocate_after_start() {
                 failsafe_after_ns: 200_000_000,
                 failsafe_action: FailsafeAction::Hold,
             };
-            emitter::run(&model, &cfg, &mut source, &mut out, &stop, &stats, &mut meter);
+            emitter::run(
+                &model,
+                &cfg,
+                &mut source,
+                &mut out,
+                &stop,
+                &stats,
+                &mut meter,
+            );
             COUNTING.with(|c| c.set(false));
         })
     };
@@ -151,7 +164,10 @@ fn the_timing_loop_does_not_allocate_after_start() {
     let frames = stats.frames.load(Relaxed);
     assert!(frames >= 50, "only {frames} frames");
     assert!(stats.commands.load(Relaxed) >= 50);
-    assert!(drained.load(Relaxed) >= 5, "the meter handed intervals over");
+    assert!(
+        drained.load(Relaxed) >= 5,
+        "the meter handed intervals over"
+    );
     assert_eq!(
         ALLOCATIONS.load(Relaxed),
         0,

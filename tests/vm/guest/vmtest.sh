@@ -52,10 +52,25 @@ sim_value() { cat "$(sim_attr_dir "$1" "$2")/value"; }          # CHIPDEV LINE -
 # sim_chip_base CHIPDEV: global GPIO number of line 0. The gpio_value
 # tracepoint reports global numbers: line offset = gpio - base.
 sim_chip_base() {
-    for _c in /sys/bus/gpio/devices/${1#/dev/}/gpio/gpiochip*; do
-        cat "$_c/base"; return 0
+    # The legacy sysfs class device (gpiochipBASE) is a sibling of the
+    # gpio_device under the gpio-sim platform device (one bank per device).
+    _p=$(readlink -f "/sys/bus/gpio/devices/${1#/dev/}") || return 1
+    for _c in "${_p%/*}"/gpio/gpiochip*; do
+        [ -f "$_c/base" ] && { cat "$_c/base"; return 0; }
     done
     return 1
+}
+
+# sysfs_gpio_out CHIPDEV LINE: claims LINE as an output through the legacy
+# /sys/class/gpio interface (CONFIG_GPIO_SYSFS=y) and prints the directory
+# whose 'value' file drives it; each write is a gpiod_set_value() and so
+# produces a gpio_value "set" trace event. Lets shell tests drive outputs
+# without a gpioset binary.
+sysfs_gpio_out() {
+    _g=$(( $(sim_chip_base "$1") + $2 ))
+    [ -d /sys/class/gpio/gpio$_g ] || echo "$_g" > /sys/class/gpio/export
+    echo out > /sys/class/gpio/gpio$_g/direction
+    echo /sys/class/gpio/gpio$_g
 }
 
 # start_gpio_trace [EVENT...]: clear the trace buffer and start recording

@@ -128,7 +128,15 @@ fn run_block(
     let stats = Stats::default();
     let (mut meter, _reader) = ppmd::meter::meter(u64::MAX);
     let (cpu0, wall0) = (thread_cpu_ns(), clock::now_ns());
-    emitter::run(model, &cfg, &mut source, &mut out, &stop, &stats, &mut meter);
+    emitter::run(
+        model,
+        &cfg,
+        &mut source,
+        &mut out,
+        &stop,
+        &stats,
+        &mut meter,
+    );
     totals.cpu_ns += thread_cpu_ns() - cpu0;
     totals.wall_ns += clock::now_ns() - wall0;
     totals.spin_ns += stats.spin_ns.load(Relaxed);
