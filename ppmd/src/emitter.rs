@@ -14,11 +14,12 @@
 //! [`Stats`] and histograms in a [`Meter`].
 
 use crate::clock::{self, EdgeTimer, Margin};
+use crate::framelog::{self, CommandInfo, Record};
 use crate::meter::Meter;
 use crate::output::Output;
 use crate::source::CommandSource;
 use ppm_shared::config::{FailsafeAction, SYNC_MAX_US, SYNC_MIN_US};
-use ppm_shared::frame::{us_to_ns, Channels, FrameModel};
+use ppm_shared::frame::{us_to_ns, Channels, FrameModel, MAX_CHANNELS};
 use ppm_shared::ipc::CommandSample;
 use ppm_shared::trace::TraceEdge;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering::Relaxed};
@@ -106,7 +107,9 @@ fn add(c: &AtomicU64, n: u64) {
 }
 
 /// Runs until `stop` is set, then finishes the frame in progress and leaves
-/// the line at its idle level.
+/// the line at its idle level. With a frame log, every emitted frame and
+/// every line-state change is queued to it.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     model: &FrameModel,
     cfg: &EmitterConfig,
@@ -115,6 +118,7 @@ pub fn run(
     stop: &AtomicBool,
     stats: &Stats,
     meter: &mut Meter,
+    mut log: Option<&mut framelog::Producer>,
 ) {
     let frame_ns = model.frame_ns();
     let (sync_min_ns, sync_max_ns) = (us_to_ns(SYNC_MIN_US), us_to_ns(SYNC_MAX_US));
@@ -124,6 +128,7 @@ pub fn run(
     // Sync gap after the previous frame's last pulse, when frames are running.
     let mut prev_sync_ns = 0;
     let mut state = LineState::Silent;
+    let mut frame_no = 0u64;
     meter.start(clock::now_ns());
     while !stop.load(Relaxed) {
         let lead = timer.margin_ns() + DECIDE_NS;
@@ -157,6 +162,16 @@ pub fn run(
         };
         if state == LineState::Active && new_state != LineState::Active {
             add(&stats.failsafe_entries, 1);
+        }
+        if new_state != state {
+            if let Some(log) = log.as_deref_mut() {
+                log.push(Record::Transition {
+                    mono_ns: now,
+                    real_ns: clock::realtime_ns(),
+                    from: state,
+                    to: new_state,
+                });
+            }
         }
         state = new_state;
         stats.state.store(state as u8, Relaxed);
@@ -194,10 +209,40 @@ pub fn run(
             }
         }
         let grid_start = next_start.unwrap_or(start);
+        // Where the frame starts on the wall clock, from one pair of readings.
+        let start_real_ns = clock::realtime_ns() + start.saturating_sub(clock::now_ns());
         emit_frame(edges, start, &mut timer, out, stats, meter);
         next_start = Some(grid_start + frame_ns);
         prev_sync_ns = grid_start + frame_ns - (start + last_pulse);
         stats.margin_ns.store(timer.margin_ns(), Relaxed);
+        frame_no += 1;
+        if let Some(log) = log.as_deref_mut() {
+            let mut values_ns = [0; MAX_CHANNELS];
+            for (i, v) in values_ns.iter_mut().enumerate().take(model.channels()) {
+                let given = channels
+                    .as_ns()
+                    .get(i)
+                    .copied()
+                    .unwrap_or(model.default_ns(i));
+                *v = model.clamp(i, given).0;
+            }
+            let from_command =
+                state == LineState::Active || cfg.failsafe_action == FailsafeAction::Hold;
+            log.push(Record::Frame {
+                frame: frame_no,
+                start_mono_ns: start,
+                start_real_ns,
+                state,
+                command: newest.filter(|_| from_command).map(|(s, _)| CommandInfo {
+                    seq: s.seq(),
+                    ingress_seq: s.ingress_seq,
+                    recv_mono_ns: s.recv_mono_ns,
+                    recv_real_ns: s.recv_real_ns,
+                }),
+                channels: model.channels() as u8,
+                values_ns,
+            });
+        }
     }
     if out.park(model.idle_level()).is_err() {
         add(&stats.write_errors, 1);
@@ -306,7 +351,9 @@ mod tests {
         let mut out = Recorder::default();
         let stats = Stats::default();
         let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
-        run(&model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter);
+        run(
+            &model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter, None,
+        );
         (out.0, stats)
     }
 

@@ -6,9 +6,13 @@
 //! - [`output`]: the backend trait and the simulated line.
 //! - [`emitter`]: the timing loop (no allocation, logging or locks inside).
 //! - [`source`]: where commands come from (iceoryx2 in the daemon).
+//! - [`framelog`]: the JSON-lines log of every frame sent.
+//! - [`meter`]: histograms of the loop's timing, handed over lock-free.
+//! - [`rt`]: the real-time setup of the timing thread.
 
 pub mod clock;
 pub mod emitter;
+pub mod framelog;
 pub mod meter;
 pub mod output;
 pub mod rt;

@@ -41,6 +41,10 @@ struct Cli {
     /// marked degraded). Sets `rt.allow_degraded`.
     #[arg(long)]
     allow_degraded: bool,
+    /// Append one JSON line per emitted frame and line-state change to FILE.
+    /// Overrides `ppmd.frame_log`.
+    #[arg(long, value_name = "FILE")]
+    frame_log: Option<PathBuf>,
     /// Append an HdrHistogram interval log of edge error and write duration
     /// (nanoseconds, one interval a second) to FILE.
     #[arg(long, value_name = "FILE")]
@@ -77,6 +81,9 @@ fn run(cli: Cli) -> Result<()> {
         cfg.ppmd.output = output;
     }
     cfg.rt.allow_degraded |= cli.allow_degraded;
+    if cli.frame_log.is_some() {
+        cfg.ppmd.frame_log = cli.frame_log;
+    }
     let model = cfg.validate()?;
     let output = open_output(&cfg, &model)?;
 
@@ -101,6 +108,15 @@ fn run(cli: Cli) -> Result<()> {
         },
         failsafe_after_ns: cfg.failsafe.after_ms * 1_000_000,
         failsafe_action: cfg.failsafe.action,
+    };
+    let (mut log_producer, mut log_writer) = match &cfg.ppmd.frame_log {
+        Some(path) => {
+            let (p, w) = ppmd::framelog::open(path, cfg.ppmd.frame_log_max_mb << 20)
+                .with_context(|| format!("opening the frame log {}", path.display()))?;
+            log::info!("frame log: {}", path.display());
+            (Some(p), Some(w))
+        }
+        None => (None, None),
     };
     let stats = Arc::new(Stats::default());
     let (mut meter, reader) = meter::meter(SNAPSHOT_EVERY_NS);
@@ -138,6 +154,7 @@ fn run(cli: Cli) -> Result<()> {
                     &stop,
                     &stats,
                     &mut meter,
+                    log_producer.as_mut(),
                 );
                 drop(output); // sets the line idle, flushes the sim trace
                 drop(obtained); // releases /dev/cpu_dma_latency
@@ -193,6 +210,15 @@ fn run(cli: Cli) -> Result<()> {
         .join()
         .map_err(|_| anyhow!("the timing thread panicked"))??;
     monitor.tick()?;
+    if let Some(w) = log_writer.as_mut() {
+        w.finish().context("writing the frame log")?;
+        if w.dropped() > 0 {
+            log::warn!(
+                "frame log: {} rows dropped (the writer fell behind)",
+                w.dropped()
+            );
+        }
+    }
     let t = &monitor.snapshot;
     log::info!(
         "stopped{}: {} frames, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} late frames, {} overruns, {} write errors, {} mismatched samples, {} receive errors",

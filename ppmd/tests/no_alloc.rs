@@ -151,6 +151,7 @@ fn the_timing_loop_does_not_allocate_after_start() {
                 &stop,
                 &stats,
                 &mut meter,
+                None,
             );
             COUNTING.with(|c| c.set(false));
         })

@@ -180,12 +180,20 @@ pub struct PpmdSection {
     /// Where the signal goes: `"sim"` (simulated line, trace in
     /// `ppm-NAME.trace`), `"sim:PATH"`, or `"gpio:CHIP:LINE"`. Default `"sim"`.
     pub output: String,
+    /// Frame log: one JSON line per emitted frame and per line-state change,
+    /// appended to this file. Default: none (also `ppmd --frame-log FILE`).
+    pub frame_log: Option<PathBuf>,
+    /// Size at which the frame log is rotated (FILE.1, FILE.2, FILE.3 are
+    /// kept), in MiB, 1..=65536. Default 64.
+    pub frame_log_max_mb: u64,
 }
 
 impl Default for PpmdSection {
     fn default() -> Self {
         PpmdSection {
             output: "sim".into(),
+            frame_log: None,
+            frame_log_max_mb: 64,
         }
     }
 }
@@ -409,6 +417,12 @@ impl Config {
             ));
         }
         self.output()?;
+        if !(1..=65_536).contains(&self.ppmd.frame_log_max_mb) {
+            return Err(ConfigError::invalid(
+                "ppmd.frame_log_max_mb",
+                format!("{} MiB is outside 1..=65536", self.ppmd.frame_log_max_mb),
+            ));
+        }
         let rt = &self.rt;
         if rt.priority > 99 {
             return Err(ConfigError::invalid(
@@ -719,6 +733,7 @@ mod tests {
             ),
             ("[ppmd]\noutput = 'pwm'", "ppmd.output"),
             ("[rt]\npriority = 100", "rt.priority"),
+            ("[ppmd]\nframe_log_max_mb = 0", "ppmd.frame_log_max_mb"),
             ("[rt]\nspin_margin_max_us = 6000", "rt.spin_margin_max_us"),
             (
                 "[rt]\nspin_margin_min_us = 600\nspin_margin_max_us = 500",

@@ -224,3 +224,81 @@ fn bad_config_stops_both_at_start_naming_the_key() {
         }
     }
 }
+
+#[test]
+fn frame_log_rows_match_the_decoded_line() {
+    let sb = Sandbox::new("framelog");
+    let cfg = sb.config("");
+    let cfg = cfg.to_str().unwrap();
+    let log_path = sb.dir.join("frames.jsonl");
+    let output = format!("sim:{}", sb.dir.join("line.trace").display());
+    let mut ppmd = sb.spawn(
+        "ppmd",
+        &[
+            "--config",
+            cfg,
+            "--output",
+            &output,
+            "--frame-log",
+            log_path.to_str().unwrap(),
+        ],
+        "ppmd",
+    );
+    let _ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
+    ppmd.wait_for_log("commands from", 30 * SECOND);
+    let sender = Sender::new(sb.addr());
+    at_50hz(60, |i| {
+        let v = 1000 + 10 * i;
+        sender.send(format!(r#"{{"ch": [{v}, 1500.5, 1200], "seq": {}}}"#, i + 1).as_bytes());
+    });
+    std::thread::sleep(Duration::from_millis(400));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+
+    let rows: Vec<serde_json::Value> = std::fs::read_to_string(&log_path)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("a JSON line"))
+        .collect();
+    let frames: Vec<&serde_json::Value> = rows.iter().filter(|r| r["type"] == "frame").collect();
+    let transitions: Vec<(&str, &str)> = rows
+        .iter()
+        .filter(|r| r["type"] == "transition")
+        .map(|r| (r["from"].as_str().unwrap(), r["to"].as_str().unwrap()))
+        .collect();
+    assert_eq!(transitions, [("silent", "active"), ("active", "silent")]);
+    let decoded = read_trace(&sb.dir.join("line.trace")).decode(false);
+    assert!(decoded.len() >= 45, "{} frames decoded", decoded.len());
+    // Every frame on the line is in the log, at its start time, with its values.
+    for f in &decoded {
+        let row = frames
+            .iter()
+            .find(|r| r["mono_ns"].as_u64() == Some(f.start_ns))
+            .unwrap_or_else(|| panic!("no log row for the frame at {}", f.start_ns));
+        let logged: Vec<u64> = row["ch_us"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| (v.as_f64().unwrap() * 1_000.0).round() as u64)
+            .collect();
+        assert_eq!(logged, f.channels_ns, "frame at {}", f.start_ns);
+        assert_eq!(row["state"], "active");
+        assert!(
+            row["seq"].as_u64().is_some() && row["recv_mono_ns"].as_u64().unwrap() < f.start_ns
+        );
+    }
+    // The log has only the frames the line had: the decoder cannot read the
+    // first one (no sync before it) nor close the last.
+    assert!(
+        frames.len() <= decoded.len() + 2,
+        "{} rows, {} decoded",
+        frames.len(),
+        decoded.len()
+    );
+    // Frame numbers count up without gaps.
+    for w in frames.windows(2) {
+        assert_eq!(
+            w[1]["frame"].as_u64().unwrap(),
+            w[0]["frame"].as_u64().unwrap() + 1
+        );
+    }
+}

@@ -48,8 +48,9 @@ if [ ! -f "$CACHE/$FLAVOR.env" ]; then
 fi
 # shellcheck disable=SC1090,SC1091
 . "$CACHE/$FLAVOR.env"
-[ -n "${KERNEL:-}" ] && [ -f "$KERNEL" ] && [ -f "$MODDIR/load.order" ] ||
+if [ -z "${KERNEL:-}" ] || [ ! -f "$KERNEL" ] || [ ! -f "$MODDIR/load.order" ]; then
     die "cache for $FLAVOR is incomplete; rerun tests/vm/prepare.sh $FLAVOR"
+fi
 
 mkdir -p "$OUTDIR"
 OUTDIR=$(cd "$OUTDIR" && pwd)
@@ -64,6 +65,7 @@ fi
 touch "$OUTDIR/.vmtest-outdir"
 
 STAGE=$(mktemp -d "${TMPDIR:-/tmp}/ppm-vm.XXXXXX")
+# shellcheck disable=SC2317 # called through the trap
 cleanup() { rm -rf "$STAGE"; }
 trap cleanup EXIT
 
@@ -83,9 +85,12 @@ cp "$MODDIR"/*.ko "$MODDIR/load.order" "$R/lib/modules/"
 chmod 755 "$R/init" "$R/test.sh"
 for f in "$@"; do
     if command -v readelf >/dev/null &&
-       readelf -l "$f" 2>/dev/null | grep -q 'Requesting program interpreter'; then
+       [[ $(readelf -l "$f" 2>/dev/null) == *'Requesting program interpreter'* ]]; then
         log "warning: $f is dynamically linked; the guest has no libc (build it static)"
     fi
+    # rm first: a name that is also a busybox applet is a symlink to busybox,
+    # and cp would overwrite busybox itself through it.
+    rm -f "$R/bin/$(basename "$f")"
     cp "$f" "$R/bin/"
     chmod 755 "$R/bin/$(basename "$f")"
 done
@@ -116,6 +121,7 @@ truncate -s "${PPM_VM_RESULT_MB:-512}M" "$DISK"
 BOOT_OPTS=${PPM_VM_BOOT_OPTS-cryptomgr.notests noapictimer mitigations=off tsc=reliable}
 
 CONSOLE=$OUTDIR/console.log
+# shellcheck disable=SC2054 # commas belong to qemu option values
 QEMU=(qemu-system-x86_64
     -accel tcg
     # One vCPU and instruction counting: guest time advances 1 ns per

@@ -2,7 +2,7 @@
 # busybox sh (ash) syntax. Everything a test writes under /out (the working
 # directory of test.sh) is copied to the host's OUTDIR.
 
-VMTEST_OUT=/out
+export VMTEST_OUT=/out
 VMTEST_TRACEFS=/sys/kernel/tracing
 VMTEST_SIMFS=/sys/kernel/config/gpio-sim
 # Per-CPU ring buffer size. One gpio_value event takes ~32 bytes; 8 MiB
@@ -82,7 +82,8 @@ start_gpio_trace() {
     echo mono > $_t/trace_clock
     echo "$VMTEST_TRACE_BUF_KB" > $_t/buffer_size_kb
     echo 0 > $_t/events/enable
-    for _e in ${*:-gpio_value}; do
+    [ $# -gt 0 ] || set -- gpio_value
+    for _e in "$@"; do
         echo 1 > "$_t/events/gpio/$_e/enable" || vmtest_die "no tracepoint gpio:$_e"
     done
     echo > $_t/trace          # clears the buffer

@@ -136,6 +136,7 @@ fn run_block(
         &stop,
         &stats,
         &mut meter,
+        None,
     );
     totals.cpu_ns += thread_cpu_ns() - cpu0;
     totals.wall_ns += clock::now_ns() - wall0;

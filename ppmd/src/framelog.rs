@@ -1,0 +1,358 @@
+//! The frame log: one JSON line per emitted frame and per line-state
+//! transition, for system identification.
+//!
+//! The timing loop pushes fixed-size [`Record`]s into a bounded lock-free
+//! ring; a writer thread formats and appends them. When the writer falls
+//! behind the ring fills and the loop drops rows (and counts them) instead
+//! of waiting. The file is rotated at a size cap: `FILE` becomes `FILE.1`,
+//! `FILE.1` becomes `FILE.2`, and so on, keeping [`KEEP`] old files.
+
+use crate::emitter::LineState;
+use ppm_shared::frame::MAX_CHANNELS;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+/// Rows the ring holds: about 90 s of frames at 44 Hz.
+const RING: usize = 4096;
+/// Rotated files kept besides the current one.
+pub const KEEP: usize = 3;
+/// How often the writer drains the ring and flushes.
+const FLUSH_EVERY: Duration = Duration::from_millis(100);
+
+/// One row, as the loop records it (fixed size, `Copy`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Record {
+    /// An emitted frame.
+    Frame {
+        /// Frame number since ppmd started (1, 2, ...).
+        frame: u64,
+        /// CLOCK_MONOTONIC time of the frame's first edge, ns.
+        start_mono_ns: u64,
+        /// CLOCK_REALTIME time of the frame's first edge, ns.
+        start_real_ns: u64,
+        /// The line state the frame was emitted in (active or failsafe).
+        state: LineState,
+        /// The command the frame carries, if any (none for failsafe defaults).
+        command: Option<CommandInfo>,
+        /// Number of channels in `values_ns`.
+        channels: u8,
+        /// The channel values sent, ns.
+        values_ns: [u32; MAX_CHANNELS],
+    },
+    /// The line changed state.
+    Transition {
+        /// CLOCK_MONOTONIC time of the change, ns.
+        mono_ns: u64,
+        /// CLOCK_REALTIME time of the change, ns.
+        real_ns: u64,
+        /// State before.
+        from: LineState,
+        /// State after.
+        to: LineState,
+    },
+}
+
+/// Where a frame's command came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CommandInfo {
+    /// The sender's `seq`, if it gave one.
+    pub seq: Option<u64>,
+    /// The ingress's number for the command.
+    pub ingress_seq: u64,
+    /// When the ingress received it (CLOCK_MONOTONIC ns).
+    pub recv_mono_ns: u64,
+    /// When the ingress received it (CLOCK_REALTIME ns).
+    pub recv_real_ns: u64,
+}
+
+fn state_name(s: LineState) -> &'static str {
+    match s {
+        LineState::Silent => "silent",
+        LineState::Active => "active",
+        LineState::Failsafe => "failsafe",
+    }
+}
+
+impl Record {
+    /// The JSON line (without the newline).
+    pub fn to_json(&self) -> String {
+        match self {
+            Record::Frame {
+                frame,
+                start_mono_ns,
+                start_real_ns,
+                state,
+                command,
+                channels,
+                values_ns,
+            } => {
+                let ch: Vec<serde_json::Value> = values_ns[..*channels as usize]
+                    .iter()
+                    .map(|&ns| serde_json::json!(ns as f64 / 1_000.0))
+                    .collect();
+                let c = command.as_ref();
+                serde_json::json!({
+                    "type": "frame",
+                    "frame": frame,
+                    "mono_ns": start_mono_ns,
+                    "real_ns": start_real_ns,
+                    "state": state_name(*state),
+                    "seq": c.and_then(|c| c.seq),
+                    "ingress_seq": c.map(|c| c.ingress_seq),
+                    "recv_mono_ns": c.map(|c| c.recv_mono_ns),
+                    "recv_real_ns": c.map(|c| c.recv_real_ns),
+                    "ch_us": ch,
+                })
+                .to_string()
+            }
+            Record::Transition {
+                mono_ns,
+                real_ns,
+                from,
+                to,
+            } => serde_json::json!({
+                "type": "transition",
+                "mono_ns": mono_ns,
+                "real_ns": real_ns,
+                "from": state_name(*from),
+                "to": state_name(*to),
+            })
+            .to_string(),
+        }
+    }
+}
+
+/// The loop's end of the log.
+pub struct Producer {
+    ring: rtrb::Producer<Record>,
+    dropped: Arc<AtomicU64>,
+}
+
+impl Producer {
+    /// Queues a row; when the ring is full the row is dropped and counted.
+    #[inline]
+    pub fn push(&mut self, r: Record) {
+        if self.ring.push(r).is_err() {
+            self.dropped.fetch_add(1, Relaxed);
+        }
+    }
+}
+
+/// The writer thread and its counters.
+pub struct Writer {
+    stop: Arc<AtomicBool>,
+    dropped: Arc<AtomicU64>,
+    written: Arc<AtomicU64>,
+    thread: Option<JoinHandle<std::io::Result<()>>>,
+}
+
+impl Writer {
+    /// Rows dropped because the writer fell behind.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Relaxed)
+    }
+
+    /// Rows written.
+    pub fn written(&self) -> u64 {
+        self.written.load(Relaxed)
+    }
+
+    /// Writes what is queued, flushes and stops the thread.
+    pub fn finish(&mut self) -> std::io::Result<()> {
+        self.stop.store(true, Relaxed);
+        match self.thread.take() {
+            Some(t) => t
+                .join()
+                .unwrap_or_else(|_| Err(std::io::Error::other("frame log writer panicked"))),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for Writer {
+    fn drop(&mut self) {
+        let _ = self.finish();
+    }
+}
+
+/// Opens (appends to) the log at `path`, rotating at `max_bytes`.
+pub fn open(path: &Path, max_bytes: u64) -> std::io::Result<(Producer, Writer)> {
+    let mut file = Rotating::open(path, max_bytes)?;
+    let (producer, mut consumer) = rtrb::RingBuffer::<Record>::new(RING);
+    let stop = Arc::new(AtomicBool::new(false));
+    let dropped = Arc::new(AtomicU64::new(0));
+    let written = Arc::new(AtomicU64::new(0));
+    let (stop2, written2) = (stop.clone(), written.clone());
+    let thread = std::thread::Builder::new()
+        .name("ppmd-frame-log".into())
+        .stack_size(256 * 1024)
+        .spawn(move || -> std::io::Result<()> {
+            loop {
+                let stopping = stop2.load(Relaxed);
+                while let Ok(r) = consumer.pop() {
+                    file.write_line(&r.to_json())?;
+                    written2.fetch_add(1, Relaxed);
+                }
+                file.flush()?;
+                if stopping {
+                    return Ok(());
+                }
+                std::thread::sleep(FLUSH_EVERY);
+            }
+        })?;
+    Ok((
+        Producer {
+            ring: producer,
+            dropped: dropped.clone(),
+        },
+        Writer {
+            stop,
+            dropped,
+            written,
+            thread: Some(thread),
+        },
+    ))
+}
+
+/// An append-only file rotated at a size cap.
+struct Rotating {
+    path: PathBuf,
+    max_bytes: u64,
+    size: u64,
+    out: BufWriter<File>,
+}
+
+impl Rotating {
+    fn open(path: &Path, max_bytes: u64) -> std::io::Result<Rotating> {
+        let f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)?;
+        Ok(Rotating {
+            size: f.metadata()?.len(),
+            path: path.to_owned(),
+            max_bytes,
+            out: BufWriter::new(f),
+        })
+    }
+
+    fn write_line(&mut self, line: &str) -> std::io::Result<()> {
+        if self.size > 0 && self.size + line.len() as u64 + 1 > self.max_bytes {
+            self.rotate()?;
+        }
+        self.out.write_all(line.as_bytes())?;
+        self.out.write_all(b"\n")?;
+        self.size += line.len() as u64 + 1;
+        Ok(())
+    }
+
+    fn rotate(&mut self) -> std::io::Result<()> {
+        self.out.flush()?;
+        let numbered = |n: usize| PathBuf::from(format!("{}.{n}", self.path.display()));
+        for n in (1..KEEP).rev() {
+            if numbered(n).exists() {
+                std::fs::rename(numbered(n), numbered(n + 1))?;
+            }
+        }
+        std::fs::rename(&self.path, numbered(1))?;
+        let f = File::create(&self.path)?;
+        self.out = BufWriter::new(f);
+        self.size = 0;
+        Ok(())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.out.flush()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(n: u64) -> Record {
+        let mut values_ns = [0; MAX_CHANNELS];
+        values_ns[0] = 1_500_250;
+        values_ns[1] = 1_000_000;
+        Record::Frame {
+            frame: n,
+            start_mono_ns: 1_000 + n,
+            start_real_ns: 2_000 + n,
+            state: LineState::Active,
+            command: Some(CommandInfo {
+                seq: Some(7),
+                ingress_seq: 3,
+                recv_mono_ns: 5,
+                recv_real_ns: 6,
+            }),
+            channels: 2,
+            values_ns,
+        }
+    }
+
+    #[test]
+    fn rows_are_json() {
+        let v: serde_json::Value = serde_json::from_str(&frame(1).to_json()).unwrap();
+        assert_eq!(v["ch_us"], serde_json::json!([1500.25, 1000.0]));
+        assert_eq!((v["seq"].as_u64(), v["frame"].as_u64()), (Some(7), Some(1)));
+        let t = Record::Transition {
+            mono_ns: 1,
+            real_ns: 2,
+            from: LineState::Active,
+            to: LineState::Silent,
+        };
+        let v: serde_json::Value = serde_json::from_str(&t.to_json()).unwrap();
+        assert_eq!(
+            (v["from"].as_str(), v["to"].as_str()),
+            (Some("active"), Some("silent"))
+        );
+    }
+
+    #[test]
+    fn rotates_at_the_cap_and_keeps_three() {
+        let dir = std::env::temp_dir().join(format!("ppmd-framelog-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("frames.jsonl");
+        // Frames 10..=64: rows of one length.
+        let line_len = frame(10).to_json().len() as u64 + 1;
+        let (mut p, mut w) = open(&path, line_len * 10).unwrap();
+        for n in 10..=64 {
+            p.push(frame(n));
+        }
+        w.finish().unwrap();
+        assert_eq!(w.written(), 55);
+        let lines = |p: &Path| {
+            std::fs::read_to_string(p)
+                .map(|s| s.lines().count())
+                .unwrap_or(0)
+        };
+        assert_eq!(lines(&path), 5, "55 rows, 10 a file: 5 in the current one");
+        for n in 1..=KEEP {
+            assert_eq!(lines(&dir.join(format!("frames.jsonl.{n}"))), 10);
+        }
+        assert!(!dir.join(format!("frames.jsonl.{}", KEEP + 1)).exists());
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn a_full_ring_drops_and_counts() {
+        let dir = std::env::temp_dir().join(format!("ppmd-framelog-full-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (mut p, mut w) = open(&dir.join("f.jsonl"), u64::MAX).unwrap();
+        // The writer sleeps between drains: pushing far more than the ring at
+        // once must drop, not block.
+        for n in 0..(RING as u64 * 4) {
+            p.push(frame(n));
+        }
+        w.finish().unwrap();
+        assert!(w.dropped() > 0);
+        assert_eq!(w.dropped() + w.written(), RING as u64 * 4);
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}
