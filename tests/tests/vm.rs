@@ -1,0 +1,245 @@
+//! The real GPIO path against real Linux kernels: Debian's 6.1 standard and
+//! PREEMPT_RT kernels boot under QEMU (software emulation) with the kernel's
+//! gpio-sim driver; udp-ingress, ppmd on a gpio-sim line and ppm-send run in
+//! the guest, and the kernel's own `gpio:gpio_value` tracepoint records every
+//! value ppmd set. The host decodes that trace with an independent decoder
+//! (written here, not the project's) and with the project's, and checks the
+//! frames, the line's release at its idle level, and the start-up errors.
+//!
+//! Needs the host packages tests/vm/prepare.sh names (qemu-system-x86,
+//! busybox-static, ...) and Debian's package archive; without them the test
+//! fails and says what to install. The raw trace stays at
+//! target/vm/<std|rt>/gpio_trace.txt.
+
+use ppm_shared::decode::{decode, DecoderLimits};
+use ppm_shared::frame::Level;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+const COMMAND_US: [u64; 8] = [1000, 1200, 1700, 2000, 1500, 1500, 1500, 1500];
+
+fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_owned()
+}
+
+/// Static builds of the binaries the guest runs (it has no libc).
+fn static_bins() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let ws = workspace();
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let status = Command::new(cargo)
+            .current_dir(&ws)
+            .env("RUSTFLAGS", "-C target-feature=+crt-static")
+            .args([
+                "build",
+                "--release",
+                "--target",
+                "x86_64-unknown-linux-gnu",
+                "--bins",
+            ])
+            .args(["-p", "ppmd", "-p", "udp-ingress", "-p", "ppm-tools"])
+            .status()
+            .expect("running cargo build");
+        assert!(status.success(), "static build of the binaries failed");
+        ws.join("target/x86_64-unknown-linux-gnu/release")
+    })
+}
+
+/// Boots `flavor` with the pipeline guest script; returns the output directory.
+fn run_vm(flavor: &str) -> PathBuf {
+    let ws = workspace();
+    let vm = ws.join("tests/vm");
+    let prepare = Command::new(vm.join("prepare.sh"))
+        .arg(flavor)
+        .current_dir(&ws)
+        .output()
+        .expect("running tests/vm/prepare.sh");
+    assert!(
+        prepare.status.success(),
+        "tests/vm/prepare.sh {flavor} failed (it names any host package to install):\n{}{}",
+        String::from_utf8_lossy(&prepare.stdout),
+        String::from_utf8_lossy(&prepare.stderr)
+    );
+    let out = ws.join("target/vm").join(flavor);
+    let bins = static_bins();
+    let run = Command::new(vm.join("run.sh"))
+        .current_dir(&ws)
+        .env("PPM_VM_QUIET", "1")
+        .arg(flavor)
+        .arg(&out)
+        .arg(vm.join("pipeline-test.sh"))
+        .args(["ppmd", "udp-ingress", "ppm-send", "jitter"].map(|b| bins.join(b)))
+        .output()
+        .expect("running tests/vm/run.sh");
+    assert!(
+        run.status.success(),
+        "the guest test failed on the {flavor} kernel:\n{}{}\nconsole: {}",
+        String::from_utf8_lossy(&run.stdout),
+        String::from_utf8_lossy(&run.stderr),
+        std::fs::read_to_string(out.join("console.log")).unwrap_or_default()
+    );
+    out
+}
+
+fn read(dir: &Path, file: &str) -> String {
+    std::fs::read_to_string(dir.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"))
+}
+
+/// `(time_ns, level)` of every value set on global GPIO `gpio`, from ftrace's
+/// text output (`TASK-PID [CPU] FLAGS SECONDS.MICROS: gpio_value: N set V`).
+fn sets(trace: &str, gpio: u32) -> Vec<(u64, u8)> {
+    let needle = format!("gpio_value: {gpio} set ");
+    trace
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let (head, value) = l.split_once(&needle)?;
+            let stamp = head.trim_end().strip_suffix(':')?.rsplit(' ').next()?;
+            let (s, us) = stamp.split_once('.')?;
+            let t = s.parse::<u64>().ok()? * 1_000_000_000 + us.parse::<u64>().ok()? * 1_000;
+            Some((t, value.trim().parse().ok()?))
+        })
+        .collect()
+}
+
+/// An independent PPM reader: rising-edge periods; 4..19 ms is a sync,
+/// 0.8..2.2 ms a channel after a sync; returns the channel lists (us) of the
+/// frames a sync closed.
+fn independent_decode(sets: &[(u64, u8)]) -> Vec<Vec<u64>> {
+    let mut frames = Vec::new();
+    let mut current: Option<Vec<u64>> = None;
+    let mut prev_level = 0;
+    let mut prev_rise: Option<u64> = None;
+    for &(t, v) in sets {
+        let rising = v == 1 && prev_level == 0;
+        prev_level = v;
+        if !rising {
+            continue;
+        }
+        if let Some(p) = prev_rise.replace(t) {
+            let us = (t - p) / 1_000;
+            if (4_000..=19_000).contains(&us) {
+                if let Some(f) = current.replace(Vec::new()) {
+                    if !f.is_empty() {
+                        frames.push(f);
+                    }
+                }
+            } else if (800..=2_200).contains(&us) {
+                if let Some(f) = current.as_mut() {
+                    f.push(us);
+                }
+            } else {
+                current = None;
+            }
+        }
+    }
+    frames
+}
+
+fn check(flavor: &str) {
+    let out = run_vm(flavor);
+    let chip = read(&out, "chip.txt");
+    let base: u32 = chip.split_whitespace().nth(1).unwrap().parse().unwrap();
+    let gpio18 = base + 1;
+    let trace = read(&out, "gpio_trace.txt");
+    let sets = sets(&trace, gpio18);
+    assert!(
+        sets.len() > 500,
+        "only {} value changes of GPIO18 traced",
+        sets.len()
+    );
+
+    // 50 commands at 50 Hz: about 1.2 s of frames (with the 200 ms failsafe).
+    let frames = independent_decode(&sets);
+    assert!(
+        frames.len() >= 40,
+        "{} frames decoded on {flavor}",
+        frames.len()
+    );
+    for (k, f) in frames.iter().enumerate() {
+        assert_eq!(f, &COMMAND_US, "frame {k} on the {flavor} kernel");
+    }
+    // The project's decoder reads the same.
+    let ours = decode(
+        sets.iter().map(|&(t, v)| (t, Level::from_bit(v == 1))),
+        Level::High,
+        DecoderLimits::default(),
+    );
+    let complete: Vec<Vec<u64>> = ours
+        .iter()
+        .filter(|f| f.complete)
+        .map(|f| f.channels_us())
+        .collect();
+    assert_eq!(complete, frames);
+
+    // ppmd exited cleanly, left the line low (idle) and released it.
+    assert_eq!(
+        read(&out, "ppmd_exit.txt").trim(),
+        "0",
+        "{}",
+        read(&out, "ppmd.log")
+    );
+    assert_eq!(
+        sets.last().unwrap().1,
+        0,
+        "the last value set is the idle level"
+    );
+    let after = read(&out, "debug_gpio_after.txt");
+    let line = after
+        .lines()
+        .find(|l| l.contains("GPIO18"))
+        .expect("GPIO18 in debugfs");
+    assert!(
+        !line.contains("ppmd"),
+        "GPIO18 still requested after ppmd exited: {line}"
+    );
+
+    // The start-up errors a kernel can produce, each naming the chip or line.
+    let busy = read(&out, "err_busy.log");
+    assert!(
+        busy.contains("GPIO18") && busy.contains("in use by `ppmd`"),
+        "{busy}"
+    );
+    let missing = read(&out, "err_missing_line.log");
+    assert!(
+        missing.contains("no line `GPIO99`") && missing.contains("GPIO17, GPIO18"),
+        "{missing}"
+    );
+    let no_chip = read(&out, "err_missing_chip.log");
+    assert!(
+        no_chip.contains("no GPIO chip `nosuchchip`") && no_chip.contains("/dev/gpiochip"),
+        "{no_chip}"
+    );
+
+    // The frame log agrees with the kernel's record of the line.
+    let logged = read(&out, "frames.jsonl")
+        .lines()
+        .filter(|l| l.contains(r#""type":"frame""#))
+        .count();
+    assert!(
+        logged >= frames.len(),
+        "{logged} logged frames, {} on the line",
+        frames.len()
+    );
+
+    let ppmd = read(&out, "ppmd.log");
+    assert!(ppmd.contains("policy SCHED_FIFO priority 80"), "{ppmd}");
+    if flavor == "rt" {
+        assert!(ppmd.contains("(PREEMPT_RT)"), "{ppmd}");
+    }
+}
+
+#[test]
+fn real_gpio_on_the_standard_kernel() {
+    check("std");
+}
+
+#[test]
+fn real_gpio_on_the_preempt_rt_kernel() {
+    check("rt");
+}

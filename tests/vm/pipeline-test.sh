@@ -1,0 +1,53 @@
+#!/bin/sh
+# Guest script of the real-kernel test (tests/tests/vm.rs): the whole
+# pipeline on a gpio-sim line, recorded by the kernel's gpio tracepoint.
+#   - error paths that a kernel can produce: a missing line, a missing chip,
+#     a line already in use (by a running ppmd);
+#   - udp-ingress and ppmd on GPIO18 of a gpio-sim chip, commands from
+#     ppm-send over loopback at 50 Hz, then SIGTERM to ppmd.
+# Results in /out: gpio_trace.txt, *.log, chip.txt, ppmd_exit.txt,
+# debug_gpio_after.txt, frames.jsonl.
+set -eu
+. /lib/vmtest.sh
+
+chip=$(make_sim_chip ppm 4 GPIO17 GPIO18 GPIO19 GPIO20)
+base=$(sim_chip_base "$chip")
+echo "$chip $base" > /out/chip.txt
+uname -v > /out/uname.txt
+
+cat > /tmp/ppm.toml <<CONF
+name = "vm"
+[ingress]
+listen = "127.0.0.1:5005"
+[ipc]
+root = "/tmp/ppm-ipc"
+CONF
+
+# Error paths (each must fail, with its message in the log).
+if ppmd --config /tmp/ppm.toml --output "gpio:$chip:GPIO99" 2> /out/err_missing_line.log; then
+    vmtest_die "ppmd accepted a missing line"
+fi
+if ppmd --config /tmp/ppm.toml --output "gpio:nosuchchip:GPIO18" 2> /out/err_missing_chip.log; then
+    vmtest_die "ppmd accepted a missing chip"
+fi
+
+start_gpio_trace gpio_value
+udp-ingress --config /tmp/ppm.toml 2> /out/ingress.log &
+ingress=$!
+ppmd --config /tmp/ppm.toml --output "gpio:$chip:GPIO18" --frame-log /out/frames.jsonl 2> /out/ppmd.log &
+ppmd=$!
+sleep 1
+if ppmd --config /tmp/ppm.toml --name other --output "gpio:$chip:GPIO18" 2> /out/err_busy.log; then
+    vmtest_die "a second ppmd got the line in use"
+fi
+ppm-send --to 127.0.0.1:5005 --rate 50 --count 50 '[1000, 1200, 1700, 2000]'
+sleep 0.5
+kill -TERM "$ppmd"
+status=0
+wait "$ppmd" || status=$?
+echo "$status" > /out/ppmd_exit.txt
+stop_gpio_trace /out/gpio_trace.txt
+cat /sys/kernel/debug/gpio > /out/debug_gpio_after.txt
+kill -TERM "$ingress"
+wait "$ingress" || true
+echo "pipeline: done"
