@@ -42,7 +42,16 @@ fn static_bins() -> &'static Path {
                 "x86_64-unknown-linux-gnu",
                 "--bins",
             ])
-            .args(["-p", "ppmd", "-p", "udp-ingress", "-p", "ppm-tools"])
+            .args([
+                "-p",
+                "ppmd",
+                "-p",
+                "udp-ingress",
+                "-p",
+                "ppm-tools",
+                "-p",
+                "ppm-tests",
+            ])
             .status()
             .expect("running cargo build");
         assert!(status.success(), "static build of the binaries failed");
@@ -73,7 +82,7 @@ fn run_vm(flavor: &str) -> PathBuf {
         .arg(flavor)
         .arg(&out)
         .arg(vm.join("pipeline-test.sh"))
-        .args(["ppmd", "udp-ingress", "ppm-send", "jitter"].map(|b| bins.join(b)))
+        .args(["ppmd", "udp-ingress", "ppm-send", "jitter", "pull-ppm"].map(|b| bins.join(b)))
         .output()
         .expect("running tests/vm/run.sh");
     assert!(
@@ -90,26 +99,47 @@ fn read(dir: &Path, file: &str) -> String {
     std::fs::read_to_string(dir.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"))
 }
 
-/// `(time_ns, level)` of every value set on global GPIO `gpio`, from ftrace's
-/// text output (`TASK-PID [CPU] FLAGS SECONDS.MICROS: gpio_value: N set V`).
-fn sets(trace: &str, gpio: u32) -> Vec<(u64, u8)> {
+/// `(time_ns, level)` of every value set on global GPIO `gpio`. ftrace's
+/// text output (`TASK-PID [CPU] FLAGS SECONDS.MICROS: gpio_value: N set V`)
+/// has the fields with microsecond times; its raw output (`PID CPU NS type:
+/// ID`) has the same events in the same order with nanosecond times. The
+/// two are paired line by line, and each pair must agree to the microsecond.
+fn sets(text: &str, raw: &str, gpio: u32) -> Vec<(u64, u8)> {
+    let events = |s: &str| -> Vec<String> {
+        s.lines()
+            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+            .map(str::to_string)
+            .collect()
+    };
+    let (text, raw) = (events(text), events(raw));
+    assert_eq!(
+        text.len(),
+        raw.len(),
+        "the text and raw traces list different events"
+    );
     let needle = format!("gpio_value: {gpio} set ");
-    trace
-        .lines()
-        .filter(|l| !l.starts_with('#'))
-        .filter_map(|l| {
-            let (head, value) = l.split_once(&needle)?;
+    text.iter()
+        .zip(&raw)
+        .filter_map(|(t, r)| {
+            let (head, value) = t.split_once(&needle)?;
             let stamp = head.trim_end().strip_suffix(':')?.rsplit(' ').next()?;
             let (s, us) = stamp.split_once('.')?;
-            let t = s.parse::<u64>().ok()? * 1_000_000_000 + us.parse::<u64>().ok()? * 1_000;
-            Some((t, value.trim().parse().ok()?))
+            let us = s.parse::<u64>().ok()? * 1_000_000 + us.parse::<u64>().ok()?;
+            let ns: u64 = r.split_whitespace().nth(2)?.parse().ok()?;
+            // The text rounds to the microsecond.
+            assert!(
+                ns.abs_diff(us * 1_000) <= 500,
+                "raw `{r}` does not pair with `{t}`"
+            );
+            Some((ns, value.trim().parse().ok()?))
         })
         .collect()
 }
 
 /// An independent PPM reader: rising-edge periods; 4..19 ms is a sync,
-/// 0.8..2.2 ms a channel after a sync; returns the channel lists (us) of the
-/// frames a sync closed.
+/// 0.8..2.2 ms a channel after a sync; returns the channel lists (periods
+/// rounded to whole us, as a transmitter stores them) of the frames a sync
+/// closed.
 fn independent_decode(sets: &[(u64, u8)]) -> Vec<Vec<u64>> {
     let mut frames = Vec::new();
     let mut current: Option<Vec<u64>> = None;
@@ -122,7 +152,7 @@ fn independent_decode(sets: &[(u64, u8)]) -> Vec<Vec<u64>> {
             continue;
         }
         if let Some(p) = prev_rise.replace(t) {
-            let us = (t - p) / 1_000;
+            let us = (t - p + 500) / 1_000;
             if (4_000..=19_000).contains(&us) {
                 if let Some(f) = current.replace(Vec::new()) {
                     if !f.is_empty() {
@@ -146,8 +176,11 @@ fn check(flavor: &str) {
     let chip = read(&out, "chip.txt");
     let base: u32 = chip.split_whitespace().nth(1).unwrap().parse().unwrap();
     let gpio18 = base + 1;
-    let trace = read(&out, "gpio_trace.txt");
-    let sets = sets(&trace, gpio18);
+    let sets = sets(
+        &read(&out, "gpio_trace.txt"),
+        &read(&out, "gpio_trace_raw.txt"),
+        gpio18,
+    );
     assert!(
         sets.len() > 500,
         "only {} value changes of GPIO18 traced",
@@ -225,6 +258,31 @@ fn check(flavor: &str) {
         logged >= frames.len(),
         "{logged} logged frames, {} on the line",
         frames.len()
+    );
+
+    // jitter --capture read the kernel-timestamped edges of an input line
+    // driven by ppmd's timing loop (through gpio-sim's pull attribute).
+    let capture = read(&out, "capture.txt");
+    let complete: usize = capture
+        .split(" complete)")
+        .next()
+        .and_then(|s| s.rsplit('(').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no frame count in:\n{capture}"));
+    assert!(
+        complete >= 50,
+        "{complete} complete frames captured:\n{capture}"
+    );
+    let p99: f64 = capture
+        .lines()
+        .find(|l| l.starts_with("channel period error us:"))
+        .and_then(|l| l.split(" p99 ").nth(1))
+        .and_then(|s| s.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no channel period error in:\n{capture}"));
+    assert!(
+        p99 < 1.0,
+        "captured channel periods off by {p99} us (p99):\n{capture}"
     );
 
     let ppmd = read(&out, "ppmd.log");

@@ -47,7 +47,23 @@ status=0
 wait "$ppmd" || status=$?
 echo "$status" > /out/ppmd_exit.txt
 stop_gpio_trace /out/gpio_trace.txt
+# The same events with nanosecond timestamps (the text above has
+# microseconds): the raw format keeps the time but not the fields, and lists
+# the events in the same order, so the host pairs the two line by line.
+echo 1 > $VMTEST_TRACEFS/options/raw
+cat $VMTEST_TRACEFS/trace > /out/gpio_trace_raw.txt
+echo 0 > $VMTEST_TRACEFS/options/raw
 cat /sys/kernel/debug/gpio > /out/debug_gpio_after.txt
 kill -TERM "$ingress"
 wait "$ingress" || true
+
+# jitter --capture: GPIO17 requested as an input with edge detection, driven
+# from outside by pull-ppm (ppmd's timing loop writing gpio-sim's pull
+# attribute); the kernel timestamps each edge.
+jitter --capture "$chip:GPIO17" -D 2s --expect 1000,1200,1700,2000,1500,1500,1500,1500 \
+    > /out/capture.txt 2> /out/capture.log &
+capture=$!
+sleep 0.3
+pull-ppm "$(sim_attr_dir "$chip" 0)/pull" 60 1000,1200,1700,2000 2> /out/pull-ppm.log
+wait "$capture" || vmtest_die "jitter --capture failed: $(cat /out/capture.log)"
 echo "pipeline: done"

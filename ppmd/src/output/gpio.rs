@@ -197,7 +197,7 @@ impl ChipSummary {
 }
 
 /// Every GPIO chip on the system (`/dev/gpiochip*`), in name order; chips
-/// that cannot be opened are listed with [`ChipSummary::unreadable`] set.
+/// that cannot be opened are listed with their `unreadable` reason set.
 pub fn list_chips() -> Vec<ChipSummary> {
     let paths = gpiocdev::chip::chips().unwrap_or_default();
     paths
