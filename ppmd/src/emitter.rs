@@ -40,6 +40,8 @@ pub struct EmitterConfig {
     pub failsafe_after_ns: u64,
     /// What to emit when the newest command is not fresh.
     pub failsafe_action: FailsafeAction,
+    /// What to emit before the first command (`Silence` or `Default`).
+    pub startup: FailsafeAction,
 }
 
 /// What the line is doing.
@@ -152,8 +154,11 @@ pub fn run(
             .map(|(_, ch)| ch);
         let (channels, new_state) = match (fresh, newest) {
             (Some(ch), _) => (Some(ch), LineState::Active),
-            // Before the first command the line stays silent whatever the action.
-            (None, None) => (None, LineState::Silent),
+            (None, None) => match cfg.startup {
+                FailsafeAction::Default => (Some(model.defaults()), LineState::Failsafe),
+                // Nothing to hold before the first command.
+                _ => (None, LineState::Silent),
+            },
             (None, Some((_, last))) => match cfg.failsafe_action {
                 FailsafeAction::Silence => (None, LineState::Silent),
                 FailsafeAction::Hold => (Some(last), LineState::Failsafe),
@@ -347,6 +352,7 @@ mod tests {
             margin: Margin::Fixed(100_000),
             failsafe_after_ns: after_ms * 1_000_000,
             failsafe_action: action,
+            startup: FailsafeAction::Silence,
         };
         let mut out = Recorder::default();
         let stats = Stats::default();

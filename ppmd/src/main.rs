@@ -108,6 +108,7 @@ fn run(cli: Cli) -> Result<()> {
         },
         failsafe_after_ns: cfg.failsafe.after_ms * 1_000_000,
         failsafe_action: cfg.failsafe.action,
+        startup: cfg.failsafe.startup,
     };
     let (mut log_producer, mut log_writer) = match &cfg.ppmd.frame_log {
         Some(path) => {

@@ -142,6 +142,7 @@ fn the_timing_loop_does_not_allocate_after_start() {
                 },
                 failsafe_after_ns: 200_000_000,
                 failsafe_action: FailsafeAction::Hold,
+                startup: FailsafeAction::Silence,
             };
             emitter::run(
                 &model,

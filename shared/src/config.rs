@@ -304,6 +304,9 @@ pub struct FailsafeSection {
     /// to its own sticks; default), `"hold"` (repeat the last command) or
     /// `"default"` (the configured default of every channel).
     pub action: FailsafeAction,
+    /// What ppmd emits from start until the first command: `"silence"`
+    /// (default) or `"default"` (`"hold"` has nothing to hold yet).
+    pub startup: FailsafeAction,
 }
 
 impl Default for FailsafeSection {
@@ -311,6 +314,7 @@ impl Default for FailsafeSection {
         FailsafeSection {
             after_ms: 200,
             action: FailsafeAction::Silence,
+            startup: FailsafeAction::Silence,
         }
     }
 }
@@ -449,6 +453,12 @@ impl Config {
             return Err(ConfigError::invalid(
                 "failsafe.after_ms",
                 format!("{} ms is outside 1..=60000", self.failsafe.after_ms),
+            ));
+        }
+        if self.failsafe.startup == FailsafeAction::Hold {
+            return Err(ConfigError::invalid(
+                "failsafe.startup",
+                "\"hold\" has no command to hold before the first one: use \"silence\" or \"default\"",
             ));
         }
         if self.ipc.root.as_os_str().is_empty() || !self.ipc.root.is_absolute() {
@@ -740,6 +750,7 @@ mod tests {
                 "rt.spin_margin_min_us",
             ),
             ("[failsafe]\nafter_ms = 0", "failsafe.after_ms"),
+            ("[failsafe]\nstartup = 'hold'", "failsafe.startup"),
             ("[ipc]\nroot = 'relative'", "ipc.root"),
         ];
         for (text, key) in cases {

@@ -1,19 +1,32 @@
 //! `udp-ingress`: receives JSON commands over UDP, keeps only the newest
 //! valid one per wake-up, and publishes it to ppmd through shared memory.
 //!
-//! [`Intake`] holds the logic (parse, stale check, counters, newest-wins)
-//! without any I/O, so it is tested directly; the binary wires it to a
-//! non-blocking mio socket and an iceoryx2 publisher.
+//! [`Intake`] holds the logic (parse, stale check, counters, newest-wins,
+//! status queries and their replies) without any I/O, so it is tested
+//! directly; the binary wires it to a non-blocking mio socket, an iceoryx2
+//! publisher and a subscriber to ppmd's timing snapshots.
 
 use ppm_shared::frame::FrameModel;
-use ppm_shared::protocol::{self, Command, RejectReason, SeqGate};
+use ppm_shared::ipc::TimingSnapshot;
+use ppm_shared::protocol::{self, Command, Reject, RejectReason, SeqGate};
+use serde_json::{json, Value};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
+/// A ppmd timing snapshot older than this is not reported as ppmd's state
+/// (ppmd publishes one a second; older means it stopped or hangs).
+pub const PPMD_STALE_AFTER_NS: u64 = 3_000_000_000;
+
 /// Counters of everything the ingress received.
+///
+/// Every received datagram ends up in exactly one of `published`,
+/// `superseded`, `stale` or `rejected` (once the wake-up's newest command is
+/// published). Status queries are not commands: they are counted in
+/// `status_requests` only, never in `received`.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Counters {
-    /// Datagrams received.
+    /// Datagrams received, status queries excepted (a malformed query is
+    /// counted here and as rejected).
     pub received: u64,
     /// Valid commands published to ppmd.
     pub published: u64,
@@ -27,6 +40,11 @@ pub struct Counters {
     pub clamped_commands: u64,
     /// Values clamped in all accepted commands.
     pub clamped_values: u64,
+    /// Status queries (`{"get": "status"}`) received.
+    pub status_requests: u64,
+    /// Status replies not sent (the socket's send buffer was full, or too
+    /// many queries arrived in one wake-up).
+    pub status_dropped: u64,
 }
 
 impl Counters {
@@ -43,7 +61,7 @@ impl Counters {
             .map(|r| format!("{}={}", r.as_str(), self.rejected[r.index()]))
             .collect();
         format!(
-            "received {} published {} superseded {} stale {} clamped {} (values {}) rejected {} [{}]",
+            "received {} published {} superseded {} stale {} clamped {} (values {}) rejected {} [{}] status requests {} (dropped {})",
             self.received,
             self.published,
             self.superseded,
@@ -51,7 +69,9 @@ impl Counters {
             self.clamped_commands,
             self.clamped_values,
             self.rejected_total(),
-            rejected.join(" ")
+            rejected.join(" "),
+            self.status_requests,
+            self.status_dropped
         )
     }
 }
@@ -76,6 +96,48 @@ pub enum Outcome {
     Stale,
     /// Rejected; the string is a log line when the rate limit allows one.
     Rejected(RejectReason, Option<String>),
+    /// A status query: answer it with [`Intake::status`] (nothing changed).
+    Status,
+}
+
+/// A read-only query a datagram may carry instead of a command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Query {
+    /// `{"get": "status"}`: the counters and ppmd's timing summary.
+    Status,
+}
+
+/// Recognises a query, before a datagram is parsed as a command.
+///
+/// `None`: not a query (no `"get"` key in a JSON object), parse it as a
+/// command. `Some(Err(_))`: an object with a `get` key that is not exactly
+/// `{"get": "status"}`, rejected as `bad_shape`. Commands never contain the
+/// text `"get"`, so they are not parsed twice.
+pub fn query(datagram: &[u8]) -> Option<Result<Query, Reject>> {
+    if !datagram.windows(5).any(|w| w == b"\"get\"") {
+        return None;
+    }
+    let Ok(Value::Object(map)) = serde_json::from_slice::<Value>(datagram) else {
+        return None;
+    };
+    let get = map.get("get")?;
+    let bad = |detail: String| {
+        Some(Err(Reject {
+            reason: RejectReason::BadShape,
+            detail,
+        }))
+    };
+    if let Some(k) = map.keys().find(|k| *k != "get") {
+        return bad(format!(
+            "unexpected key `{k}` beside `get`: a status query is {{\"get\": \"status\"}} alone"
+        ));
+    }
+    match get.as_str() {
+        Some("status") => Some(Ok(Query::Status)),
+        _ => bad(format!(
+            "unknown query {get}: the only query is {{\"get\": \"status\"}}"
+        )),
+    }
 }
 
 /// Parse, check and keep the newest command; count everything.
@@ -83,6 +145,7 @@ pub struct Intake {
     model: FrameModel,
     gate: SeqGate,
     newest: Option<Received>,
+    latest: Option<Received>,
     counters: Counters,
     log: RejectLog,
 }
@@ -95,12 +158,14 @@ impl Intake {
             model,
             gate: SeqGate::default(),
             newest: None,
+            latest: None,
             counters: Counters::default(),
             log: RejectLog::new(log_interval),
         }
     }
 
-    /// Takes one datagram received at the given times.
+    /// Takes one datagram received at the given times. A status query is
+    /// recognised first and only counted ([`Outcome::Status`]).
     pub fn offer(
         &mut self,
         datagram: &[u8],
@@ -109,8 +174,16 @@ impl Intake {
         real_ns: u64,
         now: Instant,
     ) -> Outcome {
+        let parsed = match query(datagram) {
+            Some(Ok(Query::Status)) => {
+                self.counters.status_requests += 1;
+                return Outcome::Status;
+            }
+            Some(Err(r)) => Err(r),
+            None => protocol::parse(datagram, &self.model),
+        };
         self.counters.received += 1;
-        match protocol::parse(datagram, &self.model) {
+        match parsed {
             Err(r) => {
                 self.counters.rejected[r.reason.index()] += 1;
                 let line = self.log.note(r.reason, now).map(|suppressed| {
@@ -135,11 +208,13 @@ impl Intake {
                 if self.newest.is_some() {
                     self.counters.superseded += 1;
                 }
-                self.newest = Some(Received {
+                let r = Received {
                     command,
                     mono_ns,
                     real_ns,
-                });
+                };
+                self.newest = Some(r);
+                self.latest = Some(r);
                 Outcome::Accepted
             }
         }
@@ -158,6 +233,81 @@ impl Intake {
     pub fn counters(&self) -> &Counters {
         &self.counters
     }
+
+    /// Counts a status reply that could not be sent.
+    pub fn status_dropped(&mut self) {
+        self.counters.status_dropped += 1;
+    }
+
+    /// The reply to a status query: one JSON object (see the README's
+    /// "Status queries"). `uptime` is the ingress's, `now_mono_ns` the
+    /// CLOCK_MONOTONIC time of the reply, `ppmd` the newest timing snapshot
+    /// received from ppmd, if any; one older than [`PPMD_STALE_AFTER_NS`]
+    /// gives `"ppmd": null` and `"ppmd_stale": true`.
+    pub fn status(
+        &self,
+        name: &str,
+        uptime: Duration,
+        now_mono_ns: u64,
+        ppmd: Option<&TimingSnapshot>,
+    ) -> Value {
+        let c = &self.counters;
+        let rejected: serde_json::Map<String, Value> = RejectReason::ALL
+            .iter()
+            .map(|r| (r.as_str().to_string(), json!(c.rejected[r.index()])))
+            .collect();
+        let age_ns = |t: u64| now_mono_ns.saturating_sub(t);
+        let fresh = ppmd.filter(|s| age_ns(s.mono_ns) <= PPMD_STALE_AFTER_NS);
+        json!({
+            "name": name,
+            "uptime_s": round3(uptime.as_secs_f64()),
+            "datagrams": {
+                "received": c.received,
+                "applied": c.published,
+                "rejected": rejected,
+                "clamped": c.clamped_commands,
+                "clamped_values": c.clamped_values,
+                "stale": c.stale,
+                "superseded": c.superseded,
+            },
+            "status_requests": c.status_requests,
+            "status_dropped": c.status_dropped,
+            "newest_command_age_ms": self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
+            "newest_seq": self.latest.and_then(|r| r.command.seq),
+            "ppmd": fresh.map(|s| ppmd_status(s, age_ns(s.mono_ns))),
+            "ppmd_stale": ppmd.is_some() && fresh.is_none(),
+        })
+    }
+}
+
+/// The `ppmd` member of a status reply: a summary of one timing snapshot
+/// that is `age_ns` old.
+fn ppmd_status(s: &TimingSnapshot, age_ns: u64) -> Value {
+    let us = |ns: u64| round3(ns as f64 / 1e3);
+    json!({
+        "state": match s.state {
+            0 => "silent",
+            1 => "active",
+            2 => "failsafe",
+            _ => "unknown",
+        },
+        "frames": s.frames,
+        "edge_error_us": {
+            "p50": us(s.total.p50),
+            "p99": us(s.total.p99),
+            "max": us(s.total.max),
+        },
+        "overruns": s.overruns,
+        "late_frames": s.late_frames,
+        "failsafe_entries": s.failsafe_entries,
+        "degraded": s.degraded != 0,
+        "snapshot_age_ms": round3(age_ns as f64 / 1e6),
+    })
+}
+
+/// Rounded to three decimals (ms to the us, us to the ns).
+fn round3(v: f64) -> f64 {
+    (v * 1e3).round() / 1e3
 }
 
 /// Rate limit for reject log lines: at most one line per reason per interval,
@@ -272,6 +422,164 @@ mod tests {
             (1, 2)
         );
         assert!(i.counters().summary().contains("clamped 1 (values 2)"));
+    }
+
+    #[test]
+    fn status_query_is_recognised_before_parsing() {
+        for q in [&br#"{"get":"status"}"#[..], br#" { "get" : "status" } "#] {
+            assert_eq!(query(q), Some(Ok(Query::Status)), "{q:?}");
+        }
+        for not_a_query in [
+            &b"[1500]"[..],
+            br#"{"ail": 1500}"#,
+            br#"{"get":"#,
+            br#"["get"]"#,
+            b"\xff\"get\"",
+        ] {
+            assert_eq!(query(not_a_query), None, "{not_a_query:?}");
+        }
+        let detail = |q: &[u8]| match query(q) {
+            Some(Err(r)) if r.reason == RejectReason::BadShape => r.detail,
+            other => panic!("{q:?}: {other:?}"),
+        };
+        let d = detail(br#"{"get":"config"}"#);
+        assert!(
+            d.contains("\"config\"") && d.contains(r#"{"get": "status"}"#),
+            "{d}"
+        );
+        assert!(detail(br#"{"get":1}"#).contains("unknown query 1"));
+        assert!(detail(br#"{"get":null}"#).contains("unknown query null"));
+        let d = detail(br#"{"get":"status","seq":1}"#);
+        assert!(d.contains("`seq`"), "{d}");
+        assert!(detail(br#"{"ail":1500,"get":"status"}"#).contains("`ail`"));
+    }
+
+    #[test]
+    fn status_query_is_counted_apart_and_changes_nothing() {
+        let mut i = intake();
+        let t = Instant::now();
+        i.offer(br#"{"ch":[1100],"seq":3}"#, from(), 1, 1, t);
+        let before = i.counters().clone();
+        assert_eq!(
+            i.offer(br#"{"get":"status"}"#, from(), 2, 2, t),
+            Outcome::Status
+        );
+        assert_eq!(
+            i.counters(),
+            &Counters {
+                status_requests: 1,
+                ..before
+            }
+        );
+        assert_eq!(i.take().unwrap().command.seq, Some(3), "still the newest");
+        assert!(matches!(
+            i.offer(br#"{"get":"everything"}"#, from(), 3, 3, t),
+            Outcome::Rejected(RejectReason::BadShape, Some(line)) if line.contains("everything")
+        ));
+        let c = i.counters();
+        assert_eq!(
+            (c.received, c.rejected_total(), c.status_requests),
+            (2, 1, 1)
+        );
+    }
+
+    fn snapshot(mono_ns: u64) -> TimingSnapshot {
+        let mut s = TimingSnapshot {
+            mono_ns,
+            frames: 400,
+            overruns: 1,
+            late_frames: 2,
+            failsafe_entries: 3,
+            degraded: 1,
+            state: 1,
+            ..TimingSnapshot::default()
+        };
+        s.total.p50 = 31;
+        s.total.p99 = 1_250;
+        s.total.max = 17_000_400;
+        s
+    }
+
+    #[test]
+    fn status_reply_is_built_from_the_counters() {
+        let mut i = intake();
+        let t = Instant::now();
+        let at = |ms: u64| 10_000_000_000 + ms * 1_000_000;
+        let empty = i.status("pi", Duration::from_millis(1500), at(10), None);
+        assert_eq!(empty["newest_command_age_ms"], Value::Null);
+        assert_eq!(empty["newest_seq"], Value::Null);
+        assert_eq!(
+            (&empty["ppmd"], &empty["ppmd_stale"]),
+            (&Value::Null, &json!(false))
+        );
+
+        i.offer(br#"{"ch":[900,2100],"seq":7}"#, from(), at(100), 1, t);
+        i.take();
+        i.offer(br#"{"ch":[1200],"seq":6}"#, from(), at(101), 1, t);
+        i.offer(br#"{"ch":[1200],"seq":8}"#, from(), at(102), 1, t);
+        i.offer(b"[1300]", from(), at(103), 1, t);
+        i.offer(b"[1300", from(), at(104), 1, t);
+        i.offer(b"{}", from(), at(105), 1, t);
+        i.offer(br#"{"get":"status"}"#, from(), at(106), 1, t);
+        i.take();
+        i.status_dropped();
+        let now = at(110) + 400;
+        let reply = i.status(
+            "pi",
+            Duration::from_millis(2_345_678),
+            now,
+            Some(&snapshot(now - 250_000_000)),
+        );
+        assert_eq!(
+            reply,
+            json!({
+                "name": "pi",
+                "uptime_s": 2345.678,
+                "datagrams": {
+                    "received": 6,
+                    "applied": 2,
+                    "rejected": {
+                        "invalid_utf8": 0,
+                        "invalid_json": 1,
+                        "not_a_number": 0,
+                        "out_of_range": 0,
+                        "too_many_values": 0,
+                        "unknown_channel": 0,
+                        "bad_shape": 1,
+                    },
+                    "clamped": 1,
+                    "clamped_values": 2,
+                    "stale": 1,
+                    "superseded": 1,
+                },
+                "status_requests": 1,
+                "status_dropped": 1,
+                "newest_command_age_ms": 7.0,
+                "newest_seq": null,
+                "ppmd": {
+                    "state": "active",
+                    "frames": 400,
+                    "edge_error_us": {"p50": 0.031, "p99": 1.25, "max": 17000.4},
+                    "overruns": 1,
+                    "late_frames": 2,
+                    "failsafe_entries": 3,
+                    "degraded": true,
+                    "snapshot_age_ms": 250.0,
+                },
+                "ppmd_stale": false,
+            })
+        );
+        assert!(reply.to_string().len() < 1_000, "one small datagram");
+
+        let old = snapshot(now - PPMD_STALE_AFTER_NS - 1);
+        let reply = i.status("pi", Duration::ZERO, now, Some(&old));
+        assert_eq!(
+            (&reply["ppmd"], &reply["ppmd_stale"]),
+            (&Value::Null, &json!(true))
+        );
+        let at_limit = snapshot(now - PPMD_STALE_AFTER_NS);
+        let reply = i.status("pi", Duration::ZERO, now, Some(&at_limit));
+        assert_eq!(reply["ppmd"]["snapshot_age_ms"], json!(3000.0));
     }
 
     #[test]

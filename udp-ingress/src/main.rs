@@ -1,5 +1,6 @@
 //! `udp-ingress`: receives JSON commands over UDP and publishes the newest
-//! valid one to ppmd through iceoryx2 shared memory.
+//! valid one to ppmd through iceoryx2 shared memory. It answers status
+//! queries (`{"get": "status"}`) with its counters and ppmd's timing summary.
 
 use anyhow::{Context, Result};
 use clap::Parser;
@@ -7,7 +8,7 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
 use mio::{Events, Interest, Poll, Token};
 use ppm_shared::config::Config;
-use ppm_shared::ipc::{self, CommandSample};
+use ppm_shared::ipc::{self, CommandSample, TimingSnapshot};
 use ppm_shared::time::{now_ns, realtime_ns};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -40,9 +41,14 @@ const POLL_TIMEOUT: Duration = Duration::from_millis(20);
 const MAX_DATAGRAM: usize = 65_536;
 /// How often the counters are logged while datagrams arrive.
 const REPORT_EVERY: Duration = Duration::from_secs(60);
+/// Most status queries answered per wake-up; more are counted as dropped
+/// (a flood of queries must not delay the commands).
+const MAX_STATUS_PER_WAKE: usize = 32;
 
 type Publisher =
     iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, CommandSample, ()>;
+type StatsSubscriber =
+    iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, TimingSnapshot, ()>;
 
 fn main() {
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("info"))
@@ -87,6 +93,8 @@ fn run(cli: Cli) -> Result<()> {
         )
     })?;
 
+    let stats = subscribe_stats(&node, &cfg.name);
+
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;
@@ -109,8 +117,11 @@ fn run(cli: Cli) -> Result<()> {
         model,
         Duration::from_millis(cfg.ingress.reject_log_interval_ms),
     );
+    let started = Instant::now();
     let mut events = Events::with_capacity(8);
     let mut buf = vec![0u8; MAX_DATAGRAM];
+    let mut status_to: Vec<SocketAddr> = Vec::with_capacity(MAX_STATUS_PER_WAKE);
+    let mut ppmd_snapshot: Option<TimingSnapshot> = None;
     let mut ingress_seq = 0u64;
     let mut publish_errors = 0u64;
     let mut last_report = Instant::now();
@@ -130,6 +141,10 @@ fn run(cli: Cli) -> Result<()> {
                     match intake.offer(&buf[..n], from, mono, real, Instant::now()) {
                         Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
                         Outcome::Stale => log::debug!("stale command from {from} dropped"),
+                        Outcome::Status if status_to.len() < MAX_STATUS_PER_WAKE => {
+                            status_to.push(from)
+                        }
+                        Outcome::Status => intake.status_dropped(),
                         _ => {}
                     }
                 }
@@ -156,6 +171,30 @@ fn run(cli: Cli) -> Result<()> {
         } else if let Err(e) = publisher.update_connections() {
             log::debug!("updating connections: {e:?}");
         }
+        // Answered after publishing, so the counters add up.
+        if !status_to.is_empty() {
+            if let Some(sub) = &stats {
+                newest_snapshot(sub, &mut ppmd_snapshot);
+            }
+            let reply = intake
+                .status(
+                    &cfg.name,
+                    started.elapsed(),
+                    now_ns(),
+                    ppmd_snapshot.as_ref(),
+                )
+                .to_string();
+            for to in status_to.drain(..) {
+                match socket.send_to(reply.as_bytes(), to) {
+                    Ok(_) => {}
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => intake.status_dropped(),
+                    Err(e) => {
+                        log::debug!("status reply to {to}: {e}");
+                        intake.status_dropped();
+                    }
+                }
+            }
+        }
         let received = intake.counters().received;
         if last_report.elapsed() >= REPORT_EVERY && received != reported_received {
             log::info!("{}", intake.counters().summary());
@@ -168,6 +207,44 @@ fn run(cli: Cli) -> Result<()> {
         intake.counters().summary()
     );
     Ok(())
+}
+
+/// Subscribes to ppmd's timing snapshots for status replies. Status is not
+/// worth stopping for: on failure, replies say `"ppmd": null`.
+fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<StatsSubscriber> {
+    let subscribed = ipc::open_stats_service(node, name)
+        .map_err(|e| e.to_string())
+        .and_then(|service| {
+            service
+                .subscriber_builder()
+                .buffer_size(1)
+                .create()
+                .map_err(|e| format!("{e:?}"))
+        });
+    match subscribed {
+        Ok(sub) => Some(sub),
+        Err(e) => {
+            log::warn!(
+                "status replies will lack ppmd's timing: subscribing to `{}` failed: {e}",
+                ipc::stats_service_name(name)
+            );
+            None
+        }
+    }
+}
+
+/// Replaces `newest` with the newest snapshot ppmd published since, if any.
+fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
+    loop {
+        match sub.receive() {
+            Ok(Some(sample)) => *newest = Some(*sample.payload()),
+            Ok(None) => break,
+            Err(e) => {
+                log::debug!("receiving ppmd's timing snapshot: {e:?}");
+                break;
+            }
+        }
+    }
 }
 
 /// Sets SO_RCVBUF and returns what the kernel granted (it doubles the

@@ -94,6 +94,7 @@ fn main() {
         },
         failsafe_after_ns: 1_000_000_000,
         failsafe_action: FailsafeAction::Silence,
+        startup: FailsafeAction::Silence,
     };
     let stats = Stats::default();
     let (mut meter, _reader) = ppmd::meter::meter(u64::MAX);

@@ -124,6 +124,7 @@ fn run_block(
         margin,
         failsafe_after_ns: 1_000_000_000,
         failsafe_action: FailsafeAction::Silence,
+        startup: FailsafeAction::Silence,
     };
     let stats = Stats::default();
     let (mut meter, _reader) = ppmd::meter::meter(u64::MAX);

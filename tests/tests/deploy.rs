@@ -1,0 +1,153 @@
+//! The deployment files agree with the code and with each other: the
+//! production configuration is valid, both systemd units read it and share
+//! its shared-memory root, and the README installs them where they look.
+
+use ppm_shared::config::{Config, CpuChoice, OutputSpec};
+
+const ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
+const CONFIG_PATH: &str = "/etc/ppm/ppm.toml";
+
+fn read(file: &str) -> String {
+    std::fs::read_to_string(format!("{ROOT}/{file}")).unwrap_or_else(|e| panic!("{file}: {e}"))
+}
+
+/// The `key=value` directives of a unit file (comments and sections dropped).
+fn directives(unit: &str) -> Vec<(String, String)> {
+    read(&format!("deploy/{unit}"))
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#') && !l.starts_with('['))
+        .map(|l| {
+            let (k, v) = l
+                .split_once('=')
+                .unwrap_or_else(|| panic!("{unit}: `{l}` is not key=value"));
+            (k.trim().to_string(), v.trim().to_string())
+        })
+        .collect()
+}
+
+fn value<'a>(d: &'a [(String, String)], key: &str) -> &'a str {
+    let values: Vec<&str> = d
+        .iter()
+        .filter(|(k, _)| k == key)
+        .map(|(_, v)| v.as_str())
+        .collect();
+    assert_eq!(values.len(), 1, "{key} set once: {values:?}");
+    values[0]
+}
+
+fn production() -> Config {
+    Config::parse(&read("deploy/ppm.toml")).expect("deploy/ppm.toml parses")
+}
+
+#[test]
+fn production_config_is_valid() {
+    let cfg = production();
+    cfg.validate().expect("deploy/ppm.toml validates");
+    assert_eq!(cfg.ipc.root.to_str(), Some("/run/ppm"));
+    assert_eq!(cfg.ingress.listen.to_string(), "0.0.0.0:5005");
+    assert!(!cfg.rt.allow_degraded, "production runs are never degraded");
+    assert_eq!(
+        cfg.output().unwrap(),
+        OutputSpec::Gpio {
+            chip: "pinctrl-bcm2711".into(),
+            line: "GPIO18".into()
+        }
+    );
+    // The Pi 5 variant the comment gives is valid too.
+    let text = read("deploy/ppm.toml");
+    assert!(text.contains("\"gpio:pinctrl-rp1:GPIO18\""));
+    let pi5 = text.replace("gpio:pinctrl-bcm2711:GPIO18", "gpio:pinctrl-rp1:GPIO18");
+    let pi5 = Config::parse(&pi5).unwrap();
+    pi5.validate().unwrap();
+    assert!(
+        matches!(pi5.output().unwrap(), OutputSpec::Gpio { chip, .. } if chip == "pinctrl-rp1")
+    );
+}
+
+#[test]
+fn units_share_the_root_and_read_the_config() {
+    let cfg = production();
+    for (unit, binary) in [
+        ("ppmd.service", "ppmd"),
+        ("udp-ingress.service", "udp-ingress"),
+    ] {
+        let d = directives(unit);
+        assert_eq!(
+            value(&d, "ExecStart"),
+            format!("/usr/local/bin/{binary} --config {CONFIG_PATH}"),
+            "{unit}"
+        );
+        assert_eq!(
+            std::path::Path::new("/run").join(value(&d, "RuntimeDirectory")),
+            cfg.ipc.root,
+            "{unit}: RuntimeDirectory is ipc.root"
+        );
+        for (key, want) in [
+            ("Type", "simple"),
+            ("User", "ppm"),
+            ("Restart", "always"),
+            ("RestartSec", "1"),
+            ("RuntimeDirectoryPreserve", "yes"),
+            ("PrivateTmp", "yes"),
+            ("WantedBy", "multi-user.target"),
+        ] {
+            assert_eq!(value(&d, key), want, "{unit}: {key}");
+        }
+        for key in ["PrivateDevices", "PrivateIPC", "DynamicUser"] {
+            assert!(
+                d.iter().all(|(k, _)| k != key),
+                "{unit}: {key} would split the shared memory"
+            );
+        }
+    }
+
+    let d = directives("ppmd.service");
+    assert_eq!(value(&d, "LimitRTPRIO"), "99");
+    assert_eq!(value(&d, "LimitMEMLOCK"), "infinity");
+    let (lo, hi) = value(&d, "CPUAffinity").split_once('-').unwrap();
+    let others = lo.parse::<usize>().unwrap()..=hi.parse::<usize>().unwrap();
+    assert_eq!(others, 0..=2);
+    match cfg.rt.cpu {
+        CpuChoice::Index(cpu) => assert!(
+            !others.contains(&cpu),
+            "rt.cpu {cpu} is kept free of the other threads"
+        ),
+        other => panic!("deploy/ppm.toml names the timing CPU: {other:?}"),
+    }
+
+    let d = directives("udp-ingress.service");
+    assert!(value(&d, "After").contains("network-online.target"));
+    assert!(value(&d, "Wants").contains("network-online.target"));
+}
+
+#[test]
+fn readme_installs_what_the_units_run() {
+    let readme = read("README.md");
+    let install = readme
+        .split("## Installing as a service")
+        .nth(1)
+        .and_then(|s| s.split("\n## ").next())
+        .expect("README has \"## Installing as a service\"");
+    for needle in [
+        CONFIG_PATH,
+        "/usr/local/bin",
+        "deploy/ppm.toml",
+        "deploy/ppmd.service",
+        "deploy/udp-ingress.service",
+        "deploy/60-ppm.rules",
+        "systemctl enable --now udp-ingress ppmd",
+        "useradd",
+        "gpio",
+        "cargo build --release --target aarch64-unknown-linux-gnu",
+        "ppm-status --to 127.0.0.1:5005",
+    ] {
+        assert!(
+            install.contains(needle),
+            "the README's install section lacks `{needle}`"
+        );
+    }
+    let rules = read("deploy/60-ppm.rules");
+    assert!(rules.contains("KERNEL==\"cpu_dma_latency\", GROUP=\"ppm\""));
+    assert!(rules.contains("KERNEL==\"gpiochip*\", GROUP=\"gpio\""));
+}

@@ -1,0 +1,288 @@
+//! Status queries against the real udp-ingress and ppmd: exact counters for
+//! a known mix of datagrams, ppmd's timing summary, and `ppm-status`.
+
+use nix::sys::signal::Signal;
+use ppm_tests::{bin, Proc, Sandbox};
+use serde_json::{json, Value};
+use std::net::{SocketAddr, UdpSocket};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+/// Sends commands and status queries from one socket, so they reach the
+/// ingress in the order sent.
+struct Client {
+    socket: UdpSocket,
+    to: SocketAddr,
+    queries: u64,
+}
+
+impl Client {
+    fn new(to: SocketAddr) -> Client {
+        let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+        socket.set_read_timeout(Some(5 * SECOND)).unwrap();
+        Client {
+            socket,
+            to,
+            queries: 0,
+        }
+    }
+
+    fn send(&self, bytes: &[u8]) {
+        self.socket.send_to(bytes, self.to).unwrap();
+    }
+
+    /// One status query and its reply. The ingress answers after publishing
+    /// what it received before, so the reply counts everything sent so far.
+    fn status(&mut self) -> Value {
+        self.send(br#"{"get":"status"}"#);
+        self.queries += 1;
+        let mut buf = [0u8; 65_536];
+        let (n, from) = self.socket.recv_from(&mut buf).expect("a status reply");
+        assert_eq!(from, self.to);
+        serde_json::from_slice(&buf[..n]).expect("the reply is JSON")
+    }
+}
+
+fn ppm_status(args: &[&str]) -> Output {
+    Command::new(bin("ppm-status"))
+        .args(args)
+        .output()
+        .expect("running ppm-status")
+}
+
+fn stdout_of(args: &[&str]) -> String {
+    let out = ppm_status(args);
+    assert!(
+        out.status.success(),
+        "ppm-status {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).unwrap()
+}
+
+/// The keys of a JSON value, recursively, with each leaf's type.
+fn shape(v: &Value) -> Value {
+    match v {
+        Value::Object(m) => Value::Object(m.iter().map(|(k, v)| (k.clone(), shape(v))).collect()),
+        Value::Null => json!("null"),
+        Value::Bool(_) => json!("bool"),
+        Value::Number(_) => json!("number"),
+        Value::String(_) => json!("string"),
+        Value::Array(_) => json!("array"),
+    }
+}
+
+fn start(sb: &Sandbox, with_ppmd: bool) -> (Option<Proc>, Proc) {
+    let cfg = sb.config("");
+    let cfg = cfg.to_str().unwrap();
+    let output = format!("sim:{}", sb.dir.join("line.trace").display());
+    let ppmd = with_ppmd.then(|| sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd"));
+    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
+    if let Some(p) = &ppmd {
+        p.wait_for_log("commands from", 30 * SECOND);
+    }
+    ingress.wait_for_log("listening on", 30 * SECOND);
+    (ppmd, ingress)
+}
+
+/// Malformed datagrams, one of each reason and two malformed queries.
+const MALFORMED: [&[u8]; 10] = [
+    b"\xff\xfe[1500]",
+    b"[1000, 1200",
+    br#"[1000, "1200"]"#,
+    b"[1000, 1200, 2600]",
+    b"[1500,1500,1500,1500,1500,1500,1500,1500,1500]",
+    br#"{"yaw": 1500}"#,
+    b"{}",
+    b"1500",
+    br#"{"get":"config"}"#,
+    br#"{"get":"status","seq":1}"#,
+];
+
+#[test]
+fn status_counts_every_datagram_and_reports_ppmd() {
+    let sb = Sandbox::new("status");
+    let (ppmd, ingress) = start(&sb, true);
+    let mut ppmd = ppmd.unwrap();
+    let mut c = Client::new(sb.addr());
+
+    let first = c.status();
+    assert_eq!(first["name"], json!(sb.name));
+    assert_eq!(first["datagrams"]["received"], json!(0));
+    assert_eq!(first["datagrams"]["applied"], json!(0));
+    assert_eq!(first["newest_command_age_ms"], Value::Null);
+    assert_eq!(first["newest_seq"], Value::Null);
+    assert_eq!(first["status_requests"], json!(1));
+
+    // 2 s of commands at 50 Hz, with malformed, stale and clamped ones; a
+    // status round trip after each keeps every command in its own wake-up.
+    let (mut malformed, mut stale) = (0, 0);
+    let start = Instant::now();
+    for i in 0..100u64 {
+        let command = if i == 50 {
+            json!({"ch": [900, 2100, 1200], "seq": i + 1})
+        } else {
+            json!({"ch": [1000 + i, 1500, 1200], "seq": i + 1})
+        };
+        c.send(command.to_string().as_bytes());
+        if i % 10 == 5 {
+            c.send(MALFORMED[malformed]);
+            malformed += 1;
+        }
+        if i % 25 == 10 {
+            c.send(br#"{"ch": [1500], "seq": 1}"#);
+            stale += 1;
+        }
+        c.status();
+        let next = start + Duration::from_millis(20 * (i + 1));
+        std::thread::sleep(next.saturating_duration_since(Instant::now()));
+    }
+    assert_eq!((malformed, stale), (10, 4));
+
+    // ppmd publishes its timing once a second.
+    let end = Instant::now() + 10 * SECOND;
+    let reply = loop {
+        let r = c.status();
+        if r["ppmd"]["frames"].as_u64().is_some_and(|f| f > 0) {
+            break r;
+        }
+        assert!(
+            Instant::now() < end,
+            "no ppmd timing in the status: {r}\n{}",
+            ppmd.log_text()
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    };
+
+    assert_eq!(
+        reply["datagrams"],
+        json!({
+            "received": 114,
+            "applied": 100,
+            "superseded": 0,
+            "stale": 4,
+            "clamped": 1,
+            "clamped_values": 2,
+            "rejected": {
+                "invalid_utf8": 1,
+                "invalid_json": 1,
+                "not_a_number": 1,
+                "out_of_range": 1,
+                "too_many_values": 1,
+                "unknown_channel": 1,
+                "bad_shape": 4,
+            },
+        }),
+        "{reply}"
+    );
+    assert_eq!(reply["status_requests"], json!(c.queries));
+    assert_eq!(reply["status_dropped"], json!(0));
+    assert_eq!(reply["newest_seq"], json!(100));
+    assert!(reply["newest_command_age_ms"].as_f64().unwrap() >= 0.0);
+    assert!(reply["uptime_s"].as_f64().unwrap() >= 2.0, "{reply}");
+    assert_eq!(reply["ppmd_stale"], json!(false));
+    let p = &reply["ppmd"];
+    assert!(
+        ["silent", "active", "failsafe"].contains(&p["state"].as_str().unwrap()),
+        "{p}"
+    );
+    let e = &p["edge_error_us"];
+    let (p50, p99, max) = (
+        e["p50"].as_f64().unwrap(),
+        e["p99"].as_f64().unwrap(),
+        e["max"].as_f64().unwrap(),
+    );
+    assert!(0.0 <= p50 && p50 <= p99 && p99 <= max, "{e}");
+    for k in ["overruns", "late_frames", "failsafe_entries"] {
+        assert!(p[k].is_u64(), "{k}: {p}");
+    }
+    assert!(p["degraded"].is_boolean(), "{p}");
+    let age = p["snapshot_age_ms"].as_f64().unwrap();
+    assert!((0.0..=3_000.0).contains(&age), "{p}");
+    assert_eq!(
+        p.as_object().unwrap().len(),
+        8,
+        "exactly the documented keys: {p}"
+    );
+
+    // The README's example reply has exactly these keys.
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+    let example = readme
+        .split("## Status queries")
+        .nth(1)
+        .and_then(|s| s.split("```json\n").nth(1))
+        .and_then(|s| s.split("```").next())
+        .expect("README shows an example status reply");
+    let example: Value = serde_json::from_str(example).expect("the README's reply is JSON");
+    assert_eq!(
+        shape(&example),
+        shape(&reply),
+        "README's example vs {reply}"
+    );
+
+    // ppm-status prints the same, readably and as JSON; queries change nothing.
+    let addr = sb.addr().to_string();
+    let text = stdout_of(&["--to", &addr]);
+    for line in [
+        format!("udp-ingress `{}`, up ", sb.name),
+        "datagrams: received 114, applied 100, superseded 0, stale 4, clamped 1 (2 values)\n"
+            .into(),
+        "rejected: 10 (invalid_utf8 1, invalid_json 1, not_a_number 1, out_of_range 1, too_many_values 1, unknown_channel 1, bad_shape 4)\n".into(),
+        ", seq 100\n".into(),
+        format!("status queries: {} (0 replies dropped)\n", c.queries + 1),
+        " frames; edge error p50 ".into(),
+    ] {
+        assert!(text.contains(&line), "`{line}` not in:\n{text}");
+    }
+    let raw: Value = serde_json::from_str(&stdout_of(&["--to", &addr, "--json"])).unwrap();
+    assert_eq!(raw["datagrams"], reply["datagrams"]);
+    assert_eq!(raw["status_requests"], json!(c.queries + 2));
+    c.queries += 2;
+
+    // ppmd gone: its last snapshot ages out after 3 s.
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    std::thread::sleep(Duration::from_millis(3_500));
+    let r = c.status();
+    assert_eq!((&r["ppmd"], &r["ppmd_stale"]), (&Value::Null, &json!(true)));
+    assert!(stdout_of(&["--to", &addr]).contains("ppmd: no timing snapshot for more than 3 s"));
+    drop(ingress);
+}
+
+#[test]
+fn status_without_ppmd_and_ppm_status_errors() {
+    let sb = Sandbox::new("status-alone");
+    let (_, _ingress) = start(&sb, false);
+    let mut c = Client::new(sb.addr());
+    let r = c.status();
+    assert_eq!(
+        (&r["ppmd"], &r["ppmd_stale"]),
+        (&Value::Null, &json!(false))
+    );
+    assert_eq!(
+        r["datagrams"]["rejected"].as_object().unwrap().len(),
+        7,
+        "every reason, zeros included: {r}"
+    );
+    let text = stdout_of(&["--to", &sb.addr().to_string()]);
+    assert!(text.contains("newest command: none yet"), "{text}");
+    assert!(text.contains("ppmd: no timing snapshot yet"), "{text}");
+
+    // Something that never answers: a timeout, with a clear message.
+    let silent = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let to = silent.local_addr().unwrap().to_string();
+    let started = Instant::now();
+    let out = ppm_status(&["--to", &to, "--timeout", "300ms"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains(&format!("no reply from {to} within 300ms")),
+        "{err}"
+    );
+    assert!(started.elapsed() >= Duration::from_millis(300));
+    let mut buf = [0u8; 64];
+    let (n, _) = silent.recv_from(&mut buf).unwrap();
+    assert_eq!(&buf[..n], br#"{"get":"status"}"#);
+}
