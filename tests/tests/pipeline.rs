@@ -166,8 +166,10 @@ fn either_start_order_and_restarts_of_either_process() {
     ingress2.wait_for_log("listening on", 30 * SECOND);
     std::thread::sleep(Duration::from_millis(700));
 
-    // ppmd restarts; the new one takes the newest command from the running ingress.
-    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    // ppmd crashes (SIGKILL) and restarts; the new one cleans what the dead
+    // one left in shared memory and takes the newest command from the
+    // running ingress.
+    ppmd.kill();
     value.store(1700, Ordering::Relaxed);
     let mut ppmd2 = sb.spawn("ppmd", &["--config", cfg, "--output", &sim(2)], "ppmd2");
     std::thread::sleep(Duration::from_millis(700));

@@ -1,0 +1,125 @@
+//! What ppmd sends when commands stop (and before the first one), with the
+//! real binaries: silence within `after_ms` plus one frame, `hold`,
+//! `default`, and `startup = "default"`.
+
+use nix::sys::signal::Signal;
+use ppm_shared::time::now_ns;
+use ppm_tests::{read_trace, Proc, Sandbox, Sender};
+use std::time::Duration;
+
+const FRAME_NS: u64 = 22_500_000;
+const SECOND: Duration = Duration::from_secs(1);
+
+fn start(sb: &Sandbox, failsafe: &str) -> (Proc, Proc) {
+    let cfg = sb.config(&format!("[failsafe]\n{failsafe}"));
+    let cfg = cfg.to_str().unwrap();
+    let output = format!("sim:{}", sb.dir.join("line.trace").display());
+    let ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
+    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
+    ppmd.wait_for_log("commands from", 30 * SECOND);
+    ingress.wait_for_log("listening on", 30 * SECOND);
+    (ppmd, ingress)
+}
+
+/// Sends `cmd` at 50 Hz for `n` datagrams; returns the time of the last send.
+fn send(sb: &Sandbox, cmd: &[u8], n: u32) -> u64 {
+    let s = Sender::new(sb.addr());
+    let mut last = 0;
+    for _ in 0..n {
+        s.send(cmd);
+        last = now_ns();
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    last
+}
+
+#[test]
+fn silence_comes_within_after_ms_and_one_frame() {
+    let sb = Sandbox::new("fs-silence");
+    let (mut ppmd, _ingress) = start(&sb, "after_ms = 200\naction = 'silence'");
+    let last_sent = send(&sb, b"[1300]", 40);
+    std::thread::sleep(Duration::from_millis(800));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let trace = read_trace(&sb.dir.join("line.trace"));
+    let last_edge = trace.edges.last().expect("edges").actual_ns;
+    // The command was received a little after it was sent; the bound is the
+    // send time plus after_ms plus one frame (plus a 2 ms allowance for the
+    // datagram's trip to ppmd).
+    let bound = last_sent + 200_000_000 + FRAME_NS + 2_000_000;
+    assert!(
+        last_edge <= bound,
+        "pulses went on {:.1} ms after the last command",
+        (last_edge - last_sent) as f64 / 1e6
+    );
+    assert!(
+        last_edge >= last_sent + 200_000_000 - FRAME_NS,
+        "stopped early"
+    );
+    assert!(ppmd.log_text().contains("no fresh command: line silent"));
+}
+
+#[test]
+fn hold_repeats_the_last_command() {
+    let sb = Sandbox::new("fs-hold");
+    let (mut ppmd, _ingress) = start(&sb, "after_ms = 100\naction = 'hold'");
+    let last_sent = send(&sb, b"[1300, 1400]", 25);
+    std::thread::sleep(Duration::from_millis(800));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    let after: Vec<_> = frames
+        .iter()
+        .filter(|f| f.start_ns > last_sent + 300_000_000)
+        .collect();
+    assert!(after.len() >= 15, "{} frames held", after.len());
+    assert!(frames.iter().all(|f| f.channels_us()[..2] == [1300, 1400]));
+    assert!(ppmd.log_text().contains("emitting failsafe frames"));
+}
+
+#[test]
+fn default_action_sends_the_defaults() {
+    let sb = Sandbox::new("fs-default");
+    let (mut ppmd, _ingress) = start(&sb, "after_ms = 100\naction = 'default'");
+    let last_sent = send(&sb, b"[1300, 1400, 1800]", 25);
+    std::thread::sleep(Duration::from_millis(800));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    let (before, after): (Vec<_>, Vec<_>) = frames
+        .iter()
+        .partition(|f| f.start_ns < last_sent + 100_000_000);
+    assert!(before
+        .iter()
+        .all(|f| f.channels_us()[..3] == [1300, 1400, 1800]));
+    let late: Vec<_> = after
+        .iter()
+        .filter(|f| f.start_ns > last_sent + 100_000_000 + 2 * FRAME_NS)
+        .collect();
+    assert!(late.len() >= 15, "{} default frames", late.len());
+    for f in late {
+        // Throttle (channel 3) defaults to its minimum.
+        assert_eq!(
+            f.channels_us(),
+            [1500, 1500, 1000, 1500, 1500, 1500, 1500, 1500]
+        );
+    }
+}
+
+#[test]
+fn startup_default_sends_defaults_before_the_first_command() {
+    let sb = Sandbox::new("fs-startup");
+    let (mut ppmd, _ingress) = start(&sb, "startup = 'default'");
+    std::thread::sleep(Duration::from_millis(500));
+    let first_sent = now_ns();
+    send(&sb, b"[1100]", 25);
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    let early: Vec<_> = frames.iter().filter(|f| f.start_ns < first_sent).collect();
+    assert!(
+        early.len() >= 10,
+        "{} frames before the first command",
+        early.len()
+    );
+    assert!(early
+        .iter()
+        .all(|f| f.channels_us()[..3] == [1500, 1500, 1000]));
+    assert!(frames.iter().any(|f| f.channels_us()[0] == 1100));
+}
