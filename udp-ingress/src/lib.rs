@@ -148,6 +148,7 @@ pub struct Intake {
     latest: Option<Received>,
     counters: Counters,
     log: RejectLog,
+    latency: hdrhistogram::Histogram<u64>,
 }
 
 impl Intake {
@@ -161,6 +162,8 @@ impl Intake {
             latest: None,
             counters: Counters::default(),
             log: RejectLog::new(log_interval),
+            latency: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000_000, 3)
+                .expect("valid histogram bounds"),
         }
     }
 
@@ -239,6 +242,17 @@ impl Intake {
         self.counters.status_dropped += 1;
     }
 
+    /// Records how long the published command took from the kernel's
+    /// receive timestamp to being published, ns.
+    pub fn published_after(&mut self, ns: u64) {
+        self.latency.saturating_record(ns);
+    }
+
+    /// Kernel receive to published, ns, of every published command.
+    pub fn latency(&self) -> &hdrhistogram::Histogram<u64> {
+        &self.latency
+    }
+
     /// The reply to a status query: one JSON object (see the README's
     /// "Status queries"). `uptime` is the ingress's, `now_mono_ns` the
     /// CLOCK_MONOTONIC time of the reply, `ppmd` the newest timing snapshot
@@ -274,6 +288,12 @@ impl Intake {
             "status_dropped": c.status_dropped,
             "newest_command_age_ms": self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
             "newest_seq": self.latest.and_then(|r| r.command.seq),
+            "publish_latency_us": {
+                "count": self.latency.len(),
+                "p50": round3(self.latency.value_at_quantile(0.5) as f64 / 1e3),
+                "p99": round3(self.latency.value_at_quantile(0.99) as f64 / 1e3),
+                "max": round3(self.latency.max() as f64 / 1e3),
+            },
             "ppmd": fresh.map(|s| ppmd_status(s, age_ns(s.mono_ns))),
             "ppmd_stale": ppmd.is_some() && fresh.is_none(),
         })
@@ -556,6 +576,7 @@ mod tests {
                 "status_dropped": 1,
                 "newest_command_age_ms": 7.0,
                 "newest_seq": null,
+                "publish_latency_us": {"count": 0, "p50": 0.0, "p99": 0.0, "max": 0.0},
                 "ppmd": {
                     "state": "active",
                     "frames": 400,

@@ -82,6 +82,12 @@ fn run(cli: Cli) -> Result<()> {
     })?;
     std_socket.set_nonblocking(true)?;
     let rcvbuf = set_receive_buffer(&std_socket, cfg.ingress.recv_buffer_bytes)?;
+    nix::sys::socket::setsockopt(
+        &std_socket,
+        nix::sys::socket::sockopt::ReceiveTimestampns,
+        &true,
+    )
+    .context("enabling SO_TIMESTAMPNS")?;
     let mut socket = UdpSocket::from_std(std_socket);
 
     let node = ipc::create_node(&cfg.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
@@ -120,6 +126,7 @@ fn run(cli: Cli) -> Result<()> {
     let started = Instant::now();
     let mut events = Events::with_capacity(8);
     let mut buf = vec![0u8; MAX_DATAGRAM];
+    let mut cmsg = nix::cmsg_space!(nix::sys::time::TimeSpec);
     let mut status_to: Vec<SocketAddr> = Vec::with_capacity(MAX_STATUS_PER_WAKE);
     let mut ppmd_snapshot: Option<TimingSnapshot> = None;
     let mut ingress_seq = 0u64;
@@ -135,25 +142,27 @@ fn run(cli: Cli) -> Result<()> {
         }
         // Drain everything pending: only the newest valid command is published.
         loop {
-            match socket.recv_from(&mut buf) {
-                Ok((n, from)) => {
-                    let (mono, real) = (now_ns(), realtime_ns());
-                    match intake.offer(&buf[..n], from, mono, real, Instant::now()) {
-                        Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
-                        Outcome::Stale => log::debug!("stale command from {from} dropped"),
-                        Outcome::Status if status_to.len() < MAX_STATUS_PER_WAKE => {
-                            status_to.push(from)
-                        }
-                        Outcome::Status => intake.status_dropped(),
-                        _ => {}
-                    }
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            let (n, from, kernel_real) = match receive(&socket, &mut buf, &mut cmsg) {
+                Ok(Some(got)) => got,
+                Ok(None) => break,
                 Err(e) => {
                     log::warn!("receive error: {e}");
                     break;
                 }
+            };
+            // Stamped with the kernel's receive time (SO_TIMESTAMPNS, on
+            // CLOCK_REALTIME), carried over to CLOCK_MONOTONIC for ppmd.
+            let (mono_now, real_now) = (now_ns(), realtime_ns());
+            let (mono, real) = match kernel_real {
+                Some(k) => (mono_now.saturating_sub(real_now.saturating_sub(k)), k),
+                None => (mono_now, real_now),
+            };
+            match intake.offer(&buf[..n], from, mono, real, Instant::now()) {
+                Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
+                Outcome::Stale => log::debug!("stale command from {from} dropped"),
+                Outcome::Status if status_to.len() < MAX_STATUS_PER_WAKE => status_to.push(from),
+                Outcome::Status => intake.status_dropped(),
+                _ => {}
             }
         }
         if let Some(r) = intake.take() {
@@ -164,9 +173,12 @@ fn run(cli: Cli) -> Result<()> {
                 .map(|s| s.write_payload(sample))
                 .map_err(|e| format!("{e:?}"))
                 .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
-            if let Err(e) = sent {
-                publish_errors += 1;
-                log::warn!("publishing command failed: {e}");
+            match sent {
+                Ok(_) => intake.published_after(realtime_ns().saturating_sub(r.real_ns)),
+                Err(e) => {
+                    publish_errors += 1;
+                    log::warn!("publishing command failed: {e}");
+                }
             }
         } else if let Err(e) = publisher.update_connections() {
             log::debug!("updating connections: {e:?}");
@@ -244,6 +256,51 @@ fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
                 break;
             }
         }
+    }
+}
+
+/// Receives one datagram without blocking: its length, sender and kernel
+/// receive time (CLOCK_REALTIME ns, when the kernel gave one); `None` when
+/// nothing is pending.
+fn receive(
+    socket: &UdpSocket,
+    buf: &mut [u8],
+    cmsg: &mut [u8],
+) -> nix::Result<Option<(usize, SocketAddr, Option<u64>)>> {
+    use nix::errno::Errno;
+    use nix::sys::socket::{recvmsg, ControlMessageOwned, MsgFlags, SockaddrStorage};
+    use std::os::fd::AsRawFd;
+    loop {
+        let mut iov = [std::io::IoSliceMut::new(buf)];
+        let msg = match recvmsg::<SockaddrStorage>(
+            socket.as_raw_fd(),
+            &mut iov,
+            Some(&mut *cmsg),
+            MsgFlags::MSG_DONTWAIT,
+        ) {
+            Ok(m) => m,
+            Err(Errno::EAGAIN) => return Ok(None),
+            Err(Errno::EINTR) => continue,
+            Err(e) => return Err(e),
+        };
+        let kernel = msg.cmsgs().ok().and_then(|mut c| {
+            c.find_map(|m| match m {
+                ControlMessageOwned::ScmTimestampns(ts) => {
+                    Some(ts.tv_sec() as u64 * 1_000_000_000 + ts.tv_nsec() as u64)
+                }
+                _ => None,
+            })
+        });
+        let from = msg.address.and_then(|a: SockaddrStorage| {
+            a.as_sockaddr_in()
+                .map(|v4| SocketAddr::from(std::net::SocketAddrV4::from(*v4)))
+                .or_else(|| {
+                    a.as_sockaddr_in6()
+                        .map(|v6| SocketAddr::from(std::net::SocketAddrV6::from(*v6)))
+                })
+        });
+        let Some(from) = from else { continue };
+        return Ok(Some((msg.bytes, from, kernel)));
     }
 }
 
