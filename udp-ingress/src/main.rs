@@ -39,6 +39,8 @@ const SOCKET: Token = Token(0);
 const POLL_TIMEOUT: Duration = Duration::from_millis(20);
 /// Largest UDP payload.
 const MAX_DATAGRAM: usize = 65_536;
+/// Longest a drain goes on before the newest command so far is published.
+const DRAIN_PUBLISH_EVERY: Duration = Duration::from_micros(200);
 /// How often the counters are logged while datagrams arrive.
 const REPORT_EVERY: Duration = Duration::from_secs(60);
 /// Most status queries answered per wake-up; more are counted as dropped
@@ -141,7 +143,19 @@ fn run(cli: Cli) -> Result<()> {
             return Err(e).context("waiting for datagrams");
         }
         // Drain everything pending: only the newest valid command is published.
+        // Under a flood the socket may never run dry; the newest so far is
+        // then published every DRAIN_PUBLISH_EVERY, so it never gets old.
+        let mut drain_started = Instant::now();
         loop {
+            if drain_started.elapsed() >= DRAIN_PUBLISH_EVERY {
+                publish(
+                    &mut intake,
+                    &publisher,
+                    &mut ingress_seq,
+                    &mut publish_errors,
+                );
+                drain_started = Instant::now();
+            }
             let (n, from, kernel_real) = match receive(&socket, &mut buf, &mut cmsg) {
                 Ok(Some(got)) => got,
                 Ok(None) => break,
@@ -165,23 +179,15 @@ fn run(cli: Cli) -> Result<()> {
                 _ => {}
             }
         }
-        if let Some(r) = intake.take() {
-            ingress_seq += 1;
-            let sample = CommandSample::new(&r.command, ingress_seq, r.mono_ns, r.real_ns);
-            let sent = publisher
-                .loan_uninit()
-                .map(|s| s.write_payload(sample))
-                .map_err(|e| format!("{e:?}"))
-                .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
-            match sent {
-                Ok(_) => intake.published_after(realtime_ns().saturating_sub(r.real_ns)),
-                Err(e) => {
-                    publish_errors += 1;
-                    log::warn!("publishing command failed: {e}");
-                }
+        if !publish(
+            &mut intake,
+            &publisher,
+            &mut ingress_seq,
+            &mut publish_errors,
+        ) {
+            if let Err(e) = publisher.update_connections() {
+                log::debug!("updating connections: {e:?}");
             }
-        } else if let Err(e) = publisher.update_connections() {
-            log::debug!("updating connections: {e:?}");
         }
         // Answered after publishing, so the counters add up.
         if !status_to.is_empty() {
@@ -257,6 +263,33 @@ fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
             }
         }
     }
+}
+
+/// Publishes the newest command taken in, if any; false when there was none.
+fn publish(
+    intake: &mut Intake,
+    publisher: &Publisher,
+    ingress_seq: &mut u64,
+    errors: &mut u64,
+) -> bool {
+    let Some(r) = intake.take() else {
+        return false;
+    };
+    *ingress_seq += 1;
+    let sample = CommandSample::new(&r.command, *ingress_seq, r.mono_ns, r.real_ns);
+    let sent = publisher
+        .loan_uninit()
+        .map(|s| s.write_payload(sample))
+        .map_err(|e| format!("{e:?}"))
+        .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
+    match sent {
+        Ok(_) => intake.published_after(realtime_ns().saturating_sub(r.real_ns)),
+        Err(e) => {
+            *errors += 1;
+            log::warn!("publishing command failed: {e}");
+        }
+    }
+    true
 }
 
 /// Receives one datagram without blocking: its length, sender and kernel

@@ -1,0 +1,508 @@
+//! `ppm-bench`: the input path under measurement, against the seed system's
+//! approach, with the real binaries as separate processes on loopback.
+//!
+//! 1. ingress latency: kernel receive timestamp (SO_TIMESTAMPNS) to the
+//!    command published, udp-ingress against a Python receiver written as
+//!    the seed's was (blocking socket, json.loads, hand-off to a generator
+//!    process), same traffic, same run;
+//! 2. flood: datagrams/s drained, memory before and after, ppmd's edge error
+//!    and the newest command's age at each frame start during the flood;
+//! 3. end to end: send time to the first frame that carries a command, and
+//!    whether commands that arrive at least 1 ms before a frame are in it;
+//! 4. memory and CPU of both processes at idle and at 50 Hz.
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use ppm_shared::time::now_ns;
+use ppm_tools::analysis::Percentiles;
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::net::UdpSocket;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Benchmarks of ppm's input path (ingress latency, flood, end-to-end
+/// latency, memory and CPU), with the seed system's approach as baseline.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Cli {
+    /// Datagrams for the latency comparison (sent at 1 kHz).
+    #[arg(long, default_value_t = 3000)]
+    latency_count: u32,
+    /// Seconds of flood.
+    #[arg(long, default_value_t = 3)]
+    flood_seconds: u64,
+    /// Commands for the end-to-end measurement (sent at 50 Hz).
+    #[arg(long, default_value_t = 300)]
+    e2e_count: u32,
+    /// Run only this part: ingress, flood, e2e or resources.
+    #[arg(long)]
+    only: Option<String>,
+}
+
+/// A running program of ppm's, stopped when dropped.
+struct Running {
+    child: Child,
+}
+
+impl Running {
+    fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Resident memory in KiB.
+    fn rss_kib(&self) -> u64 {
+        std::fs::read_to_string(format!("/proc/{}/status", self.pid()))
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find(|l| l.starts_with("VmRSS:"))
+                    .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+            })
+            .unwrap_or(0)
+    }
+
+    /// CPU time used so far (user + system), seconds.
+    fn cpu_s(&self) -> f64 {
+        let stat =
+            std::fs::read_to_string(format!("/proc/{}/stat", self.pid())).unwrap_or_default();
+        let after = stat.rsplit(')').next().unwrap_or("");
+        let f: Vec<u64> = after
+            .split_whitespace()
+            .filter_map(|x| x.parse().ok())
+            .collect();
+        let ticks = nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)
+            .ok()
+            .flatten()
+            .unwrap_or(100) as f64;
+        // Fields 14 and 15 of /proc/PID/stat (11 and 12 after the state).
+        (f.get(10).unwrap_or(&0) + f.get(11).unwrap_or(&0)) as f64 / ticks
+    }
+
+    fn stop(mut self) {
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(self.pid() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        );
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A scratch directory with a config for one setup.
+struct Setup {
+    dir: PathBuf,
+    port: u16,
+    bins: PathBuf,
+}
+
+impl Setup {
+    fn new(label: &str) -> Result<Setup> {
+        let dir = std::env::temp_dir().join(format!("ppm-bench-{label}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir)?;
+        let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+        let config = format!(
+            "name = \"bench{label}\"\n[ingress]\nlisten = \"127.0.0.1:{port}\"\nrecv_buffer_bytes = 1048576\n[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n",
+            dir.join("ipc").display()
+        );
+        std::fs::write(dir.join("ppm.toml"), config)?;
+        let bins = std::env::current_exe()?
+            .parent()
+            .context("binary directory")?
+            .to_owned();
+        Ok(Setup { dir, port, bins })
+    }
+
+    fn spawn(&self, bin: &str, extra: &[&str]) -> Result<Running> {
+        let log = std::fs::File::create(self.dir.join(format!("{bin}.log")))?;
+        let child = Command::new(self.bins.join(bin))
+            .arg("--config")
+            .arg(self.dir.join("ppm.toml"))
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .with_context(|| format!("starting {} (build with `cargo build --release`)", bin))?;
+        let r = Running { child };
+        let log_path = self.dir.join(format!("{bin}.log"));
+        let needle = if bin == "ppmd" {
+            "commands from"
+        } else {
+            "listening on"
+        };
+        let end = Instant::now() + Duration::from_secs(20);
+        while !std::fs::read_to_string(&log_path)
+            .unwrap_or_default()
+            .contains(needle)
+        {
+            if Instant::now() > end {
+                bail!(
+                    "{bin} did not start: {}",
+                    std::fs::read_to_string(&log_path)?
+                );
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Ok(r)
+    }
+
+    fn status(&self) -> Result<Value> {
+        let s = UdpSocket::bind("127.0.0.1:0")?;
+        s.set_read_timeout(Some(Duration::from_secs(2)))?;
+        s.send_to(br#"{"get":"status"}"#, ("127.0.0.1", self.port))?;
+        let mut buf = vec![0u8; 65536];
+        let n = s
+            .recv(&mut buf)
+            .context("no status reply from udp-ingress")?;
+        Ok(serde_json::from_slice(&buf[..n])?)
+    }
+}
+
+impl Drop for Setup {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// Sends `n` datagrams at `hz`, `make(i)` each; returns the send times.
+fn paced(port: u16, n: u32, hz: f64, mut make: impl FnMut(u32) -> Vec<u8>) -> Result<Vec<u64>> {
+    let s = UdpSocket::bind("127.0.0.1:0")?;
+    let period = 1e9 / hz;
+    let start = now_ns();
+    let mut sent = Vec::with_capacity(n as usize);
+    for i in 0..n {
+        let due = start + (i as f64 * period) as u64;
+        loop {
+            let left = due.saturating_sub(now_ns());
+            if left == 0 {
+                break;
+            }
+            if left > 200_000 {
+                std::thread::sleep(Duration::from_nanos(left - 100_000));
+            }
+        }
+        let bytes = make(i);
+        sent.push(now_ns());
+        s.send_to(&bytes, ("127.0.0.1", port))?;
+    }
+    Ok(sent)
+}
+
+fn us(v: f64) -> String {
+    format!("{v:.1}")
+}
+
+fn ingress_latency(cli: &Cli) -> Result<()> {
+    println!(
+        "== 1. ingress: kernel receive to command handed over ({} datagrams at 1 kHz)",
+        cli.latency_count
+    );
+    let setup = Setup::new("lat")?;
+    let ingress = setup.spawn("udp-ingress", &[])?;
+    paced(setup.port, cli.latency_count, 1000.0, |i| {
+        format!("[{}, 1500, 1000, 1500]", 1000 + i % 1000).into_bytes()
+    })?;
+    std::thread::sleep(Duration::from_millis(200));
+    let st = setup.status()?;
+    let ours = &st["publish_latency_us"];
+    ingress.stop();
+
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/seed_receiver.py");
+    let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+    let mut py = Command::new("python3")
+        .arg(&script)
+        .arg(port.to_string())
+        .args(["--count", &cli.latency_count.to_string()])
+        .stdout(Stdio::piped())
+        .spawn()
+        .context("starting python3 (the baseline needs it)")?;
+    let mut out = BufReader::new(py.stdout.take().context("python stdout")?);
+    let mut line = String::new();
+    out.read_line(&mut line)?;
+    if line.trim() != "ready" {
+        bail!("the Python baseline did not start: {line}");
+    }
+    paced(port, cli.latency_count, 1000.0, |i| {
+        format!("[{}, 1500, 1000, 1500]", 1000 + i % 1000).into_bytes()
+    })?;
+    let waiter = std::thread::spawn(move || -> Result<Value> {
+        let mut l = String::new();
+        out.read_line(&mut l)?;
+        Ok(serde_json::from_str(&l)?)
+    });
+    let end = Instant::now() + Duration::from_secs(10);
+    while !waiter.is_finished() && Instant::now() < end {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    if !waiter.is_finished() {
+        // Datagrams lost in the socket: stop it and take what it measured.
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(py.id() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        );
+    }
+    let base = waiter
+        .join()
+        .map_err(|_| anyhow::anyhow!("python reader"))??;
+    let _ = py.wait();
+
+    let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+    println!(
+        "{:<36} {:>8} {:>10} {:>10} {:>10}",
+        "receiver", "count", "p50 us", "p99 us", "max us"
+    );
+    println!(
+        "{:<36} {:>8} {:>10} {:>10} {:>10}",
+        "udp-ingress (mio, iceoryx2)",
+        ours["count"],
+        us(f(&ours["p50"])),
+        us(f(&ours["p99"])),
+        us(f(&ours["max"]))
+    );
+    println!(
+        "{:<36} {:>8} {:>10} {:>10} {:>10}",
+        "seed-style Python (blocking, pipe)",
+        base["count"],
+        us(f(&base["p50_us"])),
+        us(f(&base["p99_us"])),
+        us(f(&base["max_us"]))
+    );
+    println!(
+        "ratio Python / udp-ingress: p50 {:.1}x, p99 {:.1}x",
+        f(&base["p50_us"]) / f(&ours["p50"]),
+        f(&base["p99_us"]) / f(&ours["p99"])
+    );
+    Ok(())
+}
+
+/// Ages (ns) of the command at each frame start, from a frame log.
+fn frame_ages(log: &Path, from_ns: u64, to_ns: u64) -> Vec<f64> {
+    std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|r| r["type"] == "frame")
+        .filter_map(|r| Some((r["mono_ns"].as_u64()?, r["recv_mono_ns"].as_u64()?)))
+        .filter(|(t, _)| (from_ns..=to_ns).contains(t))
+        .map(|(t, recv)| t.saturating_sub(recv) as f64)
+        .collect()
+}
+
+fn flood(cli: &Cli) -> Result<()> {
+    println!(
+        "== 2. flood: one sender as fast as it can for {} s, changing values",
+        cli.flood_seconds
+    );
+    let setup = Setup::new("flood")?;
+    let log = setup.dir.join("frames.jsonl");
+    let ppmd = setup.spawn(
+        "ppmd",
+        &[
+            "--output",
+            "sim:/dev/null",
+            "--frame-log",
+            log.to_str().unwrap(),
+        ],
+    )?;
+    let ingress = setup.spawn("udp-ingress", &[])?;
+    // Two calm seconds first: the reference for ppmd's timing.
+    paced(setup.port, 100, 50.0, |i| {
+        format!("[{}]", 1000 + i).into_bytes()
+    })?;
+    let calm = setup.status()?;
+    let rss_before = ingress.rss_kib();
+    let received_before = calm["datagrams"]["received"].as_u64().unwrap_or(0);
+    let stop = Arc::new(AtomicBool::new(false));
+    let sent = Arc::new(AtomicU64::new(0));
+    let flood_start = now_ns();
+    let sender = {
+        let (stop, sent, port) = (stop.clone(), sent.clone(), setup.port);
+        std::thread::spawn(move || -> Result<()> {
+            let s = UdpSocket::bind("127.0.0.1:0")?;
+            let mut i = 0u64;
+            let mut buf = String::new();
+            while !stop.load(Relaxed) {
+                buf.clear();
+                use std::fmt::Write;
+                let _ = write!(buf, "[{}, {}]", 1000 + i % 1000, 1000 + (i / 1000) % 1000);
+                if s.send_to(buf.as_bytes(), ("127.0.0.1", port)).is_ok() {
+                    i += 1;
+                }
+            }
+            sent.store(i, Relaxed);
+            Ok(())
+        })
+    };
+    std::thread::sleep(Duration::from_secs(cli.flood_seconds));
+    stop.store(true, Relaxed);
+    sender.join().map_err(|_| anyhow::anyhow!("sender"))??;
+    let flood_end = now_ns();
+    // The last value of the flood must be on the line within two frames.
+    let final_cmd = b"[1777, 1333]";
+    UdpSocket::bind("127.0.0.1:0")?.send_to(final_cmd, ("127.0.0.1", setup.port))?;
+    std::thread::sleep(Duration::from_millis(300));
+    let after = setup.status()?;
+    let rss_after = ingress.rss_kib();
+    let secs = (flood_end - flood_start) as f64 / 1e9;
+    let received = after["datagrams"]["received"].as_u64().unwrap_or(0) - received_before;
+    let sent = sent.load(Relaxed);
+    let mut ages = frame_ages(&log, flood_start + 50_000_000, flood_end);
+    let age = Percentiles::of(&mut ages);
+    println!(
+        "sent {sent} ({:.0}/s), drained by udp-ingress {received} ({:.0}/s), lost in the socket {} ({:.1}%)",
+        sent as f64 / secs,
+        received as f64 / secs,
+        sent.saturating_sub(received),
+        sent.saturating_sub(received) as f64 * 100.0 / sent.max(1) as f64
+    );
+    println!(
+        "newest command's age at ppmd's frame starts during the flood, us: {} ({} frames)",
+        age.line(1_000.0),
+        age.count
+    );
+    println!("udp-ingress memory: {rss_before} KiB before, {rss_after} KiB after");
+    let p = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+    println!(
+        "ppmd edge error p99 since start: {} us before the flood, {} us after it (max {} us)",
+        calm["ppmd"]["edge_error_us"]["p99"],
+        after["ppmd"]["edge_error_us"]["p99"],
+        p(&after["ppmd"]["edge_error_us"]["max"])
+    );
+    ingress.stop();
+    ppmd.stop();
+    Ok(())
+}
+
+fn e2e(cli: &Cli) -> Result<()> {
+    println!(
+        "== 3. end to end: send to the first frame carrying the command ({} commands at 50 Hz)",
+        cli.e2e_count
+    );
+    let setup = Setup::new("e2e")?;
+    let trace = setup.dir.join("line.trace");
+    let ppmd = setup.spawn("ppmd", &["--output", &format!("sim:{}", trace.display())])?;
+    let ingress = setup.spawn("udp-ingress", &[])?;
+    let code = |i: u32| [1000 + i % 1000, 1000 + (i / 1000) % 1000];
+    let sent = paced(setup.port, cli.e2e_count, 50.0, |i| {
+        let [a, b] = code(i);
+        format!("[{a}, {b}]").into_bytes()
+    })?;
+    std::thread::sleep(Duration::from_millis(100));
+    ingress.stop();
+    ppmd.stop();
+    let f = std::fs::File::open(&trace)?;
+    let t = ppm_shared::trace::Trace::read(BufReader::new(f))?;
+    // Every emitted frame: start and which command it carries.
+    let frames: Vec<(u64, u32)> = t
+        .decode(false)
+        .iter()
+        .map(|f| {
+            let c = f.channels_us();
+            (f.start_ns, ((c[1] - 1000) * 1000 + (c[0] - 1000)) as u32)
+        })
+        .collect();
+    let mut latency = Vec::new();
+    let mut over_ideal = Vec::new();
+    let (mut eligible, mut in_frame) = (0, 0);
+    for (i, &s) in sent.iter().enumerate() {
+        let i = i as u32;
+        if let Some(&(start, _)) = frames.iter().find(|&&(_, c)| c == i) {
+            latency.push((start - s) as f64);
+            if let Some(&(ideal, _)) = frames.iter().find(|&&(st, _)| st >= s) {
+                over_ideal.push(start.saturating_sub(ideal) as f64);
+            }
+        }
+        // A command sent 1 ms or more before a frame starts must be in that
+        // frame, or a newer one must.
+        if let Some(&(_, carried)) = frames.iter().find(|&&(st, _)| st >= s + 1_000_000) {
+            eligible += 1;
+            if carried >= i {
+                in_frame += 1;
+            }
+        }
+    }
+    let l = Percentiles::of(&mut latency);
+    let o = Percentiles::of(&mut over_ideal);
+    println!(
+        "send to first frame carrying it, ms: {} ({} commands on the line)",
+        l.line(1e6),
+        l.count
+    );
+    println!(
+        "beyond the ideal (the next frame start after sending), ms: {}",
+        o.line(1e6)
+    );
+    println!(
+        "commands sent >= 1 ms before a frame start that are in it (or newer): {in_frame} of {eligible} ({:.2}%)",
+        in_frame as f64 * 100.0 / eligible.max(1) as f64
+    );
+    Ok(())
+}
+
+fn resources() -> Result<()> {
+    println!("== 4. memory and CPU (3 s idle, then 3 s at 50 Hz)");
+    let setup = Setup::new("res")?;
+    let ppmd = setup.spawn("ppmd", &["--output", "sim:/dev/null"])?;
+    let ingress = setup.spawn("udp-ingress", &[])?;
+    let measure = |label: &str, traffic: bool| -> Result<()> {
+        let (c0p, c0i, t0) = (ppmd.cpu_s(), ingress.cpu_s(), Instant::now());
+        if traffic {
+            paced(setup.port, 150, 50.0, |i| {
+                format!("[{}]", 1000 + i).into_bytes()
+            })?;
+        } else {
+            std::thread::sleep(Duration::from_secs(3));
+        }
+        let wall = t0.elapsed().as_secs_f64();
+        println!(
+            "{label:<8} ppmd: {:5.1}% CPU, {:6} KiB RSS   udp-ingress: {:5.1}% CPU, {:6} KiB RSS",
+            (ppmd.cpu_s() - c0p) * 100.0 / wall,
+            ppmd.rss_kib(),
+            (ingress.cpu_s() - c0i) * 100.0 / wall,
+            ingress.rss_kib()
+        );
+        Ok(())
+    };
+    measure("idle", false)?;
+    measure("50 Hz", true)?;
+    ingress.stop();
+    ppmd.stop();
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    let only = cli.only.as_deref();
+    if let Some(o) = only {
+        if !["ingress", "flood", "e2e", "resources"].contains(&o) {
+            bail!("--only takes ingress, flood, e2e or resources");
+        }
+    }
+    println!(
+        "ppm-bench: the real binaries on loopback ({} CPUs)",
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    );
+    if only.is_none_or(|o| o == "ingress") {
+        ingress_latency(&cli)?;
+    }
+    if only.is_none_or(|o| o == "flood") {
+        flood(&cli)?;
+    }
+    if only.is_none_or(|o| o == "e2e") {
+        e2e(&cli)?;
+    }
+    if only.is_none_or(|o| o == "resources") {
+        resources()?;
+    }
+    Ok(())
+}
