@@ -50,6 +50,10 @@ ROOT=$(cd "$HERE/../.." && pwd)
 CACHE=${PPM_VM_CACHE:-$ROOT/target/vm/cache}
 mkdir -p "$CACHE"
 CACHE=$(cd "$CACHE" && pwd)
+# One prepare at a time per cache: the two flavours share the unpacked
+# kernel source, and the tests prepare both at once.
+exec 9>"$CACHE/.prepare.lock"
+flock 9
 
 # Modules (from the image package) that the guest needs besides our two.
 # configfs is =m in Debian's config (gpio-sim is configured through it);
