@@ -182,6 +182,23 @@ impl Proc {
         }
     }
 
+    /// Its process id.
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().expect("process already reaped").id()
+    }
+
+    /// Its resident memory (VmRSS) in KiB.
+    pub fn rss_kib(&self) -> u64 {
+        std::fs::read_to_string(format!("/proc/{}/status", self.pid()))
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find(|l| l.starts_with("VmRSS:"))
+                    .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+            })
+            .expect("VmRSS of a running process")
+    }
+
     /// Kills the process with SIGKILL (as a crash would).
     pub fn kill(&mut self) {
         if let Some(mut c) = self.child.take() {
