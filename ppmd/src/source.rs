@@ -15,6 +15,28 @@ pub trait CommandSource {
     }
 }
 
+/// The same command, freshly stamped, every frame; asks the loop to stop
+/// (through `stop`) after `frames` frames. For benchmarks and test drivers.
+pub struct RepeatSource {
+    /// The command handed out.
+    pub sample: CommandSample,
+    /// Frames left before `stop` is set.
+    pub frames: u64,
+    /// Set when the frames are used up.
+    pub stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl CommandSource for RepeatSource {
+    fn newest(&mut self) -> Option<CommandSample> {
+        if self.frames == 0 {
+            self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+        self.frames = self.frames.saturating_sub(1);
+        self.sample.recv_mono_ns = crate::clock::now_ns();
+        Some(self.sample)
+    }
+}
+
 type Subscriber =
     iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, CommandSample, ()>;
 

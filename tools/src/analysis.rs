@@ -40,6 +40,21 @@ impl Percentiles {
         }
     }
 
+    /// Percentiles of an HDR histogram (its precision: 3 significant digits).
+    pub fn of_histogram(h: &hdrhistogram::Histogram<u64>) -> Percentiles {
+        if h.is_empty() {
+            return Percentiles::default();
+        }
+        Percentiles {
+            count: h.len() as usize,
+            min: h.min() as f64,
+            p50: h.value_at_quantile(0.5) as f64,
+            p99: h.value_at_quantile(0.99) as f64,
+            p999: h.value_at_quantile(0.999) as f64,
+            max: h.max() as f64,
+        }
+    }
+
     /// `min A p50 B p99 C p99.9 D max E`, values divided by `scale`, 3 decimals.
     pub fn line(&self, scale: f64) -> String {
         format!(

@@ -11,11 +11,11 @@ use ppm_shared::frame::Level;
 use ppm_shared::ipc::CommandSample;
 use ppm_shared::protocol::parse;
 use ppm_shared::trace::TraceEdge;
-use ppmd::clock::{self, Margin};
+use ppmd::clock::Margin;
 use ppmd::emitter::{self, EmitterConfig, Stats};
 use ppmd::output::{Output, OutputError};
 use ppmd::rt::RtSetup;
-use ppmd::source::CommandSource;
+use ppmd::source::RepeatSource;
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
@@ -43,23 +43,6 @@ impl Output for PullOutput {
     }
 }
 
-struct Fixed {
-    sample: CommandSample,
-    frames: u64,
-    stop: Arc<AtomicBool>,
-}
-
-impl CommandSource for Fixed {
-    fn newest(&mut self) -> Option<CommandSample> {
-        if self.frames == 0 {
-            self.stop.store(true, Relaxed);
-        }
-        self.frames = self.frames.saturating_sub(1);
-        self.sample.recv_mono_ns = clock::now_ns();
-        Some(self.sample)
-    }
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let [_, attr, frames, values] = &args[..] else {
@@ -82,7 +65,7 @@ fn main() {
     .apply()
     .expect("real-time setup");
     let stop = Arc::new(AtomicBool::new(false));
-    let mut source = Fixed {
+    let mut source = RepeatSource {
         sample: CommandSample::new(&cmd, 1, 0, 0),
         frames: frames.parse().expect("FRAMES"),
         stop: stop.clone(),

@@ -259,7 +259,7 @@ fn cyclic(cli: &Cli) -> Result<()> {
         print!("{}", stats.histogram_block());
     }
     println!("{}", stats.t_line(0, tid, prio, cli.interval_us));
-    let p = summary_of(&hist);
+    let p = Percentiles::of_histogram(&hist);
     println!(
         "# Percentiles (us): {}; missed periods {missed}; spin {}",
         p.line(1_000.0),
@@ -278,20 +278,6 @@ fn cyclic(cli: &Cli) -> Result<()> {
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
-}
-
-fn summary_of(h: &hdrhistogram::Histogram<u64>) -> Percentiles {
-    if h.is_empty() {
-        return Percentiles::default();
-    }
-    Percentiles {
-        count: h.len() as usize,
-        min: h.min() as f64,
-        p50: h.value_at_quantile(0.5) as f64,
-        p99: h.value_at_quantile(0.99) as f64,
-        p999: h.value_at_quantile(0.999) as f64,
-        max: h.max() as f64,
-    }
 }
 
 /// Live view of a running ppmd.

@@ -18,7 +18,7 @@ use ppmd::clock::{self, Margin};
 use ppmd::emitter::{self, EmitterConfig, Stats};
 use ppmd::output::SimOutput;
 use ppmd::rt::{RtSetup, RT_STACK_BYTES};
-use ppmd::source::CommandSource;
+use ppmd::source::RepeatSource;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
 
@@ -41,24 +41,6 @@ struct Cli {
     /// ppm configuration for the frame (default: 8 channels, 22.5 ms).
     #[arg(long)]
     config: Option<std::path::PathBuf>,
-}
-
-/// One fresh command per frame; asks the loop to stop after `frames` frames.
-struct BenchSource {
-    sample: CommandSample,
-    frames: u64,
-    stop: Arc<AtomicBool>,
-}
-
-impl CommandSource for BenchSource {
-    fn newest(&mut self) -> Option<CommandSample> {
-        if self.frames == 0 {
-            self.stop.store(true, Relaxed);
-        }
-        self.frames = self.frames.saturating_sub(1);
-        self.sample.recv_mono_ns = clock::now_ns();
-        Some(self.sample)
-    }
 }
 
 /// Results of one loop over all its blocks.
@@ -84,15 +66,7 @@ impl Totals {
     }
 
     fn percentiles(&self) -> Percentiles {
-        let h = &self.error;
-        Percentiles {
-            count: h.len() as usize,
-            min: h.min() as f64,
-            p50: h.value_at_quantile(0.5) as f64,
-            p99: h.value_at_quantile(0.99) as f64,
-            p999: h.value_at_quantile(0.999) as f64,
-            max: h.max() as f64,
-        }
+        Percentiles::of_histogram(&self.error)
     }
 
     fn cpu_share(&self) -> f64 {
@@ -114,7 +88,7 @@ fn run_block(
     totals: &mut Totals,
 ) -> Result<()> {
     let stop = Arc::new(AtomicBool::new(false));
-    let mut source = BenchSource {
+    let mut source = RepeatSource {
         sample,
         frames,
         stop: stop.clone(),
