@@ -5,7 +5,7 @@
 //! default. [`Config::load`] parses, [`Config::validate`] validates the PPM
 //! settings against what real transmitters accept; both errors name the key.
 
-use crate::frame::{FrameModel, Level, MAX_CHANNELS};
+use crate::frame::{FrameModel, Level, UnitMapping, MAX_CHANNELS};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -145,6 +145,27 @@ pub struct ChannelOverride {
     pub min_us: Option<f64>,
     /// This channel's maximum in microseconds.
     pub max_us: Option<f64>,
+    /// Lower end of the channel's engineering-unit range (e.g. -15.0 degrees);
+    /// `unit_min` and `unit_max` are given both or neither. With them,
+    /// commands may use the `units` form for this channel.
+    pub unit_min: Option<f64>,
+    /// Upper end of the engineering-unit range, above `unit_min`.
+    pub unit_max: Option<f64>,
+    /// Microseconds `unit_min` (and `norm` -1) maps to, 800..=2200. Default `min_us`.
+    pub unit_us_min: Option<f64>,
+    /// Microseconds `unit_max` (and `norm` +1) maps to, 800..=2200, above
+    /// `unit_us_min`. Default `max_us`.
+    pub unit_us_max: Option<f64>,
+    /// Swaps the direction of the `units` and `norm` mappings. Default false.
+    #[serde(default)]
+    pub reverse: bool,
+    /// Added to a `units` or `norm` value after the mapping, in microseconds,
+    /// -500..=500. Default 0.
+    #[serde(default)]
+    pub trim_us: f64,
+    /// A label for the unit (`"deg"`, `"m/s"`, ...), for people reading the
+    /// configuration; needs a unit range.
+    pub unit: Option<String>,
 }
 
 /// `[ingress]`: the UDP side.
@@ -161,6 +182,16 @@ pub struct IngressSection {
     /// Shortest interval between two log lines about rejected datagrams of one
     /// reason, in milliseconds. Default 1000.
     pub reject_log_interval_ms: u64,
+    /// Key file for authenticated commands (64 hex characters, mode 600).
+    /// When set, only signed commands are applied. Default: none (also
+    /// `udp-ingress --auth-key FILE`).
+    pub auth_key: Option<PathBuf>,
+    /// Where the last accepted signed `seq` is kept across restarts, so a
+    /// replayed command stays refused. Default `<ipc.root>/<name>.last_seq`.
+    pub seq_file: Option<PathBuf>,
+    /// Sources allowed to send, as address blocks (`"10.0.0.0/24"`,
+    /// `"::1/128"`, or a bare address). Default empty: any source.
+    pub allow: Vec<String>,
 }
 
 impl Default for IngressSection {
@@ -169,6 +200,9 @@ impl Default for IngressSection {
             listen: SocketAddr::from(([127, 0, 0, 1], 5005)),
             recv_buffer_bytes: 256 * 1024,
             reject_log_interval_ms: 1_000,
+            auth_key: None,
+            seq_file: None,
+            allow: Vec::new(),
         }
     }
 }
@@ -420,6 +454,7 @@ impl Config {
                 format!("{} is outside 4096..=16777216 bytes", i.recv_buffer_bytes),
             ));
         }
+        self.allow()?;
         self.output()?;
         if !(1..=65_536).contains(&self.ppmd.frame_log_max_mb) {
             return Err(ConfigError::invalid(
@@ -473,6 +508,24 @@ impl Config {
         FrameModel::from_config(&self.ppm)
     }
 
+    /// The address blocks of `ingress.allow` (a bare address is a block of one).
+    pub fn allow(&self) -> Result<Vec<ipnet::IpNet>, ConfigError> {
+        self.ingress
+            .allow
+            .iter()
+            .map(|s| parse_net(s).map_err(|m| ConfigError::invalid("ingress.allow", m)))
+            .collect()
+    }
+
+    /// The file udp-ingress keeps the last accepted signed `seq` in:
+    /// `ingress.seq_file`, by default `<ipc.root>/<name>.last_seq`.
+    pub fn seq_file(&self) -> PathBuf {
+        self.ingress
+            .seq_file
+            .clone()
+            .unwrap_or_else(|| self.ipc.root.join(format!("{}.last_seq", self.name)))
+    }
+
     /// The output named by `ppmd.output`.
     pub fn output(&self) -> Result<OutputSpec, ConfigError> {
         self.ppmd
@@ -480,6 +533,23 @@ impl Config {
             .parse()
             .map_err(|m| ConfigError::invalid("ppmd.output", m))
     }
+}
+
+/// Parses an address block, `10.0.0.0/24` or `::1/128`; a bare address is a
+/// block of one.
+pub fn parse_net(s: &str) -> Result<ipnet::IpNet, String> {
+    let s = s.trim();
+    s.parse::<ipnet::IpNet>()
+        .or_else(|e| {
+            s.parse::<std::net::IpAddr>()
+                .map(ipnet::IpNet::from)
+                .map_err(|_| e)
+        })
+        .map_err(|e| {
+            format!(
+                "`{s}` is not an address block such as 10.0.0.0/24, 127.0.0.1/32 or ::1/128 ({e})"
+            )
+        })
 }
 
 /// Checks an output name (used in shared-memory service names and file names).
@@ -505,6 +575,7 @@ pub(crate) struct ChannelLimits {
     pub default_us: f64,
     pub min_us: f64,
     pub max_us: f64,
+    pub mapping: UnitMapping,
 }
 
 /// Resolves names and limits of every channel and checks them; used by
@@ -571,9 +642,100 @@ pub(crate) fn resolve_channels(
             default_us,
             min_us,
             max_us,
+            mapping: resolve_mapping(name, &o, min_us, max_us)?,
         });
     }
     Ok((names, limits))
+}
+
+/// Largest `trim_us` either way, in microseconds.
+pub const TRIM_MAX_US: f64 = 500.0;
+
+/// Checks and resolves the `units`/`norm` mapping keys of channel `name`,
+/// whose limits are `min_us..=max_us`.
+fn resolve_mapping(
+    name: &str,
+    o: &ChannelOverride,
+    min_us: f64,
+    max_us: f64,
+) -> Result<UnitMapping, ConfigError> {
+    let key = |field: &str| format!("ppm.channel.{name}.{field}");
+    let units = match (o.unit_min, o.unit_max) {
+        (None, None) => None,
+        (Some(_), None) | (None, Some(_)) => {
+            let (given, missing) = if o.unit_min.is_some() {
+                ("unit_min", "unit_max")
+            } else {
+                ("unit_max", "unit_min")
+            };
+            return Err(ConfigError::invalid(
+                key(missing),
+                format!("{given} is set but {missing} is not: a unit range needs both ends"),
+            ));
+        }
+        (Some(lo), Some(hi)) => {
+            for (field, v) in [("unit_min", lo), ("unit_max", hi)] {
+                if !v.is_finite() {
+                    return Err(ConfigError::invalid(
+                        key(field),
+                        format!("{v} is not a finite number"),
+                    ));
+                }
+            }
+            if lo >= hi {
+                return Err(ConfigError::invalid(
+                    key("unit_min"),
+                    format!("{lo} is not below unit_max = {hi} (use reverse = true to swap the direction)"),
+                ));
+            }
+            Some((lo, hi))
+        }
+    };
+    if units.is_none() {
+        let needs_range = [
+            ("unit_us_min", o.unit_us_min.is_some()),
+            ("unit_us_max", o.unit_us_max.is_some()),
+            ("unit", o.unit.is_some()),
+        ];
+        if let Some((field, _)) = needs_range.iter().find(|(_, set)| *set) {
+            return Err(ConfigError::invalid(
+                key(field),
+                format!("needs a unit range: set ppm.channel.{name}.unit_min and unit_max too"),
+            ));
+        }
+    }
+    let us_lo = o.unit_us_min.unwrap_or(min_us);
+    let us_hi = o.unit_us_max.unwrap_or(max_us);
+    if let Some(v) = o.unit_us_min {
+        check_range(&key("unit_us_min"), v)?;
+    }
+    if let Some(v) = o.unit_us_max {
+        check_range(&key("unit_us_max"), v)?;
+    }
+    if units.is_some() && us_lo >= us_hi {
+        return Err(ConfigError::invalid(
+            key("unit_us_min"),
+            format!(
+                "{us_lo} us is not below unit_us_max = {us_hi} us (they default to the channel's min_us and max_us; use reverse = true to swap the direction)"
+            ),
+        ));
+    }
+    if !o.trim_us.is_finite() || o.trim_us.abs() > TRIM_MAX_US {
+        return Err(ConfigError::invalid(
+            key("trim_us"),
+            format!(
+                "{} us is outside -{TRIM_MAX_US}..={TRIM_MAX_US} us",
+                o.trim_us
+            ),
+        ));
+    }
+    Ok(UnitMapping {
+        units,
+        us_lo,
+        us_hi,
+        reverse: o.reverse,
+        trim_us: o.trim_us,
+    })
 }
 
 fn check_range(key: &str, v: f64) -> Result<(), ConfigError> {
@@ -752,6 +914,12 @@ mod tests {
             ("[failsafe]\nafter_ms = 0", "failsafe.after_ms"),
             ("[failsafe]\nstartup = 'hold'", "failsafe.startup"),
             ("[ipc]\nroot = 'relative'", "ipc.root"),
+            (
+                "[ingress]\nallow = ['10.0.0.0/24', '10.0.0.300/32']",
+                "ingress.allow",
+            ),
+            ("[ingress]\nallow = ['10.0.0.0/33']", "ingress.allow"),
+            ("[ingress]\nallow = ['localhost']", "ingress.allow"),
         ];
         for (text, key) in cases {
             let c = Config::parse(text).unwrap_or_else(|e| panic!("{text}: {e}"));
@@ -766,5 +934,126 @@ mod tests {
         let c = Config::parse("[ppm]\nframe_us = 19000\n").unwrap();
         let e = c.validate().unwrap_err().to_string();
         assert!(e.contains("16000") && e.contains("4000"), "{e}");
+    }
+
+    #[test]
+    fn ingress_allow_and_seq_file() {
+        let c = Config::parse(
+            "name = 'v1'\n[ingress]\nallow = ['10.0.0.0/24', '127.0.0.1', '::1/128']\n",
+        )
+        .unwrap();
+        c.validate().unwrap();
+        let nets: Vec<String> = c.allow().unwrap().iter().map(|n| n.to_string()).collect();
+        assert_eq!(nets, ["10.0.0.0/24", "127.0.0.1/32", "::1/128"]);
+        assert_eq!(c.seq_file(), PathBuf::from("/tmp/ppm/v1.last_seq"));
+        let c = Config::parse("[ingress]\nseq_file = '/var/lib/ppm/seq'\nauth_key = '/etc/ppm/k'")
+            .unwrap();
+        assert_eq!(c.seq_file(), PathBuf::from("/var/lib/ppm/seq"));
+        assert_eq!(c.ingress.auth_key, Some(PathBuf::from("/etc/ppm/k")));
+        let e = Config::parse("[ingress]\nallow = ['10.1.2.3/40']")
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("ingress.allow") && e.contains("10.1.2.3/40"),
+            "{e}"
+        );
+    }
+}
+
+#[cfg(test)]
+mod units_tests {
+    use super::*;
+
+    #[test]
+    fn unit_keys_parse_and_validate() {
+        let text = "[ppm.channel.ail]\nunit_min = -15.0\nunit_max = 15.0\nunit = 'deg'\nunit_us_min = 1100.0\nunit_us_max = 1900.0\nreverse = true\ntrim_us = -12.5\n[ppm.channel.rud]\nreverse = true\ntrim_us = 5.0";
+        let m = Config::parse(text).unwrap().validate().unwrap();
+        let a = m.mapping(0);
+        assert_eq!(
+            (a.units, a.us_lo, a.us_hi, a.reverse, a.trim_us),
+            (Some((-15.0, 15.0)), 1_100.0, 1_900.0, true, -12.5)
+        );
+        let r = m.mapping(3);
+        assert_eq!(
+            (r.units, r.us_lo, r.us_hi, r.reverse, r.trim_us),
+            (None, 1_000.0, 2_000.0, true, 5.0),
+            "norm works on every channel: min_us..max_us"
+        );
+    }
+
+    #[test]
+    fn invalid_unit_keys_are_named() {
+        let r = "[ppm.channel.ail]\nunit_min = -15.0\nunit_max = 15.0\n";
+        let cases: &[(&str, &str)] = &[
+            (
+                "[ppm.channel.ail]\nunit_min = -15.0",
+                "ppm.channel.ail.unit_max",
+            ),
+            (
+                "[ppm.channel.ele]\nunit_max = 15.0",
+                "ppm.channel.ele.unit_min",
+            ),
+            (
+                "[ppm.channel.ail]\nunit_min = 5.0\nunit_max = 5.0",
+                "ppm.channel.ail.unit_min",
+            ),
+            (
+                "[ppm.channel.ail]\nunit_min = 6.0\nunit_max = -5.0",
+                "ppm.channel.ail.unit_min",
+            ),
+            (
+                "[ppm.channel.ail]\nunit_min = -inf\nunit_max = 5.0",
+                "ppm.channel.ail.unit_min",
+            ),
+            (
+                "[ppm.channel.ail]\nunit_min = 0.0\nunit_max = nan",
+                "ppm.channel.ail.unit_max",
+            ),
+            (
+                &format!("{r}unit_us_min = 799.0"),
+                "ppm.channel.ail.unit_us_min",
+            ),
+            (
+                &format!("{r}unit_us_max = 2200.5"),
+                "ppm.channel.ail.unit_us_max",
+            ),
+            (
+                &format!("{r}unit_us_max = nan"),
+                "ppm.channel.ail.unit_us_max",
+            ),
+            (
+                &format!("{r}unit_us_min = 2000.0"),
+                "ppm.channel.ail.unit_us_min",
+            ),
+            (
+                &format!("{r}unit_us_min = 1600.0\nunit_us_max = 1400.0"),
+                "ppm.channel.ail.unit_us_min",
+            ),
+            (&format!("{r}trim_us = 500.5"), "ppm.channel.ail.trim_us"),
+            (
+                "[ppm.channel.thr]\ntrim_us = -501.0",
+                "ppm.channel.thr.trim_us",
+            ),
+            (
+                "[ppm.channel.thr]\ntrim_us = nan",
+                "ppm.channel.thr.trim_us",
+            ),
+            (
+                "[ppm.channel.thr]\nunit_us_min = 1100.0",
+                "ppm.channel.thr.unit_us_min",
+            ),
+            ("[ppm.channel.thr]\nunit = 'deg'", "ppm.channel.thr.unit"),
+        ];
+        for (text, key) in cases {
+            let c = Config::parse(text).unwrap_or_else(|e| panic!("{text}: {e}"));
+            let e = c.validate().unwrap_err();
+            assert_eq!(e.key(), Some(*key), "{text}: {e}");
+            assert!(e.to_string().contains(key), "{e}");
+        }
+        // Limits and trim at their edges are fine.
+        let ok = format!("{r}unit_us_min = 800.0\nunit_us_max = 2200.0\ntrim_us = -500.0");
+        Config::parse(&ok).unwrap().validate().unwrap();
     }
 }

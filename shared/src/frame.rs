@@ -124,6 +124,7 @@ pub struct FrameModel {
     default_ns: [u32; MAX_CHANNELS],
     min_ns: [u32; MAX_CHANNELS],
     max_ns: [u32; MAX_CHANNELS],
+    mapping: [UnitMapping; MAX_CHANNELS],
     channels: usize,
     frame_ns: u64,
     pulse_ns: u64,
@@ -139,6 +140,7 @@ impl FrameModel {
             default_ns: [0; MAX_CHANNELS],
             min_ns: [0; MAX_CHANNELS],
             max_ns: [0; MAX_CHANNELS],
+            mapping: [UnitMapping::default(); MAX_CHANNELS],
             channels: limits.len(),
             frame_ns: 0,
             pulse_ns: 0,
@@ -148,6 +150,7 @@ impl FrameModel {
             m.default_ns[i] = us_to_ns(l.default_us) as u32;
             m.min_ns[i] = us_to_ns(l.min_us) as u32;
             m.max_ns[i] = us_to_ns(l.max_us) as u32;
+            m.mapping[i] = l.mapping;
         }
         let smallest_min = m.min_ns[..m.channels].iter().copied().min().unwrap_or(0) as u64;
         if !ppm.pulse_us.is_finite()
@@ -293,6 +296,119 @@ impl FrameModel {
     }
 }
 
+/// How one channel's `units` and `norm` command values become a period
+/// (`[ppm.channel.NAME]` keys `unit_min`, `unit_max`, `unit_us_min`,
+/// `unit_us_max`, `reverse`, `trim_us`). `Copy`, so [`FrameModel`] stays
+/// cheap to clone.
+///
+/// A value is first clamped to its range (`unit_min..=unit_max`, or
+/// `-1..=1` for `norm`) and turned into a position `f` in `0..=1` along it:
+/// `f = (u - unit_min) / (unit_max - unit_min)` (`norm`: `f = (n + 1) / 2`),
+/// or `1 - f` computed as `(unit_max - u) / (unit_max - unit_min)` (`norm`:
+/// `(1 - n) / 2`) when `reverse`. Then
+/// `us = us_lo + f * (us_hi - us_lo) + trim_us`, rounded to whole
+/// nanoseconds and clamped to the channel's `min_us..=max_us`. All in f64.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct UnitMapping {
+    /// `(unit_min, unit_max)`, when the channel has a unit range.
+    pub units: Option<(f64, f64)>,
+    /// Microseconds of `unit_min` (and of `norm` -1): `unit_us_min`, default `min_us`.
+    pub us_lo: f64,
+    /// Microseconds of `unit_max` (and of `norm` +1): `unit_us_max`, default `max_us`.
+    pub us_hi: f64,
+    /// Swaps the direction: `unit_min` (`norm` -1) maps to `us_hi`.
+    pub reverse: bool,
+    /// Added after the mapping, in microseconds (may be negative).
+    pub trim_us: f64,
+}
+
+impl UnitMapping {
+    /// Microseconds at position `f` (0..=1, already reversed) along `us_lo..us_hi`.
+    fn us_at(&self, f: f64) -> f64 {
+        self.us_lo + f * (self.us_hi - self.us_lo) + self.trim_us
+    }
+
+    /// Position along `us_lo..us_hi` (0..=1, reversal applied) of `value`
+    /// clamped to `lo..=hi`; the flag says whether `value` was outside.
+    fn position(&self, value: f64, lo: f64, hi: f64) -> (f64, bool) {
+        let v = value.clamp(lo, hi);
+        let f = if self.reverse {
+            (hi - v) / (hi - lo)
+        } else {
+            (v - lo) / (hi - lo)
+        };
+        (f, v != value)
+    }
+
+    /// The inverse of both: position of `us` along the value range (0 at
+    /// `unit_min` or `norm` -1, reversal undone, not clamped).
+    fn position_of(&self, us: f64) -> f64 {
+        let f = (us - self.trim_us - self.us_lo) / (self.us_hi - self.us_lo);
+        if self.reverse {
+            1.0 - f
+        } else {
+            f
+        }
+    }
+}
+
+/// Engineering units and normalised values (the `units` and `norm` command forms).
+impl FrameModel {
+    /// The mapping of channel `i`.
+    pub fn mapping(&self, i: usize) -> &UnitMapping {
+        &self.mapping[i]
+    }
+
+    /// `(unit_min, unit_max)` of channel `i`, when it has a unit range.
+    pub fn unit_range(&self, i: usize) -> Option<(f64, f64)> {
+        self.mapping[i].units
+    }
+
+    /// Channel `i`'s period for `value` in its engineering units (see
+    /// [`UnitMapping`]), and whether it was clamped (to the unit range or to
+    /// the channel's limits). `None` when the channel has no unit range.
+    /// `value` must not be NaN.
+    pub fn units_to_ns(&self, i: usize, value: f64) -> Option<(u32, bool)> {
+        let m = &self.mapping[i];
+        let (lo, hi) = m.units?;
+        let (f, clamped) = m.position(value, lo, hi);
+        let (ns, limited) = self.us_to_clamped_ns(i, m.us_at(f));
+        Some((ns, clamped || limited))
+    }
+
+    /// Channel `i`'s period for a normalised `value` in -1..=1 (see
+    /// [`UnitMapping`]: -1 is `unit_us_min`, default `min_us`; +1 is
+    /// `unit_us_max`, default `max_us`; 0 the midpoint; throttle included),
+    /// and whether it was clamped. `value` must not be NaN.
+    pub fn norm_to_ns(&self, i: usize, value: f64) -> (u32, bool) {
+        let m = &self.mapping[i];
+        let (f, clamped) = m.position(value, -1.0, 1.0);
+        let (ns, limited) = self.us_to_clamped_ns(i, m.us_at(f));
+        (ns, clamped || limited)
+    }
+
+    /// The unit value channel `i`'s mapping gives `ns` (the inverse of
+    /// [`FrameModel::units_to_ns`] before clamping). `None` without a unit range.
+    pub fn ns_to_units(&self, i: usize, ns: u32) -> Option<f64> {
+        let m = &self.mapping[i];
+        let (lo, hi) = m.units?;
+        Some(lo + m.position_of(ns as f64 / 1e3) * (hi - lo))
+    }
+
+    /// The normalised value channel `i`'s mapping gives `ns` (the inverse of
+    /// [`FrameModel::norm_to_ns`] before clamping).
+    pub fn ns_to_norm(&self, i: usize, ns: u32) -> f64 {
+        self.mapping[i].position_of(ns as f64 / 1e3) * 2.0 - 1.0
+    }
+
+    /// Rounds `us` to whole nanoseconds and clamps it to channel `i`'s limits.
+    fn us_to_clamped_ns(&self, i: usize, us: f64) -> (u32, bool) {
+        let ns = (us * 1e3).round();
+        let c = ns.clamp(self.min_ns[i] as f64, self.max_ns[i] as f64);
+        (c as u32, c != ns)
+    }
+}
+
 fn invalid(key: &str, message: String) -> ConfigError {
     ConfigError::Invalid {
         key: key.into(),
@@ -358,5 +474,92 @@ mod tests {
         let s = m.encode(&m.defaults());
         assert_eq!(s.edges()[0].level, Level::Low);
         assert_eq!(s.edges().last().unwrap().level, Level::High);
+    }
+}
+
+#[cfg(test)]
+mod units_tests {
+    use crate::config::Config;
+    use crate::frame::FrameModel;
+
+    /// The defaults plus `[ppm.channel.ail]` with a -15..15 degree range and `extra` keys.
+    fn ail_deg(extra: &str) -> FrameModel {
+        let text =
+            format!("[ppm.channel.ail]\nunit_min = -15.0\nunit_max = 15.0\nunit = 'deg'\n{extra}");
+        Config::parse(&text).unwrap().validate().unwrap()
+    }
+
+    #[test]
+    fn aileron_degrees_map_linearly() {
+        let m = ail_deg("");
+        assert_eq!(
+            m.units_to_ns(0, 3.0),
+            Some((1_600_000, false)),
+            "3 deg is 1600 us"
+        );
+        assert_eq!(m.units_to_ns(0, -15.0), Some((1_000_000, false)));
+        assert_eq!(m.units_to_ns(0, 0.0), Some((1_500_000, false)));
+        assert_eq!(m.units_to_ns(0, 15.0), Some((2_000_000, false)));
+        // A tenth of a microsecond (and finer) survives the mapping.
+        assert_eq!(m.units_to_ns(0, 3.0333), Some((1_601_110, false)));
+        assert_eq!(m.ns_to_units(0, 1_600_000), Some(3.0));
+        assert_eq!(m.units_to_ns(1, 3.0), None, "ele has no unit range");
+    }
+
+    #[test]
+    fn reverse_and_trim() {
+        assert_eq!(
+            ail_deg("reverse = true").units_to_ns(0, 3.0),
+            Some((1_400_000, false))
+        );
+        assert_eq!(
+            ail_deg("trim_us = 10.0").units_to_ns(0, 3.0),
+            Some((1_610_000, false))
+        );
+        assert_eq!(
+            ail_deg("trim_us = -2.5\nreverse = true").units_to_ns(0, 3.0),
+            Some((1_397_500, false))
+        );
+        let m = ail_deg("unit_us_min = 1100.0\nunit_us_max = 1900.0");
+        assert_eq!(m.units_to_ns(0, 3.0), Some((1_580_000, false)));
+        assert_eq!(m.norm_to_ns(0, -1.0), (1_100_000, false));
+        assert_eq!(m.norm_to_ns(0, 1.0), (1_900_000, false));
+    }
+
+    #[test]
+    fn range_ends_clamp_and_count() {
+        let m = ail_deg("");
+        assert_eq!(m.units_to_ns(0, 15.01), Some((2_000_000, true)));
+        assert_eq!(m.units_to_ns(0, -90.0), Some((1_000_000, true)));
+        assert_eq!(m.units_to_ns(0, f64::MAX), Some((2_000_000, true)));
+        // Trim past the channel's max_us is clamped to it, and counted.
+        let m = ail_deg("trim_us = 10.0");
+        assert_eq!(m.units_to_ns(0, 15.0), Some((2_000_000, true)));
+        assert_eq!(
+            m.units_to_ns(0, 14.0),
+            Some((1_976_667, false)),
+            "rounded to the ns"
+        );
+        assert_eq!(m.norm_to_ns(1, 1.5), (2_000_000, true));
+        assert_eq!(m.norm_to_ns(1, -1.000001), (1_000_000, true));
+    }
+
+    #[test]
+    fn norm_on_a_plain_channel_and_on_throttle() {
+        let m = Config::default().validate().unwrap();
+        // ele: -1 is min_us, 0 the midpoint, +1 max_us.
+        assert_eq!(m.norm_to_ns(1, -1.0), (1_000_000, false));
+        assert_eq!(m.norm_to_ns(1, 0.0), (1_500_000, false));
+        assert_eq!(m.norm_to_ns(1, 1.0), (2_000_000, false));
+        assert_eq!(m.norm_to_ns(0, 0.2), (1_600_000, false));
+        // thr: the same line; -1 is its minimum, zero actuation (its default).
+        assert_eq!(m.norm_to_ns(2, -1.0), (m.default_ns(2), false));
+        assert_eq!(m.norm_to_ns(2, 0.0), (1_500_000, false));
+        assert_eq!(m.norm_to_ns(2, 1.0), (2_000_000, false));
+        assert_eq!(m.ns_to_norm(2, 1_250_000), -0.5);
+        let c = "[ppm.channel.thr]\nmax_us = 1900.0\nreverse = true\ntrim_us = 5.0";
+        let m = Config::parse(c).unwrap().validate().unwrap();
+        assert_eq!(m.norm_to_ns(2, -1.0), (1_900_000, true), "1905 us clamped");
+        assert_eq!(m.norm_to_ns(2, 0.5), (1_230_000, false));
     }
 }

@@ -6,10 +6,12 @@
 //!   encoder that turns channel values into one frame's edge schedule.
 //! - [`decode`]: a decoder with transmitter semantics that reads any waveform back.
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
+//! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
 
+pub mod auth;
 pub mod config;
 pub mod decode;
 pub mod frame;

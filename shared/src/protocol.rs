@@ -1,5 +1,5 @@
 //! The UDP wire protocol: one datagram is one command, UTF-8 JSON, in one of
-//! three forms.
+//! five forms.
 //!
 //! - A bare array of channel periods in microseconds, in the transmitter's
 //!   channel order: `[1000, 1200, 1700, 2000]`.
@@ -7,6 +7,14 @@
 //!   `{"ch": [1000, 1200], "seq": 42}`.
 //! - Named channels, placed through the configured channel order:
 //!   `{"ail": 1500, "thr": 1000, "aux1": 1800}` (a `seq` may be added).
+//! - Named channels in the engineering units of their configured unit range:
+//!   `{"units": {"ail": 3.0, "ele": -2}, "seq": 5}`.
+//! - Named channels normalised to -1..=1 (-1 is the channel's minimum, so
+//!   throttle's zero actuation): `{"norm": {"ail": 0.2, "thr": -1}}`.
+//!
+//! One form per command. `units` and `norm` values outside their range are
+//! clamped and counted like microsecond values, never rejected; see
+//! [`FrameModel::units_to_ns`] and [`FrameModel::norm_to_ns`].
 //!
 //! Channels a command does not give take their configured default. Values may
 //! be fractional and are kept to the nanosecond. A value outside its channel's
@@ -49,11 +57,21 @@ pub enum RejectReason {
     UnknownChannel,
     /// Valid JSON of any other shape (no channels, a bad `seq`, unexpected keys, ...).
     BadShape,
+    /// A command without a signature while `ingress.auth_key` is set.
+    Unsigned,
+    /// A signed datagram whose MAC does not match its `msg` (or is not 64 hex characters).
+    BadMac,
+    /// A signed command without a `seq` (a signature alone does not stop replays).
+    NoSeq,
+    /// A signed command whose `seq` is not greater than the last accepted one.
+    Replay,
+    /// A datagram from a source outside `ingress.allow`.
+    NotAllowed,
 }
 
 impl RejectReason {
     /// Every reason, in counter order.
-    pub const ALL: [RejectReason; 7] = [
+    pub const ALL: [RejectReason; 12] = [
         RejectReason::InvalidUtf8,
         RejectReason::InvalidJson,
         RejectReason::NotANumber,
@@ -61,6 +79,11 @@ impl RejectReason {
         RejectReason::TooManyValues,
         RejectReason::UnknownChannel,
         RejectReason::BadShape,
+        RejectReason::Unsigned,
+        RejectReason::BadMac,
+        RejectReason::NoSeq,
+        RejectReason::Replay,
+        RejectReason::NotAllowed,
     ];
 
     /// The counter name (`snake_case`).
@@ -73,6 +96,11 @@ impl RejectReason {
             RejectReason::TooManyValues => "too_many_values",
             RejectReason::UnknownChannel => "unknown_channel",
             RejectReason::BadShape => "bad_shape",
+            RejectReason::Unsigned => "unsigned",
+            RejectReason::BadMac => "bad_mac",
+            RejectReason::NoSeq => "no_seq",
+            RejectReason::Replay => "replay",
+            RejectReason::NotAllowed => "not_allowed",
         }
     }
 
@@ -124,6 +152,8 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
                     return Err(reject(RejectReason::BadShape, "`ch` must be an array"));
                 };
                 b.positional(items)?;
+            } else if let Some(form) = Mapped::find(&map) {
+                b.mapped(form, &map)?;
             } else {
                 for (k, v) in map.iter().filter(|(k, _)| *k != "seq") {
                     let i = model.index_of(k).ok_or_else(|| {
@@ -217,6 +247,94 @@ impl<'a> Builder<'a> {
     }
 }
 
+/// The two forms whose values go through a channel's
+/// [`UnitMapping`](crate::frame::UnitMapping): `{"units": {...}}` and
+/// `{"norm": {...}}`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Mapped {
+    Units,
+    Norm,
+}
+
+impl Mapped {
+    /// The mapped form an object command uses, if any.
+    fn find(map: &serde_json::Map<String, Value>) -> Option<Mapped> {
+        if map.contains_key("units") {
+            Some(Mapped::Units)
+        } else if map.contains_key("norm") {
+            Some(Mapped::Norm)
+        } else {
+            None
+        }
+    }
+
+    fn key(self) -> &'static str {
+        match self {
+            Mapped::Units => "units",
+            Mapped::Norm => "norm",
+        }
+    }
+}
+
+impl Builder<'_> {
+    /// `{"units": {"ail": 3.0}, "seq": 5}` or `{"norm": {"thr": -1}}`: named
+    /// channels whose values are mapped by the model; values outside their
+    /// range are clamped and counted, never rejected.
+    fn mapped(&mut self, form: Mapped, map: &serde_json::Map<String, Value>) -> Result<(), Reject> {
+        let key = form.key();
+        if let Some(k) = map.keys().find(|k| *k != key && *k != "seq") {
+            return Err(reject(
+                RejectReason::BadShape,
+                format!("unexpected key `{k}` beside `{key}` (one form per command)"),
+            ));
+        }
+        let Some(Value::Object(values)) = map.get(key) else {
+            return Err(reject(
+                RejectReason::BadShape,
+                format!("`{key}` must be an object of channel names and values"),
+            ));
+        };
+        for (k, v) in values {
+            let model = self.model;
+            let i = model.index_of(k).ok_or_else(|| {
+                reject(
+                    RejectReason::UnknownChannel,
+                    format!(
+                        "no channel `{k}`; channels are {}",
+                        model.names().join(", ")
+                    ),
+                )
+            })?;
+            let x = v.as_f64().ok_or_else(|| {
+                reject(
+                    RejectReason::NotANumber,
+                    format!("{key}.{k} is {}, not a number", kind(v)),
+                )
+            })?;
+            let (ns, clamped) = match form {
+                Mapped::Norm => model.norm_to_ns(i, x),
+                Mapped::Units => model.units_to_ns(i, x).ok_or_else(|| {
+                    let with: Vec<&str> = (0..model.channels())
+                        .filter(|&j| model.unit_range(j).is_some())
+                        .map(|j| model.names()[j].as_str())
+                        .collect();
+                    reject(
+                        RejectReason::UnknownChannel,
+                        format!(
+                            "channel `{k}` has no unit range (set ppm.channel.{k}.unit_min and unit_max); channels with one: {}",
+                            if with.is_empty() { "none".to_string() } else { with.join(", ") }
+                        ),
+                    )
+                })?,
+            };
+            self.ns[i] = ns;
+            self.clamped += clamped as u32;
+            self.given += 1;
+        }
+        Ok(())
+    }
+}
+
 fn parse_seq(v: &Value) -> Result<u64, Reject> {
     v.as_u64().ok_or_else(|| {
         reject(
@@ -265,6 +383,15 @@ mod tests {
 
     fn model() -> FrameModel {
         Config::default().validate().unwrap()
+    }
+
+    /// The defaults plus unit ranges: ail -15..15 (deg) on 1000..2000 us,
+    /// ele -20..20 on 1100..1900 us reversed, trimmed -12.5 us.
+    fn units_model() -> FrameModel {
+        let text = "[ppm.channel.ail]\nunit_min = -15.0\nunit_max = 15.0\n\
+            [ppm.channel.ele]\nunit_min = -20.0\nunit_max = 20.0\nunit_us_min = 1100.0\n\
+            unit_us_max = 1900.0\nreverse = true\ntrim_us = -12.5";
+        Config::parse(text).unwrap().validate().unwrap()
     }
 
     fn us(v: &[f64]) -> Vec<u32> {
@@ -381,8 +508,60 @@ mod tests {
             (br#"{"ch": [1500], "seq": -1}"#, Err(BadShape)),
             (br#"{"ch": [1500], "seq": 1.5}"#, Err(BadShape)),
             (br#"{"ch": [1500], "seq": "1"}"#, Err(BadShape)),
+            // Engineering units (units_model: ail -15..15 deg on 1000..2000 us,
+            // ele -20..20 on 1100..1900 us reversed, trim -12.5 us).
+            (
+                br#"{"units": {"ail": 3.0, "ele": -2}, "seq": 5}"#,
+                Ok((Some(5), with(&[(0, 1600.0), (1, 1527.5)]), 0)),
+            ),
+            (
+                br#"{"units": {"ail": 3.0333}}"#,
+                Ok((None, with(&[(0, 1601.11)]), 0)),
+            ),
+            // Outside the unit range: clamped and counted, not rejected.
+            (
+                br#"{"units": {"ail": 20, "ele": -25}}"#,
+                Ok((None, with(&[(0, 2000.0), (1, 1887.5)]), 2)),
+            ),
+            // Normalised: -1..1 onto min_us..max_us (or unit_us_min..unit_us_max).
+            (
+                br#"{"norm": {"ail": 0.2, "thr": -1}, "seq": 6}"#,
+                Ok((Some(6), with(&[(0, 1600.0), (2, 1000.0)]), 0)),
+            ),
+            (
+                br#"{"norm": {"thr": 0, "rud": 1, "aux1": -0.5}}"#,
+                Ok((None, with(&[(2, 1500.0), (3, 2000.0), (4, 1250.0)]), 0)),
+            ),
+            (
+                br#"{"norm": {"ele": 1}}"#,
+                Ok((None, with(&[(1, 1087.5)]), 0)),
+            ),
+            (
+                br#"{"norm": {"rud": 1.5, "aux2": -2}}"#,
+                Ok((None, with(&[(3, 2000.0), (5, 1000.0)]), 2)),
+            ),
+            // Rejected: a channel without a unit range in `units`, or no such channel.
+            (br#"{"units": {"thr": 0.5}}"#, Err(UnknownChannel)),
+            (br#"{"units": {"yaw": 1}}"#, Err(UnknownChannel)),
+            (br#"{"norm": {"aileron": 0}}"#, Err(UnknownChannel)),
+            // Rejected: not a number (JSON has no NaN at all).
+            (br#"{"norm": {"ail": "0.2"}}"#, Err(NotANumber)),
+            (br#"{"units": {"ail": null}}"#, Err(NotANumber)),
+            (br#"{"norm": {"ail": [0.2]}}"#, Err(NotANumber)),
+            (br#"{"norm": {"ail": NaN}}"#, Err(InvalidJson)),
+            // Rejected: one form per command; the values must be an object.
+            (br#"{"norm": 0.2}"#, Err(BadShape)),
+            (br#"{"units": [3.0]}"#, Err(BadShape)),
+            (br#"{"norm": {}}"#, Err(BadShape)),
+            (br#"{"norm": {"ail": 0.2}, "ail": 1500}"#, Err(BadShape)),
+            (
+                br#"{"units": {"ail": 3}, "norm": {"thr": -1}}"#,
+                Err(BadShape),
+            ),
+            (br#"{"ch": [1500], "norm": {"ail": 0}}"#, Err(BadShape)),
+            (br#"{"norm": {"ail": 0}, "seq": -1}"#, Err(BadShape)),
         ];
-        let m = model();
+        let m = units_model();
         for (input, want) in rows {
             let got = parse(input, &m)
                 .map(|c| (c.seq, c.channels.as_ns().to_vec(), c.clamped))
@@ -411,6 +590,20 @@ mod tests {
     }
 
     #[test]
+    fn units_reject_detail_names_the_fix() {
+        let e = parse(br#"{"units": {"thr": 0.5}}"#, &units_model()).unwrap_err();
+        let e = e.to_string();
+        assert!(
+            e.contains("`thr` has no unit range")
+                && e.contains("ppm.channel.thr.unit_min")
+                && e.contains("ail, ele"),
+            "{e}"
+        );
+        let e = parse(br#"{"norm": {"ail": 0}, "ele": 1500}"#, &model()).unwrap_err();
+        assert!(e.to_string().contains("beside `norm`"), "{e}");
+    }
+
+    #[test]
     fn seq_gate() {
         let mut g = SeqGate::default();
         assert!(g.admit(None));
@@ -421,5 +614,16 @@ mod tests {
         assert!(g.admit(Some(6)));
         assert!(g.admit(Some(u64::MAX)));
         assert!(!g.admit(Some(0)));
+    }
+
+    #[test]
+    fn reasons_are_listed_in_index_order_with_unique_names() {
+        for (i, r) in RejectReason::ALL.iter().enumerate() {
+            assert_eq!(r.index(), i, "{r:?}");
+        }
+        let mut names: Vec<&str> = RejectReason::ALL.iter().map(|r| r.as_str()).collect();
+        names.sort_unstable();
+        names.dedup();
+        assert_eq!(names.len(), RejectReason::ALL.len());
     }
 }

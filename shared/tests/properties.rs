@@ -53,6 +53,7 @@ fn ppm_section() -> impl Strategy<Value = PpmSection> {
                             min_us: Some(us(l.0)),
                             default_us: Some(us(l.1)),
                             max_us: Some(us(l.2)),
+                            ..ChannelOverride::default()
                         };
                         (n.clone(), o)
                     })
@@ -176,5 +177,80 @@ proptest! {
         let err = cfg.validate().expect_err("mutated config must be refused");
         prop_assert_eq!(err.key(), Some(key.as_str()), "{}", err);
         prop_assert!(err.to_string().contains(&key), "{}", err);
+    }
+}
+
+/// A model whose aileron channel (index 0, limits 800..=2200 us) has a random
+/// unit range, µs range, direction and trim: `(model, unit_min, unit_max)`.
+fn units_model() -> impl Strategy<Value = (FrameModel, f64, f64)> {
+    (
+        -1_000.0f64..1_000.0,
+        0.001f64..2_000.0,
+        8_000u32..22_000,
+        1u32..=14_000,
+        any::<bool>(),
+        -500.0f64..=500.0,
+    )
+        .prop_map(|(lo, span, us_lo, us_span, reverse, trim_us)| {
+            let us_lo = us_lo as f64 / 10.0;
+            let us_hi = (us_lo + us_span as f64 / 10.0).min(2_200.0);
+            let o = ChannelOverride {
+                min_us: Some(800.0),
+                max_us: Some(2_200.0),
+                unit_min: Some(lo),
+                unit_max: Some(lo + span),
+                unit_us_min: Some(us_lo),
+                unit_us_max: Some(us_hi),
+                reverse,
+                trim_us,
+                ..ChannelOverride::default()
+            };
+            let ppm = PpmSection {
+                channel: [("ail".to_string(), o)].into(),
+                ..PpmSection::default()
+            };
+            let m = FrameModel::from_config(&ppm).expect("generated config is valid");
+            (m, lo, lo + span)
+        })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(1024))]
+
+    /// Unit value -> ns -> the inverse mapping lands within 1 ns of where it
+    /// started, and the mapping is monotonic (falling when reversed),
+    /// clamping included. Likewise for normalised values.
+    #[test]
+    fn units_and_norm_round_trip_and_are_monotonic(
+        (m, lo, hi) in units_model(),
+        p in -0.5f64..1.5,
+        q in -0.5f64..1.5,
+    ) {
+        let span = hi - lo;
+        let map = *m.mapping(0);
+        let ns_per_unit = (map.us_hi - map.us_lo) * 1e3 / span;
+        let (u, v) = (lo + p * span, lo + q * span);
+        let (ns_u, clamped) = m.units_to_ns(0, u).expect("ail has a unit range");
+        if !clamped {
+            let back = m.ns_to_units(0, ns_u).unwrap();
+            prop_assert!((back - u).abs() * ns_per_unit <= 1.0, "{} -> {} ns -> {}", u, ns_u, back);
+        }
+        let ns_v = m.units_to_ns(0, v).unwrap().0;
+        let rising = (u <= v) != map.reverse;
+        prop_assert!(if rising { ns_u <= ns_v } else { ns_u >= ns_v }, "{} -> {}, {} -> {}", u, ns_u, v, ns_v);
+
+        let (a, b) = (2.0 * p - 1.0, 2.0 * q - 1.0);
+        let (ns_a, clamped) = m.norm_to_ns(0, a);
+        if !clamped {
+            let back = m.ns_to_norm(0, ns_a);
+            let ns_per_norm = (map.us_hi - map.us_lo) * 1e3 / 2.0;
+            prop_assert!((back - a).abs() * ns_per_norm <= 1.0, "{} -> {} ns -> {}", a, ns_a, back);
+            // norm is the unit range stretched to -1..1.
+            let same = m.units_to_ns(0, lo + (a + 1.0) / 2.0 * span).unwrap().0;
+            prop_assert!(same.abs_diff(ns_a) <= 1, "norm {} -> {} ns, units -> {} ns", a, ns_a, same);
+        }
+        let ns_b = m.norm_to_ns(0, b).0;
+        let rising = (a <= b) != map.reverse;
+        prop_assert!(if rising { ns_a <= ns_b } else { ns_a >= ns_b }, "{} -> {}, {} -> {}", a, ns_a, b, ns_b);
     }
 }

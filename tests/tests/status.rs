@@ -173,6 +173,11 @@ fn status_counts_every_datagram_and_reports_ppmd() {
                 "too_many_values": 1,
                 "unknown_channel": 1,
                 "bad_shape": 4,
+                "unsigned": 0,
+                "bad_mac": 0,
+                "no_seq": 0,
+                "replay": 0,
+                "not_allowed": 0,
             },
         }),
         "{reply}"
@@ -263,7 +268,7 @@ fn status_without_ppmd_and_ppm_status_errors() {
     );
     assert_eq!(
         r["datagrams"]["rejected"].as_object().unwrap().len(),
-        7,
+        ppm_shared::protocol::RejectReason::ALL.len(),
         "every reason, zeros included: {r}"
     );
     let text = stdout_of(&["--to", &sb.addr().to_string()]);

@@ -2,6 +2,8 @@
 
 pub mod analysis;
 pub mod cyclic;
+pub mod send;
+pub mod status;
 
 use anyhow::{bail, Result};
 use std::time::Duration;

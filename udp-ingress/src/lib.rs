@@ -5,12 +5,21 @@
 //! status queries and their replies) without any I/O, so it is tested
 //! directly; the binary wires it to a non-blocking mio socket, an iceoryx2
 //! publisher and a subscriber to ppmd's timing snapshots.
+//!
+//! With a key ([`Intake::with_auth`]) only signed commands with a `seq`
+//! greater than the last accepted one are applied; [`seqfile`] keeps that
+//! `seq` across restarts. With an allowlist ([`Intake::with_allowlist`])
+//! datagrams from other sources are dropped before they are parsed.
 
+pub mod seqfile;
+
+use ipnet::IpNet;
+use ppm_shared::auth::{self, AuthKey};
 use ppm_shared::frame::FrameModel;
 use ppm_shared::ipc::TimingSnapshot;
 use ppm_shared::protocol::{self, Command, Reject, RejectReason, SeqGate};
 use serde_json::{json, Value};
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
 
 /// A ppmd timing snapshot older than this is not reported as ppmd's state
@@ -140,9 +149,24 @@ pub fn query(datagram: &[u8]) -> Option<Result<Query, Reject>> {
     }
 }
 
+/// True when `ip` lies in one of `nets`, or `nets` is empty (no allowlist).
+/// An IPv4 sender seen on a dual-stack socket (`::ffff:10.0.0.5`) matches
+/// IPv4 blocks.
+pub fn allowed(nets: &[IpNet], ip: IpAddr) -> bool {
+    let canonical = ip.to_canonical();
+    nets.is_empty()
+        || nets
+            .iter()
+            .any(|n| n.contains(&ip) || n.contains(&canonical))
+}
+
 /// Parse, check and keep the newest command; count everything.
 pub struct Intake {
     model: FrameModel,
+    key: Option<AuthKey>,
+    allow: Vec<IpNet>,
+    /// The `seq` of the last command that passed the gate.
+    last_seq: Option<u64>,
     gate: SeqGate,
     newest: Option<Received>,
     latest: Option<Received>,
@@ -157,6 +181,9 @@ impl Intake {
     pub fn new(model: FrameModel, log_interval: Duration) -> Intake {
         Intake {
             model,
+            key: None,
+            allow: Vec::new(),
+            last_seq: None,
             gate: SeqGate::default(),
             newest: None,
             latest: None,
@@ -167,8 +194,34 @@ impl Intake {
         }
     }
 
-    /// Takes one datagram received at the given times. A status query is
-    /// recognised first and only counted ([`Outcome::Status`]).
+    /// Applies only commands signed with `key` ([`auth`]) that carry a
+    /// `seq` greater than the last accepted one and than `floor` (the last
+    /// one accepted before a restart). Status queries stay unsigned.
+    pub fn with_auth(mut self, key: AuthKey, floor: Option<u64>) -> Intake {
+        if floor.is_some() {
+            self.gate.admit(floor);
+            self.last_seq = floor;
+        }
+        self.key = Some(key);
+        self
+    }
+
+    /// Drops datagrams from sources outside `nets` (`not_allowed`) before
+    /// parsing them; status queries too. Empty: any source.
+    pub fn with_allowlist(mut self, nets: Vec<IpNet>) -> Intake {
+        self.allow = nets;
+        self
+    }
+
+    /// The `seq` of the last accepted command (or the floor given to
+    /// [`Intake::with_auth`]): what a restarted ingress must not accept again.
+    pub fn last_seq(&self) -> Option<u64> {
+        self.last_seq
+    }
+
+    /// Takes one datagram received at the given times. The source is checked
+    /// first, then a status query is recognised and only counted
+    /// ([`Outcome::Status`]).
     pub fn offer(
         &mut self,
         datagram: &[u8],
@@ -177,33 +230,47 @@ impl Intake {
         real_ns: u64,
         now: Instant,
     ) -> Outcome {
-        let parsed = match query(datagram) {
-            Some(Ok(Query::Status)) => {
-                self.counters.status_requests += 1;
-                return Outcome::Status;
+        let parsed = if !allowed(&self.allow, from.ip()) {
+            Err(Reject {
+                reason: RejectReason::NotAllowed,
+                detail: format!("source {} is not in ingress.allow", from.ip()),
+            })
+        } else {
+            match query(datagram) {
+                Some(Ok(Query::Status)) => {
+                    self.counters.status_requests += 1;
+                    return Outcome::Status;
+                }
+                Some(Err(r)) => Err(r),
+                None => self.command(datagram),
             }
-            Some(Err(r)) => Err(r),
-            None => protocol::parse(datagram, &self.model),
         };
         self.counters.received += 1;
         match parsed {
-            Err(r) => {
-                self.counters.rejected[r.reason.index()] += 1;
-                let line = self.log.note(r.reason, now).map(|suppressed| {
-                    let more = if suppressed > 0 {
-                        format!(" ({suppressed} more of this kind not logged)")
-                    } else {
-                        String::new()
-                    };
-                    format!("rejected datagram from {from}: {r}{more}")
-                });
-                Outcome::Rejected(r.reason, line)
-            }
+            Err(r) => self.reject(r, from, now),
             Ok(command) if !self.gate.admit(command.seq) => {
+                if self.key.is_some() {
+                    let detail = format!(
+                        "seq {} is not greater than the last accepted {}",
+                        command.seq.unwrap_or(0),
+                        self.last_seq.unwrap_or(0)
+                    );
+                    return self.reject(
+                        Reject {
+                            reason: RejectReason::Replay,
+                            detail,
+                        },
+                        from,
+                        now,
+                    );
+                }
                 self.counters.stale += 1;
                 Outcome::Stale
             }
             Ok(command) => {
+                if command.seq.is_some() {
+                    self.last_seq = command.seq;
+                }
                 if command.clamped > 0 {
                     self.counters.clamped_commands += 1;
                     self.counters.clamped_values += command.clamped as u64;
@@ -221,6 +288,77 @@ impl Intake {
                 Outcome::Accepted
             }
         }
+    }
+
+    /// Counts a rejected datagram and, when the rate limit allows, gives a log line.
+    fn reject(&mut self, r: Reject, from: SocketAddr, now: Instant) -> Outcome {
+        self.counters.rejected[r.reason.index()] += 1;
+        let line = self.log.note(r.reason, now).map(|suppressed| {
+            let more = if suppressed > 0 {
+                format!(" ({suppressed} more of this kind not logged)")
+            } else {
+                String::new()
+            };
+            format!("rejected datagram from {from}: {r}{more}")
+        });
+        Outcome::Rejected(r.reason, line)
+    }
+
+    /// Parses a datagram that is not a query: a signed one (checked against
+    /// the key) or a plain command (refused as `unsigned` when a key is set).
+    fn command(&self, datagram: &[u8]) -> Result<Command, Reject> {
+        let fail = |reason, detail: &str| {
+            Err(Reject {
+                reason,
+                detail: detail.into(),
+            })
+        };
+        let Some(key) = &self.key else {
+            return match auth::envelope(datagram) {
+                Some(_) => fail(
+                    RejectReason::BadShape,
+                    "signed datagram but no auth key configured (ingress.auth_key, --auth-key)",
+                ),
+                None => protocol::parse(datagram, &self.model),
+            };
+        };
+        let envelope = match auth::envelope(datagram) {
+            Some(e) => e?,
+            None => {
+                return match protocol::parse(datagram, &self.model) {
+                    Err(r)
+                        if matches!(
+                            r.reason,
+                            RejectReason::InvalidUtf8 | RejectReason::InvalidJson
+                        ) =>
+                    {
+                        Err(r)
+                    }
+                    _ => fail(
+                        RejectReason::Unsigned,
+                        r#"commands must be signed, {"msg": "<command>", "mac": "<hex HMAC-SHA256>"}: ingress.auth_key is set"#,
+                    ),
+                };
+            }
+        };
+        if !envelope.verify(key) {
+            return fail(
+                RejectReason::BadMac,
+                "the MAC does not match `msg` (another key, or msg or mac changed)",
+            );
+        }
+        let command =
+            protocol::parse(envelope.msg.as_bytes(), &self.model).map_err(|r| Reject {
+                reason: r.reason,
+                detail: format!("in the signed msg: {}", r.detail),
+            })?;
+        if command.seq.is_none() {
+            return fail(
+                RejectReason::NoSeq,
+                "a signed command needs a `seq`, greater than the last one's (replays are refused by it)",
+            );
+        }
+        Ok(command)
     }
 
     /// The newest valid command since the last call (to be published).
@@ -566,6 +704,11 @@ mod tests {
                         "too_many_values": 0,
                         "unknown_channel": 0,
                         "bad_shape": 1,
+                        "unsigned": 0,
+                        "bad_mac": 0,
+                        "no_seq": 0,
+                        "replay": 0,
+                        "not_allowed": 0,
                     },
                     "clamped": 1,
                     "clamped_values": 2,
@@ -601,6 +744,163 @@ mod tests {
         let at_limit = snapshot(now - PPMD_STALE_AFTER_NS);
         let reply = i.status("pi", Duration::ZERO, now, Some(&at_limit));
         assert_eq!(reply["ppmd"]["snapshot_age_ms"], json!(3000.0));
+    }
+
+    fn key() -> AuthKey {
+        AuthKey::new(*b"0123456789abcdef0123456789abcdef")
+    }
+
+    fn reason(o: Outcome) -> RejectReason {
+        match o {
+            Outcome::Rejected(r, _) => r,
+            other => panic!("not rejected: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn with_a_key_only_signed_commands_with_a_new_seq_apply() {
+        use RejectReason::*;
+        let k = key();
+        let mut i = intake().with_auth(k.clone(), Some(100));
+        let t = Instant::now();
+        let signed = |msg: &str| k.envelope(msg).into_bytes();
+        let mut offer = |d: &[u8]| i.offer(d, from(), 1, 1, t);
+        // The floor from before a restart: 100 and below are replays.
+        assert_eq!(reason(offer(&signed(r#"{"ch":[1900],"seq":100}"#))), Replay);
+        assert_eq!(
+            offer(&signed(r#"{"ch":[1100],"seq":101}"#)),
+            Outcome::Accepted
+        );
+        let good = signed(r#"{"ch":[1200],"seq":102}"#);
+        assert_eq!(offer(&good), Outcome::Accepted);
+        assert_eq!(reason(offer(&good)), Replay, "the same datagram again");
+        assert_eq!(reason(offer(br#"{"ch":[1900],"seq":200}"#)), Unsigned);
+        assert_eq!(reason(offer(b"[1900]")), Unsigned);
+        assert_eq!(
+            reason(offer(br#"{"yaw":1}"#)),
+            Unsigned,
+            "unsigned before anything else"
+        );
+        assert_eq!(reason(offer(b"[1900")), InvalidJson);
+        assert_eq!(reason(offer(b"\xff")), InvalidUtf8);
+        let other_key = AuthKey::new([9; 32]);
+        assert_eq!(
+            reason(offer(
+                other_key.envelope(r#"{"ch":[1900],"seq":300}"#).as_bytes()
+            )),
+            BadMac
+        );
+        let text = String::from_utf8(signed(r#"{"ch":[1200],"seq":400}"#)).unwrap();
+        let tampered_msg = text.replace("1200", "1900");
+        assert_eq!(reason(offer(tampered_msg.as_bytes())), BadMac);
+        let mac_at = text.find("\"mac\":\"").unwrap() + 7;
+        let mut tampered_mac = text.clone().into_bytes();
+        tampered_mac[mac_at] = if tampered_mac[mac_at] == b'a' {
+            b'b'
+        } else {
+            b'a'
+        };
+        assert_eq!(reason(offer(&tampered_mac)), BadMac);
+        assert_eq!(reason(offer(&signed(r#"{"ch":[1900]}"#))), NoSeq);
+        assert_eq!(reason(offer(&signed("[1900]"))), NoSeq);
+        assert_eq!(
+            reason(offer(&signed(r#"{"ch":[9000],"seq":500}"#))),
+            OutOfRange
+        );
+        assert_eq!(reason(offer(br#"{"msg":"[1500]"}"#)), BadShape);
+        assert_eq!(
+            offer(br#"{"get":"status"}"#),
+            Outcome::Status,
+            "unsigned, read-only"
+        );
+        assert_eq!(i.last_seq(), Some(102));
+        let r = i.take().unwrap();
+        assert_eq!(
+            (r.command.seq, r.command.channels.as_ns()[0]),
+            (Some(102), 1_200_000)
+        );
+        let c = i.counters();
+        let n = |r: RejectReason| c.rejected[r.index()];
+        assert_eq!(
+            (n(Replay), n(Unsigned), n(BadMac), n(NoSeq), n(BadShape)),
+            (2, 3, 3, 2, 1)
+        );
+        assert_eq!(
+            (c.received, c.published, c.superseded, c.stale),
+            (16, 1, 1, 0)
+        );
+        assert_eq!(
+            c.received,
+            c.published + c.superseded + c.stale + c.rejected_total()
+        );
+    }
+
+    #[test]
+    fn without_a_key_signed_datagrams_are_bad_shape() {
+        let mut i = intake();
+        let d = key().envelope(r#"{"ch":[1100],"seq":1}"#);
+        match i.offer(d.as_bytes(), from(), 1, 1, Instant::now()) {
+            Outcome::Rejected(RejectReason::BadShape, Some(line)) => {
+                assert!(
+                    line.contains("signed datagram but no auth key configured"),
+                    "{line}"
+                )
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(i.last_seq(), None);
+    }
+
+    #[test]
+    fn allowlist_matches_blocks() {
+        let nets: Vec<IpNet> = ["10.0.0.0/24", "127.0.0.2/32", "fd00::/8"]
+            .iter()
+            .map(|s| s.parse().unwrap())
+            .collect();
+        let ok = |ip: &str| allowed(&nets, ip.parse().unwrap());
+        assert!(ok("10.0.0.0") && ok("10.0.0.255") && ok("127.0.0.2") && ok("fd12::1"));
+        assert!(!ok("10.0.1.0") && !ok("127.0.0.1") && !ok("::1") && !ok("fe80::1"));
+        assert!(ok("::ffff:10.0.0.7"), "IPv4 on a dual-stack socket");
+        assert!(!ok("::ffff:10.0.1.7"));
+        assert!(
+            allowed(&[], "192.0.2.1".parse().unwrap()),
+            "empty: any source"
+        );
+    }
+
+    #[test]
+    fn other_sources_are_dropped_before_parsing_and_logged_rate_limited() {
+        let mut i = intake().with_allowlist(vec!["127.0.0.2/32".parse().unwrap()]);
+        let t = Instant::now();
+        let outsider: SocketAddr = "127.0.0.1:4000".parse().unwrap();
+        let insider: SocketAddr = "127.0.0.2:4000".parse().unwrap();
+        let mut lines = 0;
+        for k in 0..5 {
+            match i.offer(br#"{"get":"status"}"#, outsider, 1, 1, t) {
+                Outcome::Rejected(RejectReason::NotAllowed, line) => {
+                    lines += line.is_some() as u32;
+                    if k == 0 {
+                        assert!(line.unwrap().contains("127.0.0.1 is not in ingress.allow"));
+                    }
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert_eq!(lines, 1, "one log line per interval");
+        assert_eq!(i.offer(b"[1100]", insider, 1, 1, t), Outcome::Accepted);
+        assert_eq!(
+            i.offer(br#"{"get":"status"}"#, insider, 1, 1, t),
+            Outcome::Status
+        );
+        let c = i.counters();
+        assert_eq!(
+            (
+                c.received,
+                c.rejected[RejectReason::NotAllowed.index()],
+                c.status_requests
+            ),
+            (6, 5, 1)
+        );
     }
 
     #[test]

@@ -1,13 +1,16 @@
 //! `udp-ingress`: receives JSON commands over UDP and publishes the newest
 //! valid one to ppmd through iceoryx2 shared memory. It answers status
 //! queries (`{"get": "status"}`) with its counters and ppmd's timing summary.
+//! Optionally it applies only signed commands (`--auth-key`) and takes
+//! datagrams only from some sources (`--allow`).
 
 use anyhow::{Context, Result};
 use clap::Parser;
 use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
 use mio::{Events, Interest, Poll, Token};
-use ppm_shared::config::Config;
+use ppm_shared::auth::AuthKey;
+use ppm_shared::config::{parse_net, Config};
 use ppm_shared::ipc::{self, CommandSample, TimingSnapshot};
 use ppm_shared::time::{now_ns, realtime_ns};
 use std::net::SocketAddr;
@@ -15,6 +18,7 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use udp_ingress::seqfile::SeqFile;
 use udp_ingress::{Intake, Outcome};
 
 /// UDP command receiver: keeps the newest valid command and hands it to ppmd
@@ -31,6 +35,14 @@ struct Cli {
     /// Address and port to receive on. Overrides `ingress.listen`.
     #[arg(long, value_name = "ADDR:PORT")]
     listen: Option<SocketAddr>,
+    /// Apply only commands signed with the key in FILE (64 hex characters,
+    /// mode 600). Overrides `ingress.auth_key`.
+    #[arg(long, value_name = "FILE")]
+    auth_key: Option<PathBuf>,
+    /// Take datagrams only from this address block (repeatable, e.g.
+    /// 10.0.0.0/24, ::1/128). Replaces `ingress.allow`.
+    #[arg(long, value_name = "CIDR", value_parser = parse_net)]
+    allow: Vec<ipnet::IpNet>,
 }
 
 const SOCKET: Token = Token(0);
@@ -43,6 +55,9 @@ const MAX_DATAGRAM: usize = 65_536;
 const DRAIN_PUBLISH_EVERY: Duration = Duration::from_micros(200);
 /// How often the counters are logged while datagrams arrive.
 const REPORT_EVERY: Duration = Duration::from_secs(60);
+/// Longest interval between writes of the last accepted signed `seq` to the
+/// seq file while commands arrive: a crash forgets at most this much.
+const SEQ_SAVE_EVERY: Duration = Duration::from_millis(100);
 /// Most status queries answered per wake-up; more are counted as dropped
 /// (a flood of queries must not delay the commands).
 const MAX_STATUS_PER_WAKE: usize = 32;
@@ -74,7 +89,27 @@ fn run(cli: Cli) -> Result<()> {
     if let Some(listen) = cli.listen {
         cfg.ingress.listen = listen;
     }
+    if let Some(key) = cli.auth_key {
+        cfg.ingress.auth_key = Some(key);
+    }
+    if !cli.allow.is_empty() {
+        cfg.ingress.allow = cli.allow.iter().map(|n| n.to_string()).collect();
+    }
     let model = cfg.validate()?;
+    let allow = cfg.allow()?;
+    let key = cfg
+        .ingress
+        .auth_key
+        .as_deref()
+        .map(AuthKey::load)
+        .transpose()?;
+    let (mut seq_file, floor) = match &key {
+        Some(_) => {
+            let (file, floor) = SeqFile::open(&cfg.seq_file(), SEQ_SAVE_EVERY)?;
+            (Some(file), floor)
+        }
+        None => (None, None),
+    };
     let listen = cfg.ingress.listen;
 
     let std_socket = std::net::UdpSocket::bind(listen).with_context(|| {
@@ -125,6 +160,30 @@ fn run(cli: Cli) -> Result<()> {
         model,
         Duration::from_millis(cfg.ingress.reject_log_interval_ms),
     );
+    if let (Some(key), Some(file)) = (key, &seq_file) {
+        log::info!(
+            "commands must be signed with the key in {}; status queries need no signature; {} (the last accepted seq is kept in {})",
+            cfg.ingress.auth_key.as_ref().expect("key loaded").display(),
+            match floor {
+                Some(f) => format!("seq {f} and below refused as replays"),
+                None => "no seq accepted before".into(),
+            },
+            file.path().display()
+        );
+        intake = intake.with_auth(key, floor);
+    }
+    let mut seq_save_failed = false;
+    if !allow.is_empty() {
+        log::info!(
+            "taking datagrams only from {}",
+            allow
+                .iter()
+                .map(|n| n.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        intake = intake.with_allowlist(allow);
+    }
     let started = Instant::now();
     let mut events = Events::with_capacity(8);
     let mut buf = vec![0u8; MAX_DATAGRAM];
@@ -213,11 +272,29 @@ fn run(cli: Cli) -> Result<()> {
                 }
             }
         }
+        if let Some(f) = &mut seq_file {
+            match f.note(intake.last_seq(), Instant::now()) {
+                Ok(_) => seq_save_failed = false,
+                Err(e) if !seq_save_failed => {
+                    seq_save_failed = true;
+                    log::warn!(
+                        "cannot write the seq file {}: {e}; after a restart, replays of commands accepted since could be accepted",
+                        f.path().display()
+                    );
+                }
+                Err(_) => {}
+            }
+        }
         let received = intake.counters().received;
         if last_report.elapsed() >= REPORT_EVERY && received != reported_received {
             log::info!("{}", intake.counters().summary());
             last_report = Instant::now();
             reported_received = received;
+        }
+    }
+    if let Some(f) = &mut seq_file {
+        if let Err(e) = f.flush(intake.last_seq()) {
+            log::warn!("cannot write the seq file {}: {e}", f.path().display());
         }
     }
     log::info!(

@@ -1,104 +1,208 @@
-//! `ppm-send`: sends a JSON command to udp-ingress at a steady rate, or
-//! forwards JSON lines from standard input.
+//! `ppm-send`: sends a JSON command to one or more udp-ingress instances at a
+//! steady rate (optionally sweeping channels, numbering and signing each
+//! datagram), forwards JSON lines from standard input, or asks each for its
+//! status.
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
+use ppm_shared::auth::AuthKey;
+use ppm_tools::send::{Sweep, Template};
+use ppm_tools::status::{query, readable, resolve};
 use ppm_tools::{parse_duration, with_seq};
 use std::io::BufRead;
-use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
+use std::net::{SocketAddr, UdpSocket};
+use std::path::PathBuf;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 /// Send channel commands to udp-ingress.
 ///
-/// With COMMAND, sends it RATE times a second (until --count, --duration or
-/// Ctrl-C). Without, forwards each line of standard input as one datagram.
+/// With COMMAND (or --sweep), sends it RATE times a second (until --count,
+/// --duration or Ctrl-C). Without, forwards each line of standard input as
+/// one datagram. Every datagram goes to every --to target.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Cli {
-    /// Where to send: HOST:PORT.
-    #[arg(long, value_name = "HOST:PORT")]
-    to: String,
-    /// Datagrams per second when repeating COMMAND.
+    /// Where to send: HOST:PORT. Repeat it to send every command to each
+    /// target (each gets its own `seq` numbering).
+    #[arg(long, value_name = "HOST:PORT", required = true)]
+    to: Vec<String>,
+    /// Commands per second when repeating COMMAND.
     #[arg(long, default_value_t = 50.0, value_name = "HZ")]
     rate: f64,
-    /// Stop after this many datagrams.
+    /// Stop after this many commands (each sent to every target).
     #[arg(long, value_name = "N", conflicts_with = "duration")]
     count: Option<u64>,
     /// Stop after this long (e.g. 10s, 500ms).
     #[arg(long, value_name = "TIME", value_parser = parse_duration)]
     duration: Option<Duration>,
-    /// Number the datagrams with `seq` (starting from the time in microseconds,
-    /// so a restarted sender is never taken for a stale one).
+    /// Number the datagrams with `seq`, per target, starting from the time in
+    /// microseconds (so a restarted sender is never taken for a stale one).
     #[arg(long)]
     seq: bool,
-    /// Send COMMAND as it is, without checking that it is JSON (for tests).
-    #[arg(long)]
+    /// Sign every command with the key in FILE (64 hex characters, mode 600),
+    /// for a udp-ingress with `ingress.auth_key`. Implies --seq.
+    #[arg(long, value_name = "FILE")]
+    auth_key: Option<PathBuf>,
+    /// Move channel CH (a number from 1, or a name such as thr or aux1) in a
+    /// triangle between MIN and MAX us with period PERIOD, e.g. 3:1000:2000:4s.
+    /// Repeatable. Other channels come from COMMAND, or take their defaults.
+    #[arg(long, value_name = "CH:MIN:MAX:PERIOD", value_parser = Sweep::parse)]
+    sweep: Vec<Sweep>,
+    /// The ingress's channel order (`ppm.order`), used to name a numbered
+    /// --sweep channel when there is no COMMAND or it names its channels.
+    #[arg(long, default_value = "AETR", value_name = "ORDER")]
+    order: String,
+    /// Ask each target for its status (`{"get": "status"}`) and print the
+    /// replies, instead of sending commands.
+    #[arg(long, conflicts_with_all = ["command", "sweep", "seq", "auth_key", "raw", "count", "duration"])]
+    status: bool,
+    /// How long --status waits for each reply.
+    #[arg(long, default_value = "1s", value_parser = parse_duration, value_name = "TIME", requires = "status")]
+    timeout: Duration,
+    /// Send COMMAND (or each line) as it is, without checking that it is JSON (for tests).
+    #[arg(long, conflicts_with_all = ["seq", "auth_key", "sweep"])]
     raw: bool,
     /// The command, e.g. '[1500, 1500, 1000, 1500]' or '{"thr": 1200}'.
     command: Option<String>,
 }
 
 fn main() {
-    if let Err(e) = run(Cli::parse()) {
-        eprintln!("ppm-send: {e:#}");
-        std::process::exit(1);
+    let ok = Cli::parse().run();
+    match ok {
+        Ok(true) => {}
+        Ok(false) => std::process::exit(1),
+        Err(e) => {
+            eprintln!("ppm-send: {e:#}");
+            std::process::exit(1);
+        }
     }
 }
 
-fn run(cli: Cli) -> Result<()> {
-    let to: SocketAddr = cli
-        .to
-        .to_socket_addrs()
-        .with_context(|| format!("resolving {}", cli.to))?
-        .next()
-        .with_context(|| format!("{} resolves to no address", cli.to))?;
-    let bind: SocketAddr = if to.is_ipv4() { "0.0.0.0:0" } else { "[::]:0" }.parse()?;
-    let socket = UdpSocket::bind(bind).context("opening a UDP socket")?;
-    let mut seq = SystemTime::now().duration_since(UNIX_EPOCH)?.as_micros() as u64;
-    let mut encode = |text: &str| -> Result<Vec<u8>> {
-        if cli.raw {
-            return Ok(text.as_bytes().to_vec());
-        }
-        let v: serde_json::Value =
-            serde_json::from_str(text).with_context(|| format!("`{text}` is not JSON"))?;
-        let v = if cli.seq {
-            seq += 1;
-            with_seq(&v, seq)?
+/// One destination with its own socket and `seq` numbering.
+struct Target {
+    label: String,
+    addr: SocketAddr,
+    socket: UdpSocket,
+    seq: u64,
+    failing: bool,
+    failures: u64,
+}
+
+impl Target {
+    fn new(label: &str, first_seq: u64) -> Result<Target> {
+        let addr = resolve(label)?;
+        let bind: SocketAddr = if addr.is_ipv4() {
+            "0.0.0.0:0"
         } else {
-            v
-        };
-        Ok(v.to_string().into_bytes())
-    };
-    let deadline = cli.duration.map(|d| Instant::now() + d);
-    let done = |sent: u64| {
-        cli.count.is_some_and(|c| sent >= c) || deadline.is_some_and(|d| Instant::now() >= d)
-    };
-    let mut sent = 0u64;
-    match &cli.command {
-        Some(command) => {
-            if !(cli.rate > 0.0 && cli.rate.is_finite()) {
-                bail!("--rate must be a positive number of datagrams per second");
+            "[::]:0"
+        }
+        .parse()?;
+        Ok(Target {
+            label: label.to_owned(),
+            addr,
+            socket: UdpSocket::bind(bind).context("opening a UDP socket")?,
+            seq: first_seq,
+            failing: false,
+            failures: 0,
+        })
+    }
+
+    /// Sends one datagram; a failure is reported once until sending works
+    /// again, and the other targets are still served.
+    fn send(&mut self, bytes: &[u8]) {
+        match self.socket.send_to(bytes, self.addr) {
+            Ok(_) => self.failing = false,
+            Err(e) => {
+                self.failures += 1;
+                if !self.failing {
+                    eprintln!("ppm-send: sending to {} ({}): {e}", self.label, self.addr);
+                    self.failing = true;
+                }
             }
-            let period = Duration::from_secs_f64(1.0 / cli.rate);
+        }
+    }
+}
+
+/// How each command is finished for a target: numbered, signed.
+struct Finish {
+    numbered: bool,
+    key: Option<AuthKey>,
+}
+
+impl Finish {
+    fn datagram(&self, command: &serde_json::Value, target: &mut Target) -> Result<Vec<u8>> {
+        let v = if self.numbered {
+            target.seq += 1;
+            with_seq(command, target.seq)?
+        } else {
+            command.clone()
+        };
+        let text = v.to_string();
+        Ok(match &self.key {
+            Some(k) => k.envelope(&text).into_bytes(),
+            None => text.into_bytes(),
+        })
+    }
+}
+
+impl Cli {
+    /// True when every datagram (or status query) went out.
+    fn run(self) -> Result<bool> {
+        if self.status {
+            return self.status_of_each();
+        }
+        let key = self.auth_key.as_deref().map(AuthKey::load).transpose()?;
+        let finish = Finish {
+            numbered: self.seq || key.is_some(),
+            key,
+        };
+        let now_us = SystemTime::now().duration_since(UNIX_EPOCH)?.as_micros() as u64;
+        let mut targets = self
+            .to
+            .iter()
+            .map(|t| Target::new(t, now_us))
+            .collect::<Result<Vec<_>>>()?;
+        let deadline = self.duration.map(|d| Instant::now() + d);
+        let done = |sent: u64| {
+            self.count.is_some_and(|c| sent >= c) || deadline.is_some_and(|d| Instant::now() >= d)
+        };
+        let mut sent = 0u64;
+        if self.command.is_some() || !self.sweep.is_empty() {
+            if !(self.rate > 0.0 && self.rate.is_finite()) {
+                bail!("--rate must be a positive number of commands per second");
+            }
+            let period = Duration::from_secs_f64(1.0 / self.rate);
+            let raw = self.raw.then(|| self.command.clone().unwrap_or_default());
+            // Checks COMMAND and the sweeps before the first send.
+            let template = match &raw {
+                Some(_) => None,
+                None => Some(Template::new(
+                    self.command.as_deref(),
+                    &self.sweep,
+                    &self.order,
+                )?),
+            };
+            if let Some(t) = template.as_ref().filter(|_| finish.numbered) {
+                with_seq(&t.at(0.0), 0)?;
+            }
             let start = Instant::now();
-            let fixed = encode(command)?; // also checks COMMAND before the first send
             while !done(sent) {
-                let bytes = if cli.seq {
-                    encode(command)?
-                } else {
-                    fixed.clone()
-                };
-                socket
-                    .send_to(&bytes, to)
-                    .with_context(|| format!("sending to {to}"))?;
+                let t = sent as f64 / self.rate;
+                for target in &mut targets {
+                    let bytes = match (&raw, &template) {
+                        (Some(r), _) => r.as_bytes().to_vec(),
+                        (None, Some(tpl)) => finish.datagram(&tpl.at(t), target)?,
+                        (None, None) => unreachable!("a template without --raw"),
+                    };
+                    target.send(&bytes);
+                }
                 sent += 1;
                 let next = start + period.mul_f64(sent as f64);
                 if let Some(wait) = next.checked_duration_since(Instant::now()) {
                     std::thread::sleep(wait);
                 }
             }
-        }
-        None => {
+        } else {
             for line in std::io::stdin().lock().lines() {
                 let line = line.context("reading standard input")?;
                 if line.trim().is_empty() {
@@ -107,17 +211,65 @@ fn run(cli: Cli) -> Result<()> {
                 if done(sent) {
                     break;
                 }
-                match encode(&line) {
-                    Ok(bytes) => {
-                        socket
-                            .send_to(&bytes, to)
-                            .with_context(|| format!("sending to {to}"))?;
-                        sent += 1;
+                let command = if self.raw {
+                    None
+                } else {
+                    match serde_json::from_str::<serde_json::Value>(&line) {
+                        Ok(v) => Some(v),
+                        Err(e) => {
+                            eprintln!("ppm-send: skipped: `{line}` is not JSON: {e}");
+                            continue;
+                        }
                     }
-                    Err(e) => eprintln!("ppm-send: skipped: {e:#}"),
+                };
+                for target in &mut targets {
+                    let bytes = match &command {
+                        None => line.as_bytes().to_vec(),
+                        Some(v) => match finish.datagram(v, target) {
+                            Ok(b) => b,
+                            Err(e) => {
+                                eprintln!("ppm-send: skipped: {e:#}");
+                                break;
+                            }
+                        },
+                    };
+                    target.send(&bytes);
+                }
+                sent += 1;
+            }
+        }
+        let mut all_sent = true;
+        for t in targets.iter().filter(|t| t.failures > 0) {
+            eprintln!(
+                "ppm-send: {} of {sent} datagrams to {} were not sent",
+                t.failures, t.label
+            );
+            all_sent = false;
+        }
+        Ok(all_sent)
+    }
+
+    /// `--status`: one query to each target, each reply printed readably.
+    fn status_of_each(&self) -> Result<bool> {
+        let mut all = true;
+        for (i, label) in self.to.iter().enumerate() {
+            if self.to.len() > 1 {
+                println!("{}== {label} ==", if i > 0 { "\n" } else { "" });
+            }
+            let reply = resolve(label).and_then(|to| {
+                let text = query(to, self.timeout)?;
+                let v: serde_json::Value = serde_json::from_str(&text)
+                    .with_context(|| format!("the reply from {to} is not JSON: {text}"))?;
+                readable(&v).with_context(|| format!("unexpected reply: {text}"))
+            });
+            match reply {
+                Ok(text) => print!("{text}"),
+                Err(e) => {
+                    eprintln!("ppm-send: {label}: {e:#}");
+                    all = false;
                 }
             }
         }
+        Ok(all)
     }
-    Ok(())
 }

@@ -1,0 +1,432 @@
+//! Authenticated commands and the source allowlist against the real
+//! udp-ingress and ppmd: signed commands fly the line, forged, unsigned and
+//! replayed ones (also after an ingress restart or crash) never do; a key
+//! file others can read stops the ingress at start; datagrams from outside
+//! `ingress.allow` are dropped and counted. Also the README's test vector and
+//! its Python signed sender.
+
+use nix::sys::signal::Signal;
+use ppm_shared::auth::AuthKey;
+use ppm_tests::{read_trace, Proc, Sandbox};
+use serde_json::{json, Value};
+use std::net::{SocketAddr, UdpSocket};
+use std::os::unix::fs::PermissionsExt;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+const SECOND: Duration = Duration::from_secs(1);
+const KEY_HEX: &str = "8f2a55e0c1d94b7e3a6f0b1c2d3e4f5061728394a5b6c7d8e9f0a1b2c3d4e5f6";
+/// ppmd on the normal scheduler: several of these tests run at once.
+const GENTLE_RT: &str =
+    "[rt]\npriority = 0\ncpu = \"none\"\ncpu_dma_latency = false\nallow_degraded = true\n";
+
+fn write_key(sb: &Sandbox, name: &str, text: &str, mode: u32) -> PathBuf {
+    let path = sb.dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode)).unwrap();
+    path
+}
+
+fn key() -> AuthKey {
+    AuthKey::from_hex(KEY_HEX).unwrap()
+}
+
+/// The sandbox's config with `ingress` lines added to its `[ingress]` table.
+fn config_with_ingress(sb: &Sandbox, ingress: &str, extra: &str) -> String {
+    let path = sb.config(extra);
+    let text = std::fs::read_to_string(&path).unwrap().replacen(
+        "[ingress]\n",
+        &format!("[ingress]\n{ingress}\n"),
+        1,
+    );
+    std::fs::write(&path, text).unwrap();
+    path.to_str().unwrap().to_owned()
+}
+
+/// Sends from one socket and asks for status (unsigned) from it.
+struct Client {
+    socket: UdpSocket,
+    to: SocketAddr,
+}
+
+impl Client {
+    fn new(from: &str, to: SocketAddr) -> Client {
+        let socket = UdpSocket::bind(format!("{from}:0")).unwrap();
+        socket.set_read_timeout(Some(5 * SECOND)).unwrap();
+        Client { socket, to }
+    }
+
+    fn send(&self, bytes: &[u8]) {
+        self.socket.send_to(bytes, self.to).unwrap();
+    }
+
+    fn status(&self) -> Value {
+        self.send(br#"{"get":"status"}"#);
+        let mut buf = [0u8; 65_536];
+        let (n, _) = self.socket.recv_from(&mut buf).expect("a status reply");
+        serde_json::from_slice(&buf[..n]).unwrap()
+    }
+}
+
+/// Calls `send(i)` for i = 0..n at 50 Hz.
+fn at_50hz(n: u64, mut send: impl FnMut(u64)) {
+    let start = Instant::now();
+    for i in 0..n {
+        send(i);
+        let next = start + Duration::from_millis(20 * (i + 1));
+        std::thread::sleep(next.saturating_duration_since(Instant::now()));
+    }
+}
+
+fn start_ingress(sb: &Sandbox, cfg: &str, log: &str) -> Proc {
+    let p = sb.spawn("udp-ingress", &["--config", cfg], log);
+    p.wait_for_log("listening on", 30 * SECOND);
+    p
+}
+
+fn rejected(status: &Value, reason: &str) -> u64 {
+    status["datagrams"]["rejected"][reason]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no counter {reason}: {status}"))
+}
+
+#[test]
+fn signed_commands_apply_and_forgeries_and_replays_do_not() {
+    let sb = Sandbox::new("auth");
+    let key_path = write_key(&sb, "auth.key", &format!("{KEY_HEX}\n"), 0o600);
+    let cfg = config_with_ingress(
+        &sb,
+        &format!("auth_key = \"{}\"", key_path.display()),
+        GENTLE_RT,
+    );
+    let trace = sb.dir.join("line.trace");
+    let output = format!("sim:{}", trace.display());
+    let mut ppmd = sb.spawn("ppmd", &["--config", &cfg, "--output", &output], "ppmd");
+    ppmd.wait_for_log("commands from", 30 * SECOND);
+    let mut ingress = start_ingress(&sb, &cfg, "ingress1");
+    assert!(ingress.log_text().contains("commands must be signed"));
+    let k = key();
+    let signed = |ch: u64, seq: u64| k.envelope(&json!({"ch": [ch], "seq": seq}).to_string());
+    let c = Client::new("127.0.0.1", sb.addr());
+
+    // 1 s of signed commands (1100), with forgeries (1900) in between.
+    let mut history: Vec<String> = vec![];
+    at_50hz(50, |i| {
+        let good = signed(1100, 1_000 + i);
+        c.send(good.as_bytes());
+        history.push(good);
+        if i % 10 == 5 {
+            // Unsigned, with a seq far ahead.
+            c.send(
+                json!({"ch": [1900], "seq": 9_000 + i})
+                    .to_string()
+                    .as_bytes(),
+            );
+            // The MAC changed.
+            let forged = signed(1900, 9_100 + i);
+            let at = forged.find("\"mac\":\"").unwrap() + 7;
+            let flipped = if &forged[at..at + 1] == "0" { "1" } else { "0" };
+            let mut bytes = forged.into_bytes();
+            bytes[at] = flipped.as_bytes()[0];
+            c.send(&bytes);
+            // The msg changed, the MAC kept.
+            c.send(signed(1100, 9_200 + i).replace("1100", "1900").as_bytes());
+            // A replay of an earlier signed datagram.
+            c.send(history[i as usize - 5].as_bytes());
+            // Signed, but without a seq.
+            c.send(k.envelope(r#"{"ch": [1900]}"#).as_bytes());
+            // Signed with another key.
+            let other = AuthKey::new([3; 32]);
+            c.send(other.envelope(r#"{"ch": [1900], "seq": 9900}"#).as_bytes());
+        }
+    });
+    // Status queries need no signature.
+    let s = c.status();
+    let d = &s["datagrams"];
+    assert_eq!(
+        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
+        50,
+        "{s}"
+    );
+    assert_eq!(
+        (
+            rejected(&s, "unsigned"),
+            rejected(&s, "bad_mac"),
+            rejected(&s, "replay"),
+            rejected(&s, "no_seq")
+        ),
+        (5, 15, 5, 5),
+        "{s}"
+    );
+    assert_eq!(d["received"], json!(50 + 5 * 6), "{s}");
+    assert_eq!(s["newest_seq"], json!(1_049));
+
+    // A clean restart: the last accepted seq was kept, old datagrams stay refused.
+    assert!(ingress
+        .signal_and_wait(Signal::SIGTERM, 10 * SECOND)
+        .success());
+    let seq_file = sb.dir.join("ipc").join(format!("{}.last_seq", sb.name));
+    assert_eq!(
+        std::fs::read_to_string(&seq_file)
+            .unwrap()
+            .trim()
+            .parse::<u64>(),
+        Ok(1_049)
+    );
+    let mut ingress = start_ingress(&sb, &cfg, "ingress2");
+    assert!(
+        ingress.log_text().contains("seq 1049 and below refused"),
+        "{}",
+        ingress.log_text()
+    );
+    c.send(history[40].as_bytes());
+    c.send(history[49].as_bytes());
+    let s = c.status();
+    assert_eq!(
+        (rejected(&s, "replay"), s["datagrams"]["applied"].as_u64()),
+        (2, Some(0)),
+        "{s}"
+    );
+
+    // New commands apply; then a crash (SIGKILL) after a pause longer than the
+    // save interval: the seq file has the last one, replays stay refused.
+    let mut second: Vec<String> = vec![];
+    at_50hz(25, |i| {
+        let d = signed(1300, 2_000 + i);
+        c.send(d.as_bytes());
+        second.push(d);
+    });
+    std::thread::sleep(Duration::from_millis(400));
+    ingress.kill();
+    let ingress = start_ingress(&sb, &cfg, "ingress3");
+    assert!(
+        ingress.log_text().contains("seq 2024 and below refused"),
+        "{}",
+        ingress.log_text()
+    );
+    c.send(second[24].as_bytes());
+    c.send(second[3].as_bytes());
+    c.send(history[49].as_bytes());
+    at_50hz(25, |i| c.send(signed(1300, 3_000 + i).as_bytes()));
+    let s = c.status();
+    assert_eq!(rejected(&s, "replay"), 3, "{s}");
+    assert_eq!(s["newest_seq"], json!(3_024), "{s}");
+    std::thread::sleep(Duration::from_millis(100));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    drop(ingress);
+
+    let ch1: Vec<u64> = read_trace(&trace)
+        .decode(false)
+        .iter()
+        .map(|f| f.channels_us()[0])
+        .collect();
+    assert!(ch1.iter().all(|&v| v == 1100 || v == 1300), "{ch1:?}");
+    assert!(ch1.iter().filter(|&&v| v == 1100).count() >= 30, "{ch1:?}");
+    assert!(ch1.iter().filter(|&&v| v == 1300).count() >= 30, "{ch1:?}");
+    let first_1300 = ch1.iter().position(|&v| v == 1300).unwrap();
+    assert!(ch1[first_1300..].iter().all(|&v| v == 1300), "{ch1:?}");
+}
+
+#[test]
+fn key_files_others_can_read_and_bad_settings_stop_the_ingress() {
+    let sb = Sandbox::new("authkey");
+    let cfg = sb.config(GENTLE_RT);
+    let cfg = cfg.to_str().unwrap();
+    let run = |args: &[&str], log: &str| {
+        let mut p = sb.spawn("udp-ingress", args, log);
+        let status = p.wait(10 * SECOND);
+        assert!(!status.success(), "udp-ingress {args:?} started");
+        p.log_text()
+    };
+    let open = write_key(&sb, "open.key", KEY_HEX, 0o644);
+    let log = run(
+        &["--config", cfg, "--auth-key", open.to_str().unwrap()],
+        "open",
+    );
+    assert!(
+        log.contains(&open.display().to_string()) && log.contains("chmod 600"),
+        "{log}"
+    );
+    let short = write_key(&sb, "short.key", &KEY_HEX[..63], 0o600);
+    let log = run(
+        &["--config", cfg, "--auth-key", short.to_str().unwrap()],
+        "short",
+    );
+    assert!(
+        log.contains(&short.display().to_string()) && log.contains("64 hex characters"),
+        "{log}"
+    );
+    let missing = sb.dir.join("missing.key");
+    let log = run(
+        &["--config", cfg, "--auth-key", missing.to_str().unwrap()],
+        "missing",
+    );
+    assert!(
+        log.contains("cannot read auth key file") && log.contains("missing.key"),
+        "{log}"
+    );
+
+    // A bad address block, in the config (named by its key) and on the command line.
+    let bad = config_with_ingress(&sb, "allow = [\"10.0.0.0/33\"]", GENTLE_RT);
+    let log = run(&["--config", &bad], "badallow");
+    assert!(
+        log.contains("ingress.allow") && log.contains("10.0.0.0/33"),
+        "{log}"
+    );
+    let out = std::process::Command::new(ppm_tests::bin("udp-ingress"))
+        .args(["--allow", "localhost"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("localhost"));
+
+    // ppm-send refuses the same key file.
+    let out = std::process::Command::new(ppm_tests::bin("ppm-send"))
+        .args(["--to", &sb.addr().to_string(), "--count", "1"])
+        .args(["--auth-key", open.to_str().unwrap(), "[1500]"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("chmod 600"), "{err}");
+}
+
+#[test]
+fn allowlist_drops_other_sources_before_parsing() {
+    let sb = Sandbox::new("allow");
+    let cfg = config_with_ingress(&sb, "allow = [\"127.0.0.2/32\"]", GENTLE_RT);
+    let trace = sb.dir.join("line.trace");
+    let output = format!("sim:{}", trace.display());
+    let mut ppmd = sb.spawn("ppmd", &["--config", &cfg, "--output", &output], "ppmd");
+    ppmd.wait_for_log("commands from", 30 * SECOND);
+    let ingress = start_ingress(&sb, &cfg, "ingress");
+    assert!(ingress
+        .log_text()
+        .contains("taking datagrams only from 127.0.0.2/32"));
+    let outsider = Client::new("127.0.0.1", sb.addr());
+    let insider = Client::new("127.0.0.2", sb.addr());
+    at_50hz(50, |i| {
+        insider.send(json!({"ch": [1100], "seq": i + 1}).to_string().as_bytes());
+        outsider.send(
+            json!({"ch": [1900], "seq": 1_000 + i})
+                .to_string()
+                .as_bytes(),
+        );
+    });
+    // The outsider's status query is dropped (and counted) too.
+    outsider
+        .socket
+        .set_read_timeout(Some(Duration::from_millis(300)))
+        .unwrap();
+    outsider.send(br#"{"get":"status"}"#);
+    assert!(outsider.socket.recv_from(&mut [0u8; 1024]).is_err());
+    // Without a key a signed datagram is bad_shape.
+    insider.send(key().envelope(r#"{"ch":[1900],"seq":5000}"#).as_bytes());
+    let s = insider.status();
+    let d = &s["datagrams"];
+    assert_eq!(rejected(&s, "not_allowed"), 51, "{s}");
+    assert_eq!(rejected(&s, "bad_shape"), 1, "{s}");
+    assert_eq!(
+        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
+        50,
+        "{s}"
+    );
+    assert_eq!(s["newest_seq"], json!(50));
+    std::thread::sleep(Duration::from_millis(100));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let frames = read_trace(&trace).decode(false);
+    assert!(frames.len() >= 30, "{} frames", frames.len());
+    assert!(frames.iter().all(|f| f.channels_us()[0] == 1100));
+    // Not one log line per datagram: at most one per second for the reason.
+    let lines = ingress
+        .log_text()
+        .lines()
+        .filter(|l| l.contains("not_allowed:"))
+        .count();
+    assert!(
+        (1..=3).contains(&lines),
+        "{lines} lines:\n{}",
+        ingress.log_text()
+    );
+}
+
+fn readme() -> String {
+    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap()
+}
+
+/// The block right after an HTML comment marker in the README.
+fn block_after(readme: &str, marker: &str) -> String {
+    readme
+        .split(marker)
+        .nth(1)
+        .and_then(|s| s.split("```").nth(1))
+        .and_then(|s| s.split_once('\n'))
+        .map(|(_, body)| body.to_owned())
+        .unwrap_or_else(|| panic!("README has no code block after {marker}"))
+}
+
+#[test]
+fn readme_test_vector_is_what_the_code_computes() {
+    let block = block_after(&readme(), "<!-- auth-vector -->");
+    let field = |name: &str| {
+        block
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .map(str::trim)
+            .unwrap_or_else(|| panic!("no `{name}` line in {block}"))
+    };
+    let k = AuthKey::from_hex(field("key ")).unwrap();
+    let msg = field("msg ");
+    assert_eq!(k.sign(msg.as_bytes()), field("mac "), "README's mac");
+    let datagram = field("datagram ");
+    let env = ppm_shared::auth::envelope(datagram.as_bytes())
+        .expect("README's datagram is an envelope")
+        .unwrap();
+    assert_eq!(env.msg, msg);
+    assert!(env.verify(&k));
+}
+
+/// The README's Python signed sender, run as written (aimed at this test's
+/// port and key file) against a real udp-ingress with that key.
+#[test]
+fn readme_python_signed_sender_is_accepted() {
+    let sb = Sandbox::new("authpy");
+    let key_path = write_key(&sb, "auth.key", &format!("{KEY_HEX}\n"), 0o600);
+    let cfg = sb.config(GENTLE_RT);
+    let cfg = cfg.to_str().unwrap();
+    let ingress = sb.spawn(
+        "udp-ingress",
+        &["--config", cfg, "--auth-key", key_path.to_str().unwrap()],
+        "ingress",
+    );
+    ingress.wait_for_log("listening on", 30 * SECOND);
+    let code = block_after(&readme(), "<!-- signed-sender -->");
+    assert!(
+        code.contains("/etc/ppm/auth.key") && code.contains("5005"),
+        "{code}"
+    );
+    let code = code
+        .replace("/etc/ppm/auth.key", key_path.to_str().unwrap())
+        .replace("5005", &sb.port.to_string());
+    let status = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(&code)
+        .status()
+        .expect("python3 is needed for this test (apt-get install python3)");
+    assert!(status.success());
+    let s = Client::new("127.0.0.1", sb.addr()).status();
+    let d = &s["datagrams"];
+    assert_eq!(d["received"], json!(100), "{s}");
+    assert_eq!(
+        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
+        100,
+        "{s}"
+    );
+    let rejected: u64 = d["rejected"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    assert_eq!(rejected, 0, "{s}");
+    assert!(s["newest_seq"].as_u64().is_some());
+}

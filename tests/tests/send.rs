@@ -1,0 +1,269 @@
+//! `ppm-send` against real udp-ingress and ppmd instances: one command fanned
+//! out to two vehicles' lines, a swept channel, standard-input streaming to
+//! every target, signed sending, and `--status` of each target.
+
+use nix::sys::signal::Signal;
+use ppm_tests::{bin, read_trace, Proc, Sandbox};
+use serde_json::{json, Value};
+use std::io::Write;
+use std::net::{SocketAddr, UdpSocket};
+use std::os::unix::fs::PermissionsExt;
+use std::process::{Command, Output, Stdio};
+use std::time::Duration;
+
+const SECOND: Duration = Duration::from_secs(1);
+/// ppmd on the normal scheduler: two of them run at once here.
+const GENTLE_RT: &str =
+    "[rt]\npriority = 0\ncpu = \"none\"\ncpu_dma_latency = false\nallow_degraded = true\n";
+
+/// One vehicle: its sandbox, ingress and (optionally) ppmd on a sim line.
+struct Vehicle {
+    sb: Sandbox,
+    ppmd: Option<Proc>,
+    _ingress: Proc,
+}
+
+impl Vehicle {
+    fn start(label: &str, with_ppmd: bool, ingress_args: &[&str]) -> Vehicle {
+        let sb = Sandbox::new(label);
+        let cfg = sb.config(GENTLE_RT);
+        let cfg = cfg.to_str().unwrap();
+        let output = format!("sim:{}", sb.dir.join("line.trace").display());
+        let ppmd =
+            with_ppmd.then(|| sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd"));
+        let mut args = vec!["--config", cfg];
+        args.extend_from_slice(ingress_args);
+        let ingress = sb.spawn("udp-ingress", &args, "ingress");
+        if let Some(p) = &ppmd {
+            p.wait_for_log("commands from", 30 * SECOND);
+        }
+        ingress.wait_for_log("listening on", 30 * SECOND);
+        Vehicle {
+            sb,
+            ppmd,
+            _ingress: ingress,
+        }
+    }
+
+    fn to(&self) -> String {
+        self.sb.addr().to_string()
+    }
+
+    fn status(&self) -> Value {
+        status_of(self.sb.addr())
+    }
+
+    /// Stops ppmd and decodes its line: each frame's channels in us.
+    fn frames(&mut self) -> Vec<Vec<u64>> {
+        let mut p = self.ppmd.take().expect("a ppmd");
+        assert!(p.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+        read_trace(&self.sb.dir.join("line.trace"))
+            .decode(false)
+            .iter()
+            .map(|f| f.channels_us())
+            .collect()
+    }
+}
+
+fn status_of(to: SocketAddr) -> Value {
+    let s = UdpSocket::bind("127.0.0.1:0").unwrap();
+    s.set_read_timeout(Some(5 * SECOND)).unwrap();
+    s.send_to(br#"{"get":"status"}"#, to).unwrap();
+    let mut buf = [0u8; 65_536];
+    let (n, _) = s.recv_from(&mut buf).expect("a status reply");
+    serde_json::from_slice(&buf[..n]).unwrap()
+}
+
+fn ppm_send(args: &[&str], stdin: Option<&str>) -> Output {
+    let mut child = Command::new(bin("ppm-send"))
+        .args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("running ppm-send");
+    let mut input = child.stdin.take().unwrap();
+    if let Some(text) = stdin {
+        input.write_all(text.as_bytes()).unwrap();
+    }
+    drop(input);
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "ppm-send {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn handed_over(s: &Value) -> u64 {
+    s["datagrams"]["applied"].as_u64().unwrap() + s["datagrams"]["superseded"].as_u64().unwrap()
+}
+
+#[test]
+fn one_command_fans_out_to_both_lines() {
+    let mut a = Vehicle::start("fan-a", true, &[]);
+    let mut b = Vehicle::start("fan-b", true, &[]);
+    ppm_send(
+        &[
+            "--to",
+            &a.to(),
+            "--to",
+            &b.to(),
+            "--count",
+            "75",
+            "--seq",
+            "[1000, 1200, 1700, 2000]",
+        ],
+        None,
+    );
+    for v in [&a, &b] {
+        let s = v.status();
+        assert_eq!(s["datagrams"]["received"], json!(75), "{s}");
+        assert_eq!(handed_over(&s), 75, "{s}");
+        assert!(
+            s["newest_seq"].as_u64().unwrap() > 1_700_000_000_000_000,
+            "{s}"
+        );
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    for (name, v) in [("a", &mut a), ("b", &mut b)] {
+        let frames = v.frames();
+        assert!(frames.len() >= 50, "{name}: {} frames", frames.len());
+        for f in &frames {
+            assert_eq!(
+                f,
+                &[1000, 1200, 1700, 2000, 1500, 1500, 1500, 1500],
+                "{name}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_swept_channel_follows_a_triangle_and_the_others_their_defaults() {
+    let mut v = Vehicle::start("sweep", true, &[]);
+    ppm_send(
+        &[
+            "--to",
+            &v.to(),
+            "--duration",
+            "2.5s",
+            "--sweep",
+            "3:1000:2000:1s",
+        ],
+        None,
+    );
+    std::thread::sleep(Duration::from_millis(50));
+    let frames = v.frames();
+    assert!(frames.len() >= 90, "{} frames", frames.len());
+    let thr: Vec<u64> = frames.iter().map(|f| f[2]).collect();
+    for f in &frames {
+        assert_eq!([f[0], f[1], f[3]], [1500, 1500, 1500], "{f:?}");
+    }
+    assert!(*thr.iter().min().unwrap() <= 1_050, "{thr:?}");
+    assert!(*thr.iter().max().unwrap() >= 1_950, "{thr:?}");
+    // Two datagram periods of a 1000 us rise per 0.5 s at most between frames.
+    assert!(
+        thr.windows(2).all(|w| w[0].abs_diff(w[1]) <= 100),
+        "{thr:?}"
+    );
+    let turns = thr
+        .windows(3)
+        .filter(|w| (w[1] > w[0]) != (w[2] > w[1]) && w[0] != w[1] && w[1] != w[2])
+        .count();
+    assert!((2..=8).contains(&turns), "{turns} turns: {thr:?}");
+}
+
+#[test]
+fn standard_input_lines_go_to_every_target() {
+    let a = Vehicle::start("stdin-a", false, &[]);
+    let b = Vehicle::start("stdin-b", false, &[]);
+    let mut lines: String = (0..300)
+        .map(|i| format!("{{\"ch\": [{}]}}\n", 1000 + i))
+        .collect();
+    lines.push_str("not json\n\n");
+    let out = ppm_send(&["--to", &a.to(), "--to", &b.to(), "--seq"], Some(&lines));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("skipped") && err.contains("not json"), "{err}");
+    for v in [&a, &b] {
+        let s = v.status();
+        assert_eq!(s["datagrams"]["received"], json!(300), "{s}");
+        assert_eq!(handed_over(&s), 300, "{s}");
+        assert_eq!(s["datagrams"]["stale"], json!(0), "{s}");
+    }
+    // Each target numbers on its own: both end on the same last seq.
+    assert_eq!(a.status()["newest_seq"], b.status()["newest_seq"]);
+
+    // --count stops standard input too.
+    ppm_send(&["--to", &a.to(), "--count", "10"], Some(&lines));
+    assert_eq!(a.status()["datagrams"]["received"], json!(310));
+}
+
+#[test]
+fn signed_sending_and_status_of_each_target() {
+    let key_dir = Sandbox::new("send-key");
+    let key = key_dir.dir.join("auth.key");
+    std::fs::write(
+        &key,
+        "8f2a55e0c1d94b7e3a6f0b1c2d3e4f5061728394a5b6c7d8e9f0a1b2c3d4e5f6\n",
+    )
+    .unwrap();
+    std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
+    let key = key.to_str().unwrap();
+    let a = Vehicle::start("signed-a", false, &["--auth-key", key]);
+    let b = Vehicle::start("signed-b", false, &["--auth-key", key]);
+    ppm_send(
+        &[
+            "--to",
+            &a.to(),
+            "--to",
+            &b.to(),
+            "--auth-key",
+            key,
+            "--rate",
+            "200",
+            "--count",
+            "20",
+            "[1200]",
+        ],
+        None,
+    );
+    ppm_send(
+        &["--to", &a.to(), "--auth-key", key],
+        Some("[1300]\n{\"thr\": 1100}\n"),
+    );
+    // Unsigned: refused by a keyed ingress.
+    ppm_send(
+        &["--to", &b.to(), "--count", "3", "--rate", "200", "[1400]"],
+        None,
+    );
+    let (sa, sb) = (a.status(), b.status());
+    assert_eq!(handed_over(&sa), 22, "{sa}");
+    assert_eq!(handed_over(&sb), 20, "{sb}");
+    assert_eq!(sb["datagrams"]["rejected"]["unsigned"], json!(3), "{sb}");
+
+    // --status asks each target and prints the replies readably.
+    let out = ppm_send(&["--status", "--to", &a.to(), "--to", &b.to()], None);
+    let text = String::from_utf8(out.stdout).unwrap();
+    for line in [
+        format!("== {} ==\n", a.to()),
+        format!("== {} ==\n", b.to()),
+        format!("udp-ingress `{}`, up ", a.sb.name),
+        format!("udp-ingress `{}`, up ", b.sb.name),
+        "datagrams: received 22, applied ".into(),
+        "rejected: 3 (unsigned 3)\n".into(),
+    ] {
+        assert!(text.contains(&line), "`{line}` not in:\n{text}");
+    }
+    // A target that does not answer: said, and the exit status is 1.
+    let silent = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let out = Command::new(bin("ppm-send"))
+        .args(["--status", "--timeout", "300ms", "--to", &a.to()])
+        .args(["--to", &silent.local_addr().unwrap().to_string()])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stdout).contains(&format!("udp-ingress `{}`", a.sb.name)));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no reply from"));
+}

@@ -1,0 +1,121 @@
+//! Engineering units and normalised values through the whole pipeline:
+//! `units` and `norm` commands over UDP to the real udp-ingress and ppmd,
+//! the simulated line's trace decoded with transmitter semantics. Every
+//! channel lands to the nanosecond (in scheduled time) on what the
+//! configured mapping defines, reverse and trim included.
+
+use nix::sys::signal::Signal;
+use ppm_shared::config::Config;
+use ppm_shared::time::now_ns;
+use ppm_tests::{read_trace, Sandbox, Sender};
+use std::time::Duration;
+
+const SECOND: Duration = Duration::from_secs(1);
+
+/// ail: degrees on 1000..2000 us; ele: -20..20 on 1100..1900 us, reversed,
+/// trimmed -12.5 us; rud: no unit range, reversed, trimmed +5 us (for `norm`).
+const CHANNELS: &str = r#"
+[ppm.channel.ail]
+unit_min = -15.0
+unit_max = 15.0
+unit = "deg"
+[ppm.channel.ele]
+unit_min = -20.0
+unit_max = 20.0
+unit_us_min = 1100.0
+unit_us_max = 1900.0
+reverse = true
+trim_us = -12.5
+[ppm.channel.rud]
+reverse = true
+trim_us = 5.0
+"#;
+
+const UNITS: &str = r#"{"units": {"ail": 3.0333, "ele": -5}, "seq": SEQ}"#;
+const NORM: &str = r#"{"norm": {"ail": 0.2, "ele": 1, "thr": -0.9, "rud": 0.25, "aux1": -0.5, "aux2": 7}, "seq": SEQ}"#;
+
+/// Sends `n` datagrams at 50 Hz, `seq` numbered from `first`.
+fn send_50hz(sender: &Sender, template: &str, first: u64, n: u64) {
+    let start = now_ns();
+    for i in 0..n {
+        let text = template.replace("SEQ", &(first + i).to_string());
+        sender.send(text.as_bytes());
+        let next = start + (i + 1) * 20_000_000;
+        let now = now_ns();
+        if next > now {
+            std::thread::sleep(Duration::from_nanos(next - now));
+        }
+    }
+}
+
+#[test]
+fn units_and_norm_land_exactly_on_the_mapping() {
+    let sb = Sandbox::new("units");
+    let cfg_path = sb.config(CHANNELS);
+    let cfg = cfg_path.to_str().unwrap();
+    let model = Config::load(&cfg_path).unwrap().validate().unwrap();
+
+    // What the mapping defines, worked out by hand (us), and the model agrees.
+    let units_us = [
+        1601.11, 1587.5, 1000.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0,
+    ];
+    let norm_us = [
+        1600.0, 1087.5, 1050.0, 1380.0, 1250.0, 2000.0, 1500.0, 1500.0,
+    ];
+    let ns = |us: &[f64]| -> Vec<u64> { us.iter().map(|u| (u * 1e3).round() as u64).collect() };
+    let (want_units, want_norm) = (ns(&units_us), ns(&norm_us));
+    assert_eq!(model.units_to_ns(0, 3.0333), Some((1_601_110, false)));
+    assert_eq!(model.units_to_ns(1, -5.0), Some((1_587_500, false)));
+    assert_eq!(model.norm_to_ns(0, 0.2), (1_600_000, false));
+    assert_eq!(model.norm_to_ns(1, 1.0), (1_087_500, false));
+    assert_eq!(model.norm_to_ns(2, -0.9), (1_050_000, false));
+    assert_eq!(model.norm_to_ns(3, 0.25), (1_380_000, false));
+    assert_eq!(model.norm_to_ns(4, -0.5), (1_250_000, false));
+    assert_eq!(model.norm_to_ns(5, 7.0), (2_000_000, true));
+
+    let output = format!("sim:{}", sb.dir.join("line.trace").display());
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
+    let mut ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
+    ppmd.wait_for_log("commands from", 30 * SECOND);
+    ingress.wait_for_log("listening on", 30 * SECOND);
+
+    let sender = Sender::new(sb.addr());
+    send_50hz(&sender, UNITS, 1, 40);
+    send_50hz(&sender, NORM, 100, 40);
+    assert!(
+        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
+        "{}",
+        ppmd.log_text()
+    );
+    assert!(ingress
+        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
+        .success());
+
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    let kinds: Vec<char> = frames
+        .iter()
+        .map(|f| match &f.channels_ns {
+            v if *v == want_units => 'u',
+            v if *v == want_norm => 'n',
+            v => panic!("frame at {} carries neither mapping: {v:?}", f.start_ns),
+        })
+        .collect();
+    let text: String = kinds.iter().collect();
+    let units = text.chars().take_while(|&c| c == 'u').count();
+    let norm = text[units..].chars().take_while(|&c| c == 'n').count();
+    assert_eq!(
+        units + norm,
+        text.len(),
+        "units frames, then norm frames: {text}"
+    );
+    assert!(units >= 25 && norm >= 25, "{text}");
+
+    // aux2 = 7 was clamped in every norm command, and counted.
+    let log = ingress.log_text();
+    let summary = log
+        .lines()
+        .find(|l| l.contains("stopped:"))
+        .expect("ingress summary");
+    assert!(summary.contains("clamped 40 (values 40)"), "{summary}");
+    assert!(summary.contains("rejected 0 "), "{summary}");
+}

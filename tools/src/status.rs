@@ -1,0 +1,236 @@
+//! Status queries: ask a udp-ingress (`{"get": "status"}`) and print its
+//! reply readably. Used by `ppm-status` and `ppm-send --status`.
+
+use anyhow::{bail, Context, Result};
+use ppm_shared::protocol::RejectReason;
+use serde_json::Value;
+use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
+use std::time::Duration;
+
+/// The query, as udp-ingress recognises it.
+pub const QUERY: &[u8] = br#"{"get":"status"}"#;
+
+/// Resolves `HOST:PORT` to its first address.
+pub fn resolve(to: &str) -> Result<SocketAddr> {
+    to.to_socket_addrs()
+        .with_context(|| format!("resolving {to}"))?
+        .next()
+        .with_context(|| format!("{to} resolves to no address"))
+}
+
+/// Sends one status query to `to` and returns the reply's text, or says
+/// why there is none within `timeout`.
+pub fn query(to: SocketAddr, timeout: Duration) -> Result<String> {
+    if timeout.is_zero() {
+        bail!("--timeout must be longer than 0");
+    }
+    let bind: SocketAddr = if to.is_ipv4() { "0.0.0.0:0" } else { "[::]:0" }.parse()?;
+    let socket = UdpSocket::bind(bind).context("opening a UDP socket")?;
+    // Connected: only `to`'s reply is taken, and "nothing listens there" is reported.
+    socket
+        .connect(to)
+        .with_context(|| format!("addressing {to}"))?;
+    socket.set_read_timeout(Some(timeout))?;
+    socket
+        .send(QUERY)
+        .with_context(|| format!("sending to {to}"))?;
+    let mut buf = vec![0u8; 65_536];
+    let n = match socket.recv(&mut buf) {
+        Ok(n) => n,
+        Err(e)
+            if matches!(
+                e.kind(),
+                std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+            ) =>
+        {
+            bail!(
+                "no reply from {to} within {timeout:?}: is udp-ingress running and listening there (ingress.listen)? A firewall, or an ingress.allow without this machine, may also drop the datagrams"
+            )
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => {
+            bail!("{to} refused the query (port unreachable): nothing listens there; is udp-ingress running, with this ingress.listen?")
+        }
+        Err(e) => return Err(e).with_context(|| format!("waiting for the reply from {to}")),
+    };
+    Ok(String::from_utf8_lossy(&buf[..n]).into_owned())
+}
+
+/// A status reply as a few lines of text.
+pub fn readable(r: &Value) -> Result<String> {
+    let num = |v: &Value, what: &str| -> Result<u64> {
+        v.as_u64()
+            .with_context(|| format!("`{what}` is not a count"))
+    };
+    let d = &r["datagrams"];
+    let count = |k: &str| num(&d[k], k);
+    let rejected = d["rejected"]
+        .as_object()
+        .context("`datagrams.rejected` is not an object")?;
+    let mut rejected_total = 0;
+    let mut reasons = vec![];
+    // In the protocol's order, then any reason this tool does not know.
+    let known = RejectReason::ALL.map(|r| r.as_str());
+    let order = known
+        .iter()
+        .copied()
+        .filter(|k| rejected.contains_key(*k))
+        .chain(
+            rejected
+                .keys()
+                .map(String::as_str)
+                .filter(|k| !known.contains(k)),
+        );
+    for reason in order {
+        let n = num(&rejected[reason], reason)?;
+        rejected_total += n;
+        if n > 0 {
+            reasons.push(format!("{reason} {n}"));
+        }
+    }
+    let mut out = format!(
+        "udp-ingress `{}`, up {}\n",
+        r["name"].as_str().unwrap_or("?"),
+        uptime(r["uptime_s"].as_f64().unwrap_or(0.0))
+    );
+    out += &format!(
+        "datagrams: received {}, applied {}, superseded {}, stale {}, clamped {} ({} values)\n",
+        count("received")?,
+        count("applied")?,
+        count("superseded")?,
+        count("stale")?,
+        count("clamped")?,
+        count("clamped_values")?,
+    );
+    out += &if reasons.is_empty() {
+        format!("rejected: {rejected_total}\n")
+    } else {
+        format!("rejected: {rejected_total} ({})\n", reasons.join(", "))
+    };
+    out += &match r["newest_command_age_ms"].as_f64() {
+        None => "newest command: none yet\n".to_string(),
+        Some(ms) => format!(
+            "newest command: {} ago{}\n",
+            age(ms),
+            r["newest_seq"]
+                .as_u64()
+                .map(|s| format!(", seq {s}"))
+                .unwrap_or_default()
+        ),
+    };
+    out += &format!(
+        "status queries: {} ({} replies dropped)\n",
+        num(&r["status_requests"], "status_requests")?,
+        num(&r["status_dropped"], "status_dropped")?
+    );
+    let p = &r["ppmd"];
+    out += &if p.is_null() {
+        if r["ppmd_stale"].as_bool() == Some(true) {
+            "ppmd: no timing snapshot for more than 3 s (stopped, or hanging?)\n".to_string()
+        } else {
+            "ppmd: no timing snapshot yet (not running, or another name or ipc.root?)\n".to_string()
+        }
+    } else {
+        let e = &p["edge_error_us"];
+        let us = |k: &str| e[k].as_f64().unwrap_or(f64::NAN);
+        format!(
+            "ppmd: {}{}, {} frames; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} overruns, {} late frames, {} failsafe entries (snapshot {} old)\n",
+            p["state"].as_str().unwrap_or("?"),
+            if p["degraded"].as_bool() == Some(true) {
+                " (DEGRADED RUN)"
+            } else {
+                ""
+            },
+            num(&p["frames"], "frames")?,
+            us("p50"),
+            us("p99"),
+            us("max"),
+            num(&p["overruns"], "overruns")?,
+            num(&p["late_frames"], "late_frames")?,
+            num(&p["failsafe_entries"], "failsafe_entries")?,
+            age(p["snapshot_age_ms"].as_f64().unwrap_or(f64::NAN)),
+        )
+    };
+    Ok(out)
+}
+
+/// `3d 04h 05m 06s`, `5m 06s`, `6.2s`.
+fn uptime(s: f64) -> String {
+    let whole = s as u64;
+    let (d, h, m, sec) = (
+        whole / 86_400,
+        whole / 3_600 % 24,
+        whole / 60 % 60,
+        whole % 60,
+    );
+    if d > 0 {
+        format!("{d}d {h:02}h {m:02}m {sec:02}s")
+    } else if h > 0 {
+        format!("{h}h {m:02}m {sec:02}s")
+    } else if m > 0 {
+        format!("{m}m {sec:02}s")
+    } else {
+        format!("{s:.1}s")
+    }
+}
+
+/// `12.3 ms`, `4.2 s`, `3m 20s`.
+fn age(ms: f64) -> String {
+    if ms < 1_000.0 {
+        format!("{ms:.1} ms")
+    } else if ms < 60_000.0 {
+        format!("{:.1} s", ms / 1e3)
+    } else {
+        uptime(ms / 1e3)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::Value;
+
+    #[test]
+    fn readable_reply() {
+        let r: Value = serde_json::from_str(
+            r#"{"name":"ppm","uptime_s":3725.5,"datagrams":{"received":12,"applied":9,
+            "rejected":{"invalid_utf8":0,"invalid_json":2,"not_a_number":0,"out_of_range":0,
+            "too_many_values":0,"unknown_channel":0,"bad_shape":1},"clamped":1,"clamped_values":2,
+            "stale":0,"superseded":0},"status_requests":4,"status_dropped":0,
+            "newest_command_age_ms":12.34,"newest_seq":41,
+            "ppmd":{"state":"active","frames":5000,"edge_error_us":{"p50":0.031,"p99":0.05,"max":12.4},
+            "overruns":0,"late_frames":1,"failsafe_entries":2,"degraded":true,"snapshot_age_ms":420.0},
+            "ppmd_stale":false}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            readable(&r).unwrap(),
+            "udp-ingress `ppm`, up 1h 02m 05s\n\
+             datagrams: received 12, applied 9, superseded 0, stale 0, clamped 1 (2 values)\n\
+             rejected: 3 (invalid_json 2, bad_shape 1)\n\
+             newest command: 12.3 ms ago, seq 41\n\
+             status queries: 4 (0 replies dropped)\n\
+             ppmd: active (DEGRADED RUN), 5000 frames; edge error p50 0.03 us, p99 0.05 us, max 12.4 us; 0 overruns, 1 late frames, 2 failsafe entries (snapshot 420.0 ms old)\n"
+        );
+        let mut r = r;
+        r["ppmd"] = Value::Null;
+        r["ppmd_stale"] = Value::Bool(true);
+        r["newest_command_age_ms"] = Value::Null;
+        let text = readable(&r).unwrap();
+        assert!(text.contains("newest command: none yet"), "{text}");
+        assert!(text.contains("more than 3 s"), "{text}");
+        r["datagrams"] = Value::Null;
+        assert!(readable(&r).is_err());
+    }
+
+    #[test]
+    fn durations() {
+        assert_eq!(uptime(6.25), "6.2s");
+        assert_eq!(uptime(306.0), "5m 06s");
+        assert_eq!(
+            uptime(3.0 * 86_400.0 + 4.0 * 3_600.0 + 5.0 * 60.0 + 6.0),
+            "3d 04h 05m 06s"
+        );
+        assert_eq!(age(4_200.0), "4.2 s");
+        assert_eq!(age(200_000.0), "3m 20s");
+    }
+}

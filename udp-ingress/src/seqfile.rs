@@ -1,0 +1,194 @@
+//! The last accepted signed `seq`, kept in a small file so that a restarted
+//! udp-ingress still refuses replays of commands accepted before.
+//!
+//! The file holds one decimal number and a newline. It is rewritten in place
+//! at most once per interval while new commands arrive, and at exit (then
+//! also flushed to the disk). A crash (SIGKILL, a panic) loses at most the
+//! `seq`s accepted in the last interval: a datagram from that window, replayed
+//! after the restart, would be accepted once. The written number survives the
+//! crash of the process but, until the kernel writes it back (seconds), not a
+//! power loss. A file on a tmpfs (`/run`, `/tmp`) is gone after a reboot.
+
+use anyhow::{bail, Context, Result};
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// Width of the written number; every write has the same length, so an
+/// in-place rewrite never leaves a tail of an older, longer one.
+const WIDTH: usize = 20;
+
+/// The state file, open for the life of the ingress.
+#[derive(Debug)]
+pub struct SeqFile {
+    path: PathBuf,
+    file: File,
+    every: Duration,
+    written: Option<u64>,
+    last_write: Option<Instant>,
+    sized: bool,
+}
+
+impl SeqFile {
+    /// Opens (or creates, mode 600, with its directory) the file; returns it
+    /// with the `seq` it holds (`None` when new or empty). A file holding
+    /// anything but a number is refused: a wrong floor would let replays in.
+    pub fn open(path: &Path, every: Duration) -> Result<(SeqFile, Option<u64>)> {
+        use std::os::unix::fs::OpenOptionsExt;
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("creating {} for the seq file", dir.display()))?;
+        }
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .mode(0o600)
+            .open(path)
+            .with_context(|| {
+                format!(
+                    "opening the seq file {} (ingress.seq_file) for reading and writing",
+                    path.display()
+                )
+            })?;
+        let mut text = String::new();
+        std::io::Read::read_to_string(&mut &file, &mut text)
+            .with_context(|| format!("reading the seq file {}", path.display()))?;
+        let t = text.trim();
+        let floor = if t.is_empty() {
+            None
+        } else {
+            match t.parse::<u64>() {
+                Ok(n) => Some(n),
+                Err(_) => bail!(
+                    "the seq file {} holds `{}`, not the last accepted seq: fix it, or delete it if no signed datagram recorded so far can be replayed",
+                    path.display(),
+                    t.chars().take(40).collect::<String>()
+                ),
+            }
+        };
+        let sized = text.len() == WIDTH + 1;
+        Ok((
+            SeqFile {
+                path: path.to_owned(),
+                file,
+                every,
+                written: floor,
+                last_write: None,
+                sized,
+            },
+            floor,
+        ))
+    }
+
+    /// Its path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Writes `seq` if it changed and the last write is at least the
+    /// interval old (call it on every wake-up). True when it wrote.
+    pub fn note(&mut self, seq: Option<u64>, now: Instant) -> std::io::Result<bool> {
+        let due = self
+            .last_write
+            .is_none_or(|t| now.duration_since(t) >= self.every);
+        match seq {
+            Some(s) if due && self.written != Some(s) => {
+                self.write(s)?;
+                self.last_write = Some(now);
+                Ok(true)
+            }
+            _ => Ok(false),
+        }
+    }
+
+    /// Writes `seq` if it changed and flushes the file to the disk (at exit).
+    pub fn flush(&mut self, seq: Option<u64>) -> std::io::Result<()> {
+        if let Some(s) = seq.filter(|s| self.written != Some(*s)) {
+            self.write(s)?;
+        }
+        self.file.sync_data()
+    }
+
+    fn write(&mut self, seq: u64) -> std::io::Result<()> {
+        self.file
+            .write_all_at(format!("{seq:0WIDTH$}\n").as_bytes(), 0)?;
+        if !self.sized {
+            self.file.set_len(WIDTH as u64 + 1)?;
+            self.sized = true;
+        }
+        self.written = Some(seq);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(label: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("ppm-seqfile-{label}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    #[test]
+    fn keeps_the_last_seq_across_opens() {
+        let d = dir("keep");
+        let path = d.join("sub/ppm.last_seq");
+        let every = Duration::from_millis(100);
+        let (mut f, floor) = SeqFile::open(&path, every).unwrap();
+        assert_eq!(floor, None);
+        let t = Instant::now();
+        assert!(f.note(Some(5), t).unwrap());
+        assert!(
+            !f.note(Some(6), t + Duration::from_millis(50)).unwrap(),
+            "too soon"
+        );
+        assert!(!f.note(None, t + Duration::from_millis(150)).unwrap());
+        assert!(f.note(Some(6), t + Duration::from_millis(150)).unwrap());
+        assert!(
+            !f.note(Some(6), t + Duration::from_millis(300)).unwrap(),
+            "unchanged"
+        );
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "00000000000000000006\n"
+        );
+        f.note(Some(7), t + Duration::from_millis(160)).unwrap();
+        f.flush(Some(u64::MAX)).unwrap();
+        drop(f);
+        let (_, floor) = SeqFile::open(&path, every).unwrap();
+        assert_eq!(floor, Some(u64::MAX));
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&path).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o600);
+
+        // Written by hand, shorter: read, and rewritten at full width.
+        std::fs::write(&path, " 42\n").unwrap();
+        let (mut f, floor) = SeqFile::open(&path, every).unwrap();
+        assert_eq!(floor, Some(42));
+        f.flush(Some(43)).unwrap();
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "00000000000000000043\n"
+        );
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn garbage_is_refused_with_the_path() {
+        let d = dir("garbage");
+        std::fs::create_dir_all(&d).unwrap();
+        let path = d.join("x.last_seq");
+        std::fs::write(&path, "twelve").unwrap();
+        let e = format!("{:#}", SeqFile::open(&path, Duration::ZERO).unwrap_err());
+        assert!(
+            e.contains(&path.display().to_string()) && e.contains("twelve"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+}
