@@ -61,6 +61,38 @@ const SEQ_SAVE_EVERY: Duration = Duration::from_millis(100);
 /// Most status queries answered per wake-up; more are counted as dropped
 /// (a flood of queries must not delay the commands).
 const MAX_STATUS_PER_WAKE: usize = 32;
+/// Status replies per second at most (and in one burst): a reply is about
+/// 40 times larger than the query, so an open port must not become a
+/// traffic amplifier. Queries beyond it are counted as dropped.
+const STATUS_REPLIES_PER_S: f64 = 50.0;
+
+/// A token bucket for status replies.
+struct ReplyBudget {
+    tokens: f64,
+    last: Instant,
+}
+
+impl ReplyBudget {
+    fn new() -> ReplyBudget {
+        ReplyBudget {
+            tokens: STATUS_REPLIES_PER_S,
+            last: Instant::now(),
+        }
+    }
+
+    fn take(&mut self) -> bool {
+        let now = Instant::now();
+        let refill = now.duration_since(self.last).as_secs_f64() * STATUS_REPLIES_PER_S;
+        self.tokens = (self.tokens + refill).min(STATUS_REPLIES_PER_S);
+        self.last = now;
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
+}
 
 type Publisher =
     iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, CommandSample, ()>;
@@ -190,6 +222,7 @@ fn run(cli: Cli) -> Result<()> {
     let mut cmsg = nix::cmsg_space!(nix::sys::time::TimeSpec);
     let mut status_to: Vec<SocketAddr> = Vec::with_capacity(MAX_STATUS_PER_WAKE);
     let mut ppmd_snapshot: Option<TimingSnapshot> = None;
+    let mut reply_budget = ReplyBudget::new();
     let mut ingress_seq = 0u64;
     let mut publish_errors = 0u64;
     let mut last_report = Instant::now();
@@ -262,6 +295,10 @@ fn run(cli: Cli) -> Result<()> {
                 )
                 .to_string();
             for to in status_to.drain(..) {
+                if !reply_budget.take() {
+                    intake.status_dropped();
+                    continue;
+                }
                 match socket.send_to(reply.as_bytes(), to) {
                     Ok(_) => {}
                     Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => intake.status_dropped(),
