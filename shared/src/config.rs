@@ -688,6 +688,13 @@ fn resolve_mapping(
                     format!("{lo} is not below unit_max = {hi} (use reverse = true to swap the direction)"),
                 ));
             }
+            // The mapping divides by the width: an infinite one gives NaN.
+            if !(hi - lo).is_finite() {
+                return Err(ConfigError::invalid(
+                    key("unit_max"),
+                    format!("the range {lo}..{hi} is too wide: unit_max - unit_min must be a finite number"),
+                ));
+            }
             Some((lo, hi))
         }
     };
@@ -1055,5 +1062,29 @@ mod units_tests {
         // Limits and trim at their edges are fine.
         let ok = format!("{r}unit_us_min = 800.0\nunit_us_max = 2200.0\ntrim_us = -500.0");
         Config::parse(&ok).unwrap().validate().unwrap();
+    }
+
+    /// Found by fuzz/config_structured: a unit range whose width overflows
+    /// f64 validated, and a `units` value at its end then mapped through
+    /// inf / inf = NaN to a 0 ns channel period (below min_us).
+    #[test]
+    fn unit_range_wider_than_f64_is_refused() {
+        for (lo, hi) in [
+            ("-1e308", "1e308"),
+            ("-1.7976931348623157e308", "1.7976931348623157e308"),
+        ] {
+            let text = format!("[ppm.channel.ail]\nunit_min = {lo}\nunit_max = {hi}");
+            let e = Config::parse(&text).unwrap().validate().unwrap_err();
+            assert_eq!(e.key(), Some("ppm.channel.ail.unit_max"), "{text}: {e}");
+            assert!(e.to_string().contains("too wide"), "{e}");
+        }
+        // The widest ranges with a finite width still map within the limits.
+        let text = "[ppm.channel.ail]\nunit_min = -8e307\nunit_max = 8e307";
+        let m = Config::parse(text).unwrap().validate().unwrap();
+        assert_eq!(m.units_to_ns(0, 8e307), Some((2_000_000, false)));
+        assert_eq!(m.units_to_ns(0, f64::MAX), Some((2_000_000, true)));
+        assert_eq!(m.units_to_ns(0, f64::MIN), Some((1_000_000, true)));
+        let cmd = crate::protocol::parse(br#"{"units": {"ail": 1e308}}"#, &m).unwrap();
+        assert_eq!(cmd.channels.as_ns()[0], 2_000_000);
     }
 }

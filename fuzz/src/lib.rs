@@ -1,0 +1,453 @@
+//! Shared pieces of the fuzz targets: the frame models the wire targets parse
+//! against, and the invariants every accepted command and every rejection must
+//! satisfy.
+
+use ppm_shared::auth::{self, AuthKey, MAC_HEX_LEN};
+use ppm_shared::config::{Config, SYNC_MAX_US, SYNC_MIN_US};
+use ppm_shared::decode::{decode, DecoderLimits};
+use ppm_shared::frame::{us_to_ns, Channels, FrameModel, Level};
+use ppm_shared::protocol::{self, Command, Reject, RejectReason};
+use std::sync::OnceLock;
+
+/// Configurations the wire targets parse against.
+pub const MODEL_CONFIGS: &[(&str, &str)] = &[
+    ("default", ""),
+    (
+        "taer4",
+        r#"
+[ppm]
+channels = 4
+order = "TAER"
+[ppm.channel.ail]
+unit = "deg"
+unit_min = -15.0
+unit_max = 15.0
+[ppm.channel.thr]
+unit = "%"
+unit_min = 0
+unit_max = 100
+"#,
+    ),
+    (
+        // 16 channels, per-channel limits (one pinned, fractional ones),
+        // unit ranges (reversed, trimmed, tiny, huge), idle high, an odd
+        // order and pulse width.
+        "limits16",
+        r#"
+[ppm]
+channels = 16
+order = "ETRA"
+frame_us = 35000
+pulse_us = 400.25
+idle_level = "high"
+min_us = 1100
+max_us = 1900
+[ppm.channel.thr]
+min_us = 1000
+max_us = 1900
+reverse = true
+trim_us = 5.0
+[ppm.channel.ail]
+min_us = 900
+max_us = 2100
+default_us = 1550.5
+unit_min = -15.0
+unit_max = 15.0
+reverse = true
+trim_us = -12.5
+[ppm.channel.ele]
+min_us = 800
+max_us = 2200
+unit_min = -20.0
+unit_max = 20.0
+unit_us_min = 1100.0
+unit_us_max = 1900.0
+[ppm.channel.rud]
+min_us = 1100
+max_us = 1800
+default_us = 1400.001
+unit_min = -1e300
+unit_max = 1e300
+[ppm.channel.aux1]
+min_us = 1234.5678
+max_us = 1234.5678
+default_us = 1234.5678
+reverse = true
+[ppm.channel.aux3]
+unit_min = 0
+unit_max = 1
+unit_us_min = 800
+unit_us_max = 2200
+[ppm.channel.aux2]
+unit_min = 0
+unit_max = 1e-9
+trim_us = 500
+[ppm.channel.aux5]
+min_us = 950.25
+max_us = 1999.75
+default_us = 1000.0005
+unit_min = 3
+unit_max = 4
+unit_us_min = 800
+unit_us_max = 2200
+trim_us = -500
+[ppm.channel.aux12]
+min_us = 800
+max_us = 2200
+default_us = 2200
+"#,
+    ),
+    (
+        "one",
+        "[ppm]\nchannels = 1\nframe_us = 19800\npulse_us = 50\nmin_us = 800\nmax_us = 2200\n",
+    ),
+];
+
+/// The key signed datagrams are checked with: the README's test vector key,
+/// the bytes 0, 1, ..., 31.
+pub fn key() -> &'static AuthKey {
+    static KEY: OnceLock<AuthKey> = OnceLock::new();
+    KEY.get_or_init(|| AuthKey::new(std::array::from_fn(|i| i as u8)))
+}
+
+/// The models of [`MODEL_CONFIGS`], built once.
+pub fn models() -> &'static [FrameModel] {
+    static MODELS: OnceLock<Vec<FrameModel>> = OnceLock::new();
+    MODELS.get_or_init(|| {
+        MODEL_CONFIGS
+            .iter()
+            .map(|(name, text)| {
+                let c = Config::parse(text).unwrap_or_else(|e| panic!("{name}: {e}"));
+                let m = c.validate().unwrap_or_else(|e| panic!("{name}: {e}"));
+                check_model(&m);
+                m
+            })
+            .collect()
+    })
+}
+
+/// What a validated model must satisfy, whatever configuration built it.
+pub fn check_model(m: &FrameModel) {
+    let n = m.channels();
+    assert!((1..=16).contains(&n), "{n} channels");
+    assert_eq!(m.names().len(), n);
+    let sum_max: u64 = (0..n).map(|i| m.max_ns(i) as u64).sum();
+    let sum_min: u64 = (0..n).map(|i| m.min_ns(i) as u64).sum();
+    assert!(
+        m.frame_ns() >= sum_max + us_to_ns(SYNC_MIN_US),
+        "worst-case sync below 4 ms: frame {} sum_max {sum_max}",
+        m.frame_ns()
+    );
+    assert!(
+        m.frame_ns() - sum_min <= us_to_ns(SYNC_MAX_US),
+        "best-case sync above 19 ms: frame {} sum_min {sum_min}",
+        m.frame_ns()
+    );
+    assert!(m.pulse_ns() >= 50_000, "pulse {}", m.pulse_ns());
+    for i in 0..n {
+        let (lo, d, hi) = (m.min_ns(i), m.default_ns(i), m.max_ns(i));
+        assert!(
+            (800_000..=2_200_000).contains(&lo) && (800_000..=2_200_000).contains(&hi),
+            "channel {i}: {lo}..={hi} outside 800..2200 us"
+        );
+        assert!(
+            lo <= d && d <= hi,
+            "channel {i}: default {d} outside {lo}..={hi}"
+        );
+        assert!(
+            m.pulse_ns() < lo as u64,
+            "pulse {} >= min {lo}",
+            m.pulse_ns()
+        );
+        assert_eq!(m.index_of(&m.names()[i]), Some(i), "duplicate name");
+    }
+    let names: Vec<&str> = m.names().iter().map(String::as_str).collect();
+    for name in names.iter().take(4) {
+        assert!(["ail", "ele", "thr", "rud"].contains(name), "{name}");
+    }
+    for (i, name) in names.iter().enumerate().skip(4) {
+        assert_eq!(*name, format!("aux{}", i - 3));
+    }
+    for i in 0..n {
+        check_mapping(m, i);
+    }
+    // Every channel at its extremes and at its defaults encodes to a frame a
+    // transmitter decodes back exactly.
+    let mins: Vec<u32> = (0..n).map(|i| m.min_ns(i)).collect();
+    let maxs: Vec<u32> = (0..n).map(|i| m.max_ns(i)).collect();
+    for c in [
+        Channels::from_ns(&mins),
+        Channels::from_ns(&maxs),
+        m.defaults(),
+    ] {
+        check_frame(m, &c);
+    }
+}
+
+/// Invariants of one encoded frame carrying `c` (values within limits).
+pub fn check_frame(m: &FrameModel, c: &Channels) {
+    let n = m.channels();
+    let s = m.encode(c);
+    let e = s.edges();
+    assert_eq!(e.len(), 2 * (n + 1), "edge count");
+    assert!(
+        e.windows(2).all(|w| w[0].at_ns <= w[1].at_ns),
+        "edges out of order: {e:?}"
+    );
+    let active = m.idle_level().opposite();
+    for (k, edge) in e.iter().enumerate() {
+        let want = if k % 2 == 0 { active } else { m.idle_level() };
+        assert_eq!(edge.level, want, "edge {k} level");
+    }
+    assert_eq!(e[0].at_ns, 0);
+    for k in 0..=n {
+        assert_eq!(
+            e[2 * k + 1].at_ns - e[2 * k].at_ns,
+            m.pulse_ns(),
+            "pulse {k} width"
+        );
+    }
+    for i in 0..n {
+        assert_eq!(
+            e[2 * (i + 1)].at_ns - e[2 * i].at_ns,
+            c.as_ns()[i] as u64,
+            "channel {i} period"
+        );
+    }
+    let last_start = e[2 * n].at_ns;
+    assert!(
+        last_start + us_to_ns(SYNC_MIN_US) <= m.frame_ns(),
+        "last pulse at {last_start} leaves less than 4 ms of a {} ns frame",
+        m.frame_ns()
+    );
+    assert!(
+        m.frame_ns() - last_start <= us_to_ns(SYNC_MAX_US),
+        "sync over 19 ms"
+    );
+    // Two frames plus the next frame's first edge: a transmitter reads the
+    // second frame, and it must be exactly the values.
+    let mut edges: Vec<(u64, Level)> = Vec::with_capacity(2 * e.len() + 1);
+    for k in 0..2u64 {
+        edges.extend(e.iter().map(|x| (k * m.frame_ns() + x.at_ns, x.level)));
+    }
+    edges.push((2 * m.frame_ns(), active));
+    let frames = decode(edges, active, DecoderLimits::default());
+    assert_eq!(frames.len(), 1, "decoded {frames:?}");
+    let got: Vec<u32> = frames[0].channels_ns.iter().map(|&v| v as u32).collect();
+    assert_eq!(got, c.as_ns(), "decoded values");
+    assert!(frames[0].complete);
+    assert_eq!(frames[0].start_ns, m.frame_ns());
+}
+
+/// Invariants of an accepted command.
+pub fn check_accepted(m: &FrameModel, cmd: &Command) {
+    let n = m.channels();
+    assert_eq!(cmd.channels.len(), n, "channel count");
+    for (i, &v) in cmd.channels.as_ns().iter().enumerate() {
+        assert!(
+            (m.min_ns(i)..=m.max_ns(i)).contains(&v),
+            "channel {i} = {v} ns outside {}..={}",
+            m.min_ns(i),
+            m.max_ns(i)
+        );
+    }
+    assert!(cmd.clamped as usize <= n, "clamped {} > {n}", cmd.clamped);
+    check_frame(m, &cmd.channels);
+    // The values written back exactly (to the nanosecond) parse to the same
+    // command, with nothing clamped.
+    let values: Vec<String> = cmd
+        .channels
+        .as_ns()
+        .iter()
+        .map(|&v| format!("{}.{:03}", v / 1000, v % 1000))
+        .collect();
+    let text = match cmd.seq {
+        Some(s) => format!("{{\"seq\": {s}, \"ch\": [{}]}}", values.join(", ")),
+        None => format!("[{}]", values.join(",")),
+    };
+    let again = protocol::parse(text.as_bytes(), m)
+        .unwrap_or_else(|e| panic!("re-encoded command {text} rejected: {e}"));
+    assert_eq!(again.channels, cmd.channels, "{text}");
+    assert_eq!(again.seq, cmd.seq, "{text}");
+    assert_eq!(again.clamped, 0, "{text}");
+}
+
+/// Invariants of a rejection.
+pub fn check_rejected(e: &Reject) {
+    let name = e.reason.as_str();
+    assert!(
+        RejectReason::ALL.iter().any(|r| r.as_str() == name),
+        "reason {name} not in RejectReason::ALL"
+    );
+    assert_eq!(RejectReason::ALL[e.reason.index()], e.reason);
+    let shown = e.to_string();
+    assert!(shown.starts_with(name), "{shown}");
+    assert!(!e.detail.is_empty(), "{name} without a detail");
+}
+
+/// Parses a datagram and checks whichever invariants apply.
+pub fn parse_checked(data: &[u8], m: &FrameModel) -> Result<Command, Reject> {
+    let r = protocol::parse(data, m);
+    match &r {
+        Ok(cmd) => check_accepted(m, cmd),
+        Err(e) => check_rejected(e),
+    }
+    r
+}
+
+/// Probe values for `norm` and `units`.
+const PROBES: &[f64] = &[
+    -1.0,
+    0.0,
+    1.0,
+    -0.0,
+    -0.5,
+    0.5,
+    -1.000001,
+    1.000001,
+    -2.0,
+    2.0,
+    1e308,
+    -1e308,
+    f64::MAX,
+    f64::MIN,
+    f64::MIN_POSITIVE,
+    -f64::MIN_POSITIVE,
+];
+
+/// Channel `i`'s period for a `units` (`units`) or `norm` value `x`, by the
+/// README's formula, and whether it counts as clamped; `None` for `units` on
+/// a channel without a unit range.
+pub fn mapped_ns(m: &FrameModel, i: usize, units: bool, x: f64) -> Option<(u32, bool)> {
+    let map = m.mapping(i);
+    let (lo, hi) = if units { map.units? } else { (-1.0, 1.0) };
+    let v = x.clamp(lo, hi);
+    let f = match (units, map.reverse) {
+        (true, false) => (v - lo) / (hi - lo),
+        (true, true) => (hi - v) / (hi - lo),
+        (false, false) => (v + 1.0) / 2.0,
+        (false, true) => (1.0 - v) / 2.0,
+    };
+    assert!(
+        (0.0..=1.0).contains(&f),
+        "channel {i}: position {f} of {x} along {lo}..={hi} is not within 0..=1"
+    );
+    let us = map.us_lo + f * (map.us_hi - map.us_lo) + map.trim_us;
+    let ns = (us * 1000.0).round();
+    let c = ns.clamp(m.min_ns(i) as f64, m.max_ns(i) as f64);
+    Some((c as u32, v != x || c != ns))
+}
+
+/// The `units` and `norm` mappings of channel `i`: within the channel's
+/// limits for any value, as the README's formula says, monotonic, and
+/// clamped when outside their range.
+pub fn check_mapping(m: &FrameModel, i: usize) {
+    let (lo_ns, hi_ns) = (m.min_ns(i), m.max_ns(i));
+    let map = *m.mapping(i);
+    assert!(map.us_lo < map.us_hi || map.units.is_none() && map.us_lo <= map.us_hi);
+    assert!(map.trim_us.is_finite() && map.trim_us.abs() <= 500.0);
+    let mut probes: Vec<(bool, f64)> = PROBES.iter().map(|&x| (false, x)).collect();
+    if let Some((lo, hi)) = map.units {
+        assert!(
+            lo.is_finite() && hi.is_finite() && lo < hi,
+            "unit range {lo}..{hi}"
+        );
+        let unit_probes = [
+            lo,
+            hi,
+            lo / 2.0 + hi / 2.0,
+            lo - 1.0,
+            hi + 1.0,
+            lo.next_down(),
+            hi.next_up(),
+        ];
+        probes.extend(PROBES.iter().chain(&unit_probes).map(|&x| (true, x)));
+    } else {
+        assert_eq!(m.units_to_ns(i, 0.0), None);
+        assert!(m.ns_to_units(i, lo_ns).is_none());
+    }
+    for (units, x) in probes {
+        let got = if units {
+            m.units_to_ns(i, x).expect("a unit range")
+        } else {
+            m.norm_to_ns(i, x)
+        };
+        let form = if units { "units" } else { "norm" };
+        assert!(
+            (lo_ns..=hi_ns).contains(&got.0),
+            "{form} {x} on channel {i} gives {} ns, outside {lo_ns}..={hi_ns}",
+            got.0
+        );
+        let want = mapped_ns(m, i, units, x).unwrap();
+        assert_eq!(got, want, "{form} {x} on channel {i}");
+        let (lo, hi) = if units {
+            map.units.unwrap()
+        } else {
+            (-1.0, 1.0)
+        };
+        if !(lo..=hi).contains(&x) {
+            assert!(
+                got.1,
+                "{form} {x} outside {lo}..={hi} not counted as clamped"
+            );
+        }
+    }
+    // Monotonic in the value, falling when reversed.
+    let ends = |units: bool| {
+        let (lo, hi) = if units {
+            map.units.unwrap()
+        } else {
+            (-1.0, 1.0)
+        };
+        let at = |x: f64| mapped_ns(m, i, units, x).unwrap().0;
+        (at(lo), at(lo / 2.0 + hi / 2.0), at(hi))
+    };
+    for units in [false, map.units.is_some()] {
+        let (a, b, c) = ends(units);
+        if map.reverse {
+            assert!(a >= b && b >= c, "channel {i} not falling: {a} {b} {c}");
+        } else {
+            assert!(a <= b && b <= c, "channel {i} not rising: {a} {b} {c}");
+        }
+    }
+}
+
+/// The signed form: a datagram taken apart by `auth::envelope` is either not
+/// signed, rejected as `bad_shape`/`bad_mac`, or a `msg` and a well-formed
+/// MAC. Returns the envelope's `msg` when its MAC verifies under [`key`].
+pub fn check_envelope(data: &[u8]) -> Option<String> {
+    match auth::envelope(data)? {
+        Err(e) => {
+            check_rejected(&e);
+            assert!(
+                matches!(e.reason, RejectReason::BadShape | RejectReason::BadMac),
+                "{e}"
+            );
+            None
+        }
+        Ok(env) => {
+            assert_eq!(env.mac.len(), MAC_HEX_LEN);
+            assert!(env.mac.bytes().all(|b| b.is_ascii_hexdigit()));
+            env.verify(key()).then_some(env.msg)
+        }
+    }
+}
+
+/// Signs `msg`, takes the envelope apart again and checks it verifies, and
+/// that changing any part of it makes it fail.
+pub fn check_signing(msg: &str) {
+    let k = key();
+    let datagram = k.envelope(msg);
+    let env = match auth::envelope(datagram.as_bytes()) {
+        Some(Ok(env)) => env,
+        other => panic!("{datagram}: {other:?}"),
+    };
+    assert_eq!(env.msg, msg);
+    assert!(env.verify(k));
+    assert_eq!(check_envelope(datagram.as_bytes()).as_deref(), Some(msg));
+    let mut mac = env.mac.clone().into_bytes();
+    mac[0] = if mac[0] == b'0' { b'1' } else { b'0' };
+    assert!(!k.verify(msg.as_bytes(), std::str::from_utf8(&mac).unwrap()));
+    let other = format!("{msg} ");
+    assert!(!k.verify(other.as_bytes(), &env.mac));
+}
