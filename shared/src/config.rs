@@ -436,6 +436,11 @@ impl Config {
         })
     }
 
+    /// Reads `path` when given, else the defaults (every key has one).
+    pub fn load_or_default(path: Option<&Path>) -> Result<Config, ConfigError> {
+        path.map_or_else(|| Ok(Config::default()), Config::load)
+    }
+
     /// Parses configuration text (see [`Config::load`]).
     pub fn parse(text: &str) -> Result<Config, ConfigError> {
         toml::from_str(text).map_err(|e| ConfigError::Parse {

@@ -111,10 +111,7 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    let mut cfg = match &cli.config {
-        Some(path) => Config::load(path)?,
-        None => Config::default(),
-    };
+    let mut cfg = Config::load_or_default(cli.config.as_deref())?;
     if let Some(name) = cli.name {
         cfg.name = name;
     }

@@ -123,10 +123,7 @@ fn stop_flag() -> Result<Arc<AtomicBool>> {
 }
 
 fn load_config(cli: &Cli) -> Result<Config> {
-    Ok(match &cli.config {
-        Some(p) => Config::load(p)?,
-        None => Config::default(),
-    })
+    Ok(Config::load_or_default(cli.config.as_deref())?)
 }
 
 fn unit_ns(cli: &Cli) -> u64 {

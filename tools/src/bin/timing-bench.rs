@@ -127,10 +127,7 @@ fn run_block(
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
-    let cfg = match &cli.config {
-        Some(p) => Config::load(p)?,
-        None => Config::default(),
-    };
+    let cfg = Config::load_or_default(cli.config.as_deref())?;
     let model = cfg.validate()?;
     let mut rt = cfg.rt.clone();
     rt.priority = cli.priority;
