@@ -16,10 +16,10 @@
 use crate::clock::{self, EdgeTimer, Margin};
 use crate::framelog::{self, CommandInfo, Record};
 use crate::meter::Meter;
-use crate::output::Output;
+use crate::output::{Bank, Output};
 use crate::source::CommandSource;
 use ppm_shared::config::{FailsafeAction, SYNC_MAX_US, SYNC_MIN_US};
-use ppm_shared::frame::{us_to_ns, Channels, FrameModel, MAX_CHANNELS};
+use ppm_shared::frame::{us_to_ns, Channels, EdgeSchedule, FrameModel, Level, MAX_CHANNELS};
 use ppm_shared::ipc::CommandSample;
 use ppm_shared::trace::TraceEdge;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering::Relaxed};
@@ -108,9 +108,51 @@ fn add(c: &AtomicU64, n: u64) {
     c.fetch_add(n, Relaxed);
 }
 
-/// Runs until `stop` is set, then finishes the frame in progress and leaves
-/// the line at its idle level. With a frame log, every emitted frame and
-/// every line-state change is queued to it.
+/// Most outputs (lanes) one loop drives.
+pub const MAX_LANES: usize = ppm_shared::config::MAX_OUTPUTS;
+
+/// Time one decision (take the command, encode the frame) may take. A
+/// decision is made only when no edge is due within this time plus the spin
+/// margin; when its time falls on an edge, it is made early, before the edge.
+pub const DECIDE_SLOT_NS: u64 = 50_000;
+
+/// Where a lane's edges go.
+pub enum Sink<'a> {
+    /// A line of its own.
+    Line(&'a mut dyn Output),
+    /// Line `bit` of bank `bank` (several lines of one GPIO chip in one
+    /// request): edges of a bank's lanes due at the same time are written
+    /// together, in one call.
+    Bank {
+        /// Index into the banks given to [`run_lanes`].
+        bank: usize,
+        /// The line's index within the bank.
+        bit: u32,
+    },
+}
+
+/// One output of the loop: its frame model, failsafe settings, commands,
+/// line, counters and histograms.
+pub struct Lane<'a> {
+    /// The frame this output emits.
+    pub model: &'a FrameModel,
+    /// Failsafe settings (the loop's spin margin is the first lane's).
+    pub cfg: EmitterConfig,
+    /// Where its commands come from.
+    pub source: &'a mut dyn CommandSource,
+    /// Where its edges go.
+    pub sink: Sink<'a>,
+    /// Its counters.
+    pub stats: &'a Stats,
+    /// Its histograms.
+    pub meter: &'a mut Meter,
+    /// Its frame log, if any.
+    pub log: Option<&'a mut framelog::Producer>,
+}
+
+/// Runs one output until `stop` is set, then finishes the frame in progress
+/// and leaves the line at its idle level. With a frame log, every emitted
+/// frame and every line-state change is queued to it.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     model: &FrameModel,
@@ -120,177 +162,394 @@ pub fn run(
     stop: &AtomicBool,
     stats: &Stats,
     meter: &mut Meter,
-    mut log: Option<&mut framelog::Producer>,
+    log: Option<&mut framelog::Producer>,
 ) {
+    let mut lanes = [Lane {
+        model,
+        cfg: *cfg,
+        source,
+        sink: Sink::Line(out),
+        stats,
+        meter,
+        log,
+    }];
+    run_lanes(&mut lanes, &mut [], stop);
+}
+
+/// A frame being emitted.
+#[derive(Clone, Copy)]
+struct Frame {
+    schedule: EdgeSchedule,
+    /// The next edge to write.
+    next: usize,
+    start: u64,
+    start_real_ns: u64,
+    channels: Channels,
+    state: LineState,
+    command: Option<CommandInfo>,
+    spun: u64,
+}
+
+impl Frame {
+    fn due(&self) -> u64 {
+        self.start + self.schedule.edges()[self.next].at_ns
+    }
+}
+
+/// What the loop keeps per lane.
+#[derive(Clone, Copy)]
+struct Progress {
+    newest: Option<(CommandSample, Channels)>,
+    /// Grid start of the next frame, while frames are running.
+    next_start: Option<u64>,
+    /// Sync gap after the previous frame's last pulse, when frames are running.
+    prev_sync_ns: u64,
+    state: LineState,
+    frame_no: u64,
+    /// When to look for a command again while silent.
+    poll_at: u64,
+    frame: Option<Frame>,
+}
+
+impl Progress {
+    /// When this lane next needs a decision (it has no frame in progress).
+    fn decide_at(&self, lead: u64) -> Option<u64> {
+        match (self.frame, self.next_start) {
+            (Some(_), _) => None,
+            (None, Some(s)) => Some(s.saturating_sub(lead)),
+            (None, None) => Some(self.poll_at),
+        }
+    }
+}
+
+/// Runs every lane from one thread until `stop` is set: the edges of all
+/// lanes are merged into one schedule and waited for by one [`EdgeTimer`];
+/// edges due at the same time on the lines of one bank are written with one
+/// call. Each lane keeps its own frame grid, failsafe, counters and frame log.
+/// Lanes with equal frame lengths that start while another runs join its grid,
+/// so their frame starts coincide. When `stop` is set, frames in progress are
+/// finished and every line is left at its idle level.
+pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicBool) {
+    assert!(
+        (1..=MAX_LANES).contains(&lanes.len()),
+        "1..={MAX_LANES} lanes"
+    );
+    let n = lanes.len();
+    let mut timer = EdgeTimer::new(lanes[0].cfg.margin);
+    let now = clock::now_ns();
+    let mut prog = [Progress {
+        newest: None,
+        next_start: None,
+        prev_sync_ns: 0,
+        state: LineState::Silent,
+        frame_no: 0,
+        poll_at: now,
+        frame: None,
+    }; MAX_LANES];
+    for lane in lanes.iter_mut() {
+        lane.meter.start(now);
+    }
+    loop {
+        let stopping = stop.load(Relaxed);
+        let margin = timer.margin_ns();
+        let lead = margin + DECIDE_NS;
+        let edge_due = prog[..n]
+            .iter()
+            .filter_map(|p| p.frame.map(|f| f.due()))
+            .min();
+        let decision = if stopping {
+            None
+        } else {
+            (0..n)
+                .filter_map(|i| prog[i].decide_at(lead).map(|d| (d, i)))
+                .min()
+        };
+        let decide = match (decision, edge_due) {
+            (None, None) => break,
+            (None, Some(_)) => None,
+            (Some((at, i)), None) => Some((at, i, true)),
+            (Some((at, i)), Some(due)) => {
+                let spin_from = due.saturating_sub(margin);
+                if at + DECIDE_SLOT_NS <= spin_from {
+                    Some((at, i, true))
+                } else if at <= due && clock::now_ns() + DECIDE_SLOT_NS <= spin_from {
+                    // Its time falls on an edge: decide now, before it.
+                    Some((at, i, false))
+                } else {
+                    None
+                }
+            }
+        };
+        match decide {
+            Some((at, i, sleep)) => {
+                if sleep {
+                    clock::sleep_until(at);
+                }
+                let frame_ns = lanes[i].model.frame_ns();
+                let anchor = (0..n)
+                    .filter(|&j| j != i && lanes[j].model.frame_ns() == frame_ns)
+                    .find_map(|j| prog[j].next_start);
+                decide_frame(&mut lanes[i], &mut prog[i], lead, anchor);
+            }
+            None => {
+                let due = edge_due.expect("an edge is due");
+                emit_due(due, lanes, &mut prog[..n], banks, &mut timer);
+            }
+        }
+    }
+    for lane in lanes.iter_mut() {
+        let idle = lane.model.idle_level();
+        let parked = match &mut lane.sink {
+            Sink::Line(out) => out.park(idle),
+            Sink::Bank { bank, bit } => banks[*bank].park(*bit, idle),
+        };
+        if parked.is_err() {
+            add(&lane.stats.write_errors, 1);
+        }
+        lane.stats.state.store(LineState::Silent as u8, Relaxed);
+    }
+}
+
+/// The first point at or after `t` on the grid through `anchor` with period
+/// `period` (just `t` without an anchor).
+fn align(t: u64, anchor: Option<u64>, period: u64) -> u64 {
+    match anchor {
+        None => t,
+        Some(a) if a >= t => a - (a - t) / period * period,
+        Some(a) => a + (t - a).div_ceil(period) * period,
+    }
+}
+
+/// Takes the lane's newest command, decides what its next frame carries and
+/// schedules it (or goes silent).
+fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64>) {
+    let model = lane.model;
+    let cfg = &lane.cfg;
+    let stats = lane.stats;
     let frame_ns = model.frame_ns();
     let (sync_min_ns, sync_max_ns) = (us_to_ns(SYNC_MIN_US), us_to_ns(SYNC_MAX_US));
-    let mut timer = EdgeTimer::new(cfg.margin);
-    let mut newest: Option<(CommandSample, Channels)> = None;
-    let mut next_start: Option<u64> = None;
-    // Sync gap after the previous frame's last pulse, when frames are running.
-    let mut prev_sync_ns = 0;
-    let mut state = LineState::Silent;
-    let mut frame_no = 0u64;
-    meter.start(clock::now_ns());
-    while !stop.load(Relaxed) {
-        let lead = timer.margin_ns() + DECIDE_NS;
-        match next_start {
-            Some(start) => clock::sleep_until(start.saturating_sub(lead)),
-            None => clock::sleep_until(clock::now_ns() + IDLE_POLL_NS),
-        }
-        let now = clock::now_ns();
-        meter.maybe_hand_over(now);
-        if let Some(sample) = source.newest() {
-            match sample.channels(model) {
-                Some(ch) => {
-                    add(&stats.commands, 1);
-                    newest = Some((sample, ch));
-                }
-                None => add(&stats.mismatched, 1),
+    let now = clock::now_ns();
+    lane.meter.maybe_hand_over(now);
+    if let Some(sample) = lane.source.newest() {
+        match sample.channels(model) {
+            Some(ch) => {
+                add(&stats.commands, 1);
+                p.newest = Some((sample, ch));
             }
+            None => add(&stats.mismatched, 1),
         }
-        let fresh = newest
-            .filter(|(s, _)| now.saturating_sub(s.recv_mono_ns) <= cfg.failsafe_after_ns)
-            .map(|(_, ch)| ch);
-        let (channels, new_state) = match (fresh, newest) {
-            (Some(ch), _) => (Some(ch), LineState::Active),
-            (None, None) => match cfg.startup {
-                FailsafeAction::Default => (Some(model.defaults()), LineState::Failsafe),
-                // Nothing to hold before the first command.
-                _ => (None, LineState::Silent),
-            },
-            (None, Some((_, last))) => match cfg.failsafe_action {
-                FailsafeAction::Silence => (None, LineState::Silent),
-                FailsafeAction::Hold => (Some(last), LineState::Failsafe),
-                FailsafeAction::Default => (Some(model.defaults()), LineState::Failsafe),
-            },
-        };
-        if state == LineState::Active && new_state != LineState::Active {
-            add(&stats.failsafe_entries, 1);
-        }
-        if new_state != state {
-            if let Some(log) = log.as_deref_mut() {
-                log.push(Record::Transition {
-                    mono_ns: now,
-                    real_ns: clock::realtime_ns(),
-                    from: state,
-                    to: new_state,
-                });
-            }
-        }
-        state = new_state;
-        stats.state.store(state as u8, Relaxed);
-        let Some(channels) = channels else {
-            next_start = None;
-            continue;
-        };
-        let schedule = model.encode(&channels);
-        let edges = schedule.edges();
-        let last_pulse = edges[edges.len() - 2].at_ns;
-        let sync_ns = frame_ns - last_pulse;
-        let mut start = match next_start {
-            Some(s) => s,
-            None => {
-                prev_sync_ns = 0;
-                now + lead
-            }
-        };
-        let ready = clock::now_ns() + DECIDE_NS / 2;
-        if ready > start {
-            // Moving the frame later by `late` lengthens the gap before it and
-            // shortens the one after it: both must stay sync periods.
-            let late = ready - start;
-            let fits_after = sync_ns >= sync_min_ns + late;
-            let fits_before = prev_sync_ns == 0 || prev_sync_ns + late <= sync_max_ns;
-            if fits_after && fits_before {
-                add(&stats.late_frames, 1);
-                start += late;
-            } else {
-                let missed = late / frame_ns + 1;
-                add(&stats.overruns, missed);
-                next_start = Some(start + missed * frame_ns);
-                prev_sync_ns = 0;
-                continue;
-            }
-        }
-        let grid_start = next_start.unwrap_or(start);
-        // Where the frame starts on the wall clock, from one pair of readings.
-        let start_real_ns = clock::realtime_ns() + start.saturating_sub(clock::now_ns());
-        emit_frame(edges, start, &mut timer, out, stats, meter);
-        next_start = Some(grid_start + frame_ns);
-        prev_sync_ns = grid_start + frame_ns - (start + last_pulse);
-        stats.margin_ns.store(timer.margin_ns(), Relaxed);
-        frame_no += 1;
-        if let Some(log) = log.as_deref_mut() {
-            let mut values_ns = [0; MAX_CHANNELS];
-            for (i, v) in values_ns.iter_mut().enumerate().take(model.channels()) {
-                let given = channels
-                    .as_ns()
-                    .get(i)
-                    .copied()
-                    .unwrap_or(model.default_ns(i));
-                *v = model.clamp(i, given).0;
-            }
-            let from_command =
-                state == LineState::Active || cfg.failsafe_action == FailsafeAction::Hold;
-            log.push(Record::Frame {
-                frame: frame_no,
-                start_mono_ns: start,
-                start_real_ns,
-                state,
-                command: newest.filter(|_| from_command).map(|(s, _)| CommandInfo {
-                    seq: s.seq(),
-                    ingress_seq: s.ingress_seq,
-                    recv_mono_ns: s.recv_mono_ns,
-                    recv_real_ns: s.recv_real_ns,
-                }),
-                channels: model.channels() as u8,
-                values_ns,
+    }
+    let fresh = p
+        .newest
+        .filter(|(s, _)| now.saturating_sub(s.recv_mono_ns) <= cfg.failsafe_after_ns)
+        .map(|(_, ch)| ch);
+    let (channels, new_state) = match (fresh, p.newest) {
+        (Some(ch), _) => (Some(ch), LineState::Active),
+        (None, None) => match cfg.startup {
+            FailsafeAction::Default => (Some(model.defaults()), LineState::Failsafe),
+            // Nothing to hold before the first command.
+            _ => (None, LineState::Silent),
+        },
+        (None, Some((_, last))) => match cfg.failsafe_action {
+            FailsafeAction::Silence => (None, LineState::Silent),
+            FailsafeAction::Hold => (Some(last), LineState::Failsafe),
+            FailsafeAction::Default => (Some(model.defaults()), LineState::Failsafe),
+        },
+    };
+    if p.state == LineState::Active && new_state != LineState::Active {
+        add(&stats.failsafe_entries, 1);
+    }
+    if new_state != p.state {
+        if let Some(log) = lane.log.as_deref_mut() {
+            log.push(Record::Transition {
+                mono_ns: now,
+                real_ns: clock::realtime_ns(),
+                from: p.state,
+                to: new_state,
             });
         }
     }
-    if out.park(model.idle_level()).is_err() {
-        add(&stats.write_errors, 1);
+    p.state = new_state;
+    stats.state.store(p.state as u8, Relaxed);
+    let Some(channels) = channels else {
+        p.next_start = None;
+        p.poll_at = now + IDLE_POLL_NS;
+        return;
+    };
+    let schedule = model.encode(&channels);
+    let edges = schedule.edges();
+    let last_pulse = edges[edges.len() - 2].at_ns;
+    let sync_ns = frame_ns - last_pulse;
+    let mut start = match p.next_start {
+        Some(s) => s,
+        None => {
+            p.prev_sync_ns = 0;
+            align(now + lead, anchor, frame_ns)
+        }
+    };
+    let ready = clock::now_ns() + DECIDE_NS / 2;
+    if ready > start {
+        // Moving the frame later by `late` lengthens the gap before it and
+        // shortens the one after it: both must stay sync periods.
+        let late = ready - start;
+        let fits_after = sync_ns >= sync_min_ns + late;
+        let fits_before = p.prev_sync_ns == 0 || p.prev_sync_ns + late <= sync_max_ns;
+        if fits_after && fits_before {
+            add(&stats.late_frames, 1);
+            start += late;
+        } else {
+            let missed = late / frame_ns + 1;
+            add(&stats.overruns, missed);
+            p.next_start = Some(start + missed * frame_ns);
+            p.prev_sync_ns = 0;
+            return;
+        }
     }
-    stats.state.store(LineState::Silent as u8, Relaxed);
+    let grid_start = p.next_start.unwrap_or(start);
+    // Where the frame starts on the wall clock, from one pair of readings.
+    let start_real_ns = clock::realtime_ns() + start.saturating_sub(clock::now_ns());
+    let from_command = p.state == LineState::Active || cfg.failsafe_action == FailsafeAction::Hold;
+    p.frame = Some(Frame {
+        schedule,
+        next: 0,
+        start,
+        start_real_ns,
+        channels,
+        state: p.state,
+        command: p.newest.filter(|_| from_command).map(|(s, _)| CommandInfo {
+            seq: s.seq(),
+            ingress_seq: s.ingress_seq,
+            recv_mono_ns: s.recv_mono_ns,
+            recv_real_ns: s.recv_real_ns,
+        }),
+        spun: 0,
+    });
+    p.next_start = Some(grid_start + frame_ns);
+    p.prev_sync_ns = grid_start + frame_ns - (start + last_pulse);
 }
 
-fn emit_frame(
-    edges: &[ppm_shared::frame::Edge],
-    start: u64,
+/// Waits for `due` and writes every lane's edge due then: lines one by one,
+/// each bank's lines in one call. Each edge's error is measured just before
+/// its own write.
+fn emit_due(
+    due: u64,
+    lanes: &mut [Lane],
+    prog: &mut [Progress],
+    banks: &mut [&mut dyn Bank],
     timer: &mut EdgeTimer,
-    out: &mut dyn Output,
-    stats: &Stats,
-    meter: &mut Meter,
 ) {
-    let mut spun = 0;
-    for e in edges {
-        let due = start + e.at_ns;
-        let w = timer.wait(due);
-        let edge = TraceEdge {
-            scheduled_ns: due,
-            actual_ns: w.now_ns,
-            level: e.level,
+    let w = timer.wait(due);
+    let mut first = None;
+    let mut bank_mask = [0u64; MAX_LANES];
+    let mut bank_levels = [0u64; MAX_LANES];
+    let mut before = w.now_ns;
+    for (i, (lane, p)) in lanes.iter_mut().zip(prog.iter_mut()).enumerate() {
+        let Some(f) = p.frame.as_mut().filter(|f| f.due() == due) else {
+            continue;
         };
-        if out.write(&edge).is_err() {
-            add(&stats.write_errors, 1);
-        }
-        let written = clock::now_ns();
-        let err = w.now_ns - due;
-        meter.edge(err, written - w.now_ns);
-        if let Some(late) = w.woke_late_ns {
-            meter.wake(late);
-        }
-        spun += w.spun_ns;
-        stats.max_edge_error_ns.fetch_max(err, Relaxed);
-        if err > LATE_EDGE_NS {
-            add(&stats.late_edges, 1);
+        first.get_or_insert(i);
+        let level = f.schedule.edges()[f.next].level;
+        match &mut lane.sink {
+            Sink::Line(out) => {
+                let edge = TraceEdge {
+                    scheduled_ns: due,
+                    actual_ns: before,
+                    level,
+                };
+                if out.write(&edge).is_err() {
+                    add(&lane.stats.write_errors, 1);
+                }
+                let written = clock::now_ns();
+                record(lane, before - due, written - before);
+                before = written;
+            }
+            Sink::Bank { bank, bit } => {
+                bank_mask[*bank] |= 1 << *bit;
+                bank_levels[*bank] |= (level == Level::High) as u64 * (1 << *bit);
+            }
         }
     }
-    meter.frame(spun);
-    add(&stats.spin_ns, spun);
-    add(&stats.edges, edges.len() as u64);
+    for (b, bank) in banks.iter_mut().enumerate() {
+        if bank_mask[b] == 0 {
+            continue;
+        }
+        let failed = bank.write(bank_mask[b], bank_levels[b]).is_err();
+        let written = clock::now_ns();
+        for (lane, p) in lanes.iter_mut().zip(prog.iter_mut()) {
+            let Sink::Bank { bank, .. } = lane.sink else {
+                continue;
+            };
+            if bank != b || p.frame.is_none_or(|f| f.due() != due) {
+                continue;
+            }
+            if failed {
+                add(&lane.stats.write_errors, 1);
+            }
+            record(lane, before - due, written - before);
+        }
+        before = written;
+    }
+    if let Some(i) = first {
+        if let Some(late) = w.woke_late_ns {
+            lanes[i].meter.wake(late);
+        }
+        if let Some(f) = prog[i].frame.as_mut() {
+            f.spun += w.spun_ns;
+        }
+    }
+    for (lane, p) in lanes.iter_mut().zip(prog.iter_mut()) {
+        let Some(f) = p.frame.as_mut().filter(|f| f.due() == due) else {
+            continue;
+        };
+        f.next += 1;
+        if f.next == f.schedule.edges().len() {
+            finish_frame(lane, p, timer.margin_ns());
+        }
+    }
+}
+
+/// Counts one written edge of `lane`.
+fn record(lane: &mut Lane, err: u64, write_ns: u64) {
+    lane.meter.edge(err, write_ns);
+    lane.stats.max_edge_error_ns.fetch_max(err, Relaxed);
+    if err > LATE_EDGE_NS {
+        add(&lane.stats.late_edges, 1);
+    }
+    add(&lane.stats.edges, 1);
+}
+
+/// Closes the lane's frame after its last edge: counters and frame log.
+fn finish_frame(lane: &mut Lane, p: &mut Progress, margin_ns: u64) {
+    let Some(f) = p.frame.take() else {
+        return;
+    };
+    let (model, stats) = (lane.model, lane.stats);
+    lane.meter.frame(f.spun);
+    add(&stats.spin_ns, f.spun);
     add(&stats.frames, 1);
+    stats.margin_ns.store(margin_ns, Relaxed);
+    p.frame_no += 1;
+    if let Some(log) = lane.log.as_deref_mut() {
+        let mut values_ns = [0; MAX_CHANNELS];
+        for (i, v) in values_ns.iter_mut().enumerate().take(model.channels()) {
+            let given = f
+                .channels
+                .as_ns()
+                .get(i)
+                .copied()
+                .unwrap_or(model.default_ns(i));
+            *v = model.clamp(i, given).0;
+        }
+        log.push(Record::Frame {
+            frame: p.frame_no,
+            start_mono_ns: f.start,
+            start_real_ns: f.start_real_ns,
+            state: f.state,
+            command: f.command,
+            channels: model.channels() as u8,
+            values_ns,
+        });
+    }
 }
 
 #[cfg(test)]

@@ -37,6 +37,9 @@ pub enum ConfigError {
     /// A key has a value a transmitter would reject or misread.
     #[error("config key `{key}`: {message}")]
     Invalid { key: String, message: String },
+    /// A command-line choice does not fit the configuration.
+    #[error("{0}")]
+    Usage(String),
 }
 
 impl ConfigError {
@@ -75,6 +78,16 @@ pub struct Config {
     pub failsafe: FailsafeSection,
     /// Shared memory between the two processes.
     pub ipc: IpcSection,
+    /// `[[outputs]]`: several outputs driven by one ppmd, each a full
+    /// configuration: the top-level sections with the entry's keys laid over
+    /// them (see [`Config::outputs`]). Empty when the file has no
+    /// `[[outputs]]`: the file then describes one output.
+    #[serde(skip)]
+    pub outputs: Vec<Config>,
+    /// For each entry of `outputs`, the keys the entry sets itself (dotted,
+    /// as in error messages), to name the right key when one is refused.
+    #[serde(skip)]
+    entry_keys: Vec<Vec<String>>,
 }
 
 impl Default for Config {
@@ -87,6 +100,8 @@ impl Default for Config {
             rt: RtSection::default(),
             failsafe: FailsafeSection::default(),
             ipc: IpcSection::default(),
+            outputs: Vec::new(),
+            entry_keys: Vec::new(),
         }
     }
 }
@@ -443,10 +458,82 @@ impl Config {
 
     /// Parses configuration text (see [`Config::load`]).
     pub fn parse(text: &str) -> Result<Config, ConfigError> {
-        toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let parse_error = |message: String| ConfigError::Parse {
             path: PathBuf::from("<text>"),
-            message: e.to_string().trim_end().replace('\n', " | "),
-        })
+            message: message.trim_end().replace('\n', " | "),
+        };
+        let mut table: toml::Table = text.parse().map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
+        let entries = match table.remove("outputs") {
+            None => Vec::new(),
+            Some(toml::Value::Array(a)) => a,
+            Some(_) => {
+                return Err(parse_error(
+                    "`outputs` must be an array of tables: write each output as [[outputs]]".into(),
+                ))
+            }
+        };
+        let mut cfg: Config = toml::Value::Table(table.clone())
+            .try_into()
+            .map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
+        if entries.is_empty() {
+            return Ok(cfg);
+        }
+        for key in ["name", "ppmd.output", "ppmd.frame_log"] {
+            if lookup(&table, key).is_some() {
+                return Err(ConfigError::invalid(
+                    key,
+                    "with [[outputs]] every output sets its own `name`, `output` and `frame_log` in its entry; remove the top-level key",
+                ));
+            }
+        }
+        for (i, entry) in entries.into_iter().enumerate() {
+            let toml::Value::Table(entry) = entry else {
+                return Err(parse_error(format!("outputs[{i}] must be a table")));
+            };
+            let mut merged = table.clone();
+            let mut keys = Vec::new();
+            for (k, v) in entry {
+                match k.as_str() {
+                    "name" => {
+                        keys.push("name".into());
+                        merged.insert(k, v);
+                    }
+                    "output" | "frame_log" => {
+                        keys.push(format!("ppmd.{k}"));
+                        let ppmd = merged
+                            .entry("ppmd")
+                            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+                        if let toml::Value::Table(t) = ppmd {
+                            t.insert(k, v);
+                        }
+                    }
+                    "ppm" | "ingress" | "failsafe" => {
+                        collect_keys(&k, &v, &mut keys);
+                        let base = merged
+                            .entry(k.as_str())
+                            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+                        overlay(base, v);
+                    }
+                    _ => {
+                        return Err(parse_error(format!(
+                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log and the sections [outputs.ppm], [outputs.ingress] and [outputs.failsafe] (rt, ipc and frame_log_max_mb are shared: set them at the top level)"
+                        )))
+                    }
+                }
+            }
+            if !keys.iter().any(|k| k == "name") {
+                return Err(ConfigError::invalid(
+                    format!("outputs[{i}].name"),
+                    "every output needs a name (udp-ingress --name NAME picks it)",
+                ));
+            }
+            let out: Config = toml::Value::Table(merged)
+                .try_into()
+                .map_err(|e: toml::de::Error| parse_error(format!("outputs[{i}]: {e}")))?;
+            cfg.outputs.push(out);
+            cfg.entry_keys.push(keys);
+        }
+        Ok(cfg)
     }
 
     /// Checks every key and builds the PPM frame model.
@@ -513,6 +600,203 @@ impl Config {
         FrameModel::from_config(&self.ppm)
     }
 
+    /// The outputs this configuration describes: its `[[outputs]]` entries,
+    /// or the configuration itself when it has none.
+    pub fn output_list(&self) -> Vec<Config> {
+        if self.outputs.is_empty() {
+            vec![self.clone()]
+        } else {
+            self.outputs.clone()
+        }
+    }
+
+    /// The names of the outputs, for messages.
+    pub fn output_names(&self) -> Vec<String> {
+        self.output_list().into_iter().map(|c| c.name).collect()
+    }
+
+    /// The one output a single-output program (udp-ingress, a tool) works
+    /// with: `name` picks an `[[outputs]]` entry (required when there are
+    /// several); without entries, `name` renames the file's one output.
+    pub fn select(&self, name: Option<&str>) -> Result<Config, ConfigError> {
+        if self.outputs.is_empty() {
+            let mut c = self.clone();
+            if let Some(n) = name {
+                c.name = n.to_string();
+            }
+            return Ok(c);
+        }
+        match name {
+            None if self.outputs.len() == 1 => Ok(self.outputs[0].clone()),
+            None => Err(ConfigError::Usage(format!(
+                "the configuration has {} outputs ({}): pick one with --name NAME",
+                self.outputs.len(),
+                self.output_names().join(", ")
+            ))),
+            Some(n) => self
+                .outputs
+                .iter()
+                .find(|c| c.name == n)
+                .cloned()
+                .ok_or_else(|| {
+                    ConfigError::Usage(format!(
+                        "no output `{n}` in the configuration's [[outputs]]; its outputs: {}",
+                        self.output_names().join(", ")
+                    ))
+                }),
+        }
+    }
+
+    /// Applies ppmd's `--output` arguments: one `SPEC` sets the one output's
+    /// `ppmd.output`; `NAME=SPEC` (repeatable) sets output NAME's, or, when
+    /// the file has no `[[outputs]]`, makes one output per argument with the
+    /// file's settings.
+    pub fn apply_cli_outputs(&mut self, args: &[String]) -> Result<(), ConfigError> {
+        let named: Vec<Option<(&str, &str)>> = args.iter().map(|a| split_named_output(a)).collect();
+        match (named.iter().all(Option::is_some), named.iter().all(Option::is_none)) {
+            _ if args.is_empty() => Ok(()),
+            (false, true) => {
+                args[0]
+                    .parse::<OutputSpec>()
+                    .map_err(|m| ConfigError::Usage(format!("--output {}: {m}", args[0])))?;
+                if args.len() > 1 {
+                    return Err(ConfigError::Usage(
+                        "--output SPEC given more than once: name each output, --output NAME=SPEC".into(),
+                    ));
+                }
+                if !self.outputs.is_empty() {
+                    return Err(ConfigError::Usage(format!(
+                        "the configuration has [[outputs]] ({}): say which one, --output NAME=SPEC",
+                        self.output_names().join(", ")
+                    )));
+                }
+                self.ppmd.output = args[0].clone();
+                Ok(())
+            }
+            (true, false) => {
+                let pairs: Vec<(&str, &str)> = named.into_iter().flatten().collect();
+                for (name, spec) in &pairs {
+                    spec.parse::<OutputSpec>()
+                        .map_err(|m| ConfigError::Usage(format!("--output {name}={spec}: {m}")))?;
+                }
+                if self.outputs.is_empty() {
+                    for (name, spec) in pairs {
+                        let mut c = self.clone();
+                        c.name = name.to_string();
+                        c.ppmd.output = spec.to_string();
+                        self.outputs.push(c);
+                        self.entry_keys.push(Vec::new());
+                    }
+                    return Ok(());
+                }
+                for (name, spec) in pairs {
+                    let names = self.output_names().join(", ");
+                    let out = self.outputs.iter_mut().find(|c| c.name == name).ok_or_else(|| {
+                        ConfigError::Usage(format!(
+                            "--output {name}=...: no output `{name}` in the configuration's [[outputs]] ({names})"
+                        ))
+                    })?;
+                    out.ppmd.output = spec.to_string();
+                }
+                Ok(())
+            }
+            _ => Err(ConfigError::Usage(
+                "--output: either one SPEC or NAME=SPEC for every output, not both".into(),
+            )),
+        }
+    }
+
+    /// Validates every output (see [`Config::validate`]) and what outputs
+    /// must not share: names, listen addresses, lines, trace, frame-log and
+    /// seq files. Errors name the key (`outputs[1].ppm.channels`, or the
+    /// top-level key an output inherits).
+    pub fn validate_outputs(&self) -> Result<Vec<(Config, FrameModel)>, ConfigError> {
+        let list = self.output_list();
+        if list.len() > MAX_OUTPUTS {
+            return Err(ConfigError::invalid(
+                "outputs",
+                format!("{} outputs; one ppmd drives at most {MAX_OUTPUTS}", list.len()),
+            ));
+        }
+        let mut done: Vec<(Config, FrameModel)> = Vec::new();
+        for (i, c) in list.into_iter().enumerate() {
+            let model = c.validate().map_err(|e| self.locate(i, e))?;
+            for (j, (other, _)) in done.iter().enumerate() {
+                let clash = |key: &str, what: String| {
+                    Err(self.locate(
+                        i,
+                        ConfigError::invalid(key, format!("{what}, as output `{}` (outputs[{j}])", other.name)),
+                    ))
+                };
+                if other.name == c.name {
+                    return clash("name", format!("`{}` is used twice", c.name));
+                }
+                // Outputs made on ppmd's command line have no udp-ingress
+                // settings of their own; their ingresses are started apart.
+                let from_file = |k: usize| self.entry_keys.get(k).is_some_and(|k| !k.is_empty());
+                if other.ingress.listen == c.ingress.listen && from_file(i) && from_file(j) {
+                    return clash(
+                        "ingress.listen",
+                        format!("{} is the same address (each output has its own udp-ingress and port)", c.ingress.listen),
+                    );
+                }
+                if c.output_target() == other.output_target() {
+                    return clash("ppmd.output", format!("`{}` is the same line", c.ppmd.output));
+                }
+                if c.ppmd.frame_log.is_some() && c.ppmd.frame_log == other.ppmd.frame_log {
+                    return clash("ppmd.frame_log", "the same frame log file".into());
+                }
+                if c.seq_file() == other.seq_file() {
+                    return clash("ingress.seq_file", format!("{} is the same seq file", c.seq_file().display()));
+                }
+            }
+            done.push((c, model));
+        }
+        Ok(done)
+    }
+
+    /// What the output writes to, to find two outputs on one line or file.
+    fn output_target(&self) -> Option<OutputSpec> {
+        match self.output().ok()? {
+            OutputSpec::Sim { path: None } => Some(OutputSpec::Sim {
+                path: Some(PathBuf::from(format!("ppm-{}.trace", self.name))),
+            }),
+            spec => Some(spec),
+        }
+    }
+
+    /// `e` as met while validating output `i`: a key the entry sets is
+    /// named `outputs[i].KEY`; an inherited one keeps its top-level name and
+    /// says which output it failed for.
+    fn locate(&self, i: usize, e: ConfigError) -> ConfigError {
+        let Some(keys) = self.entry_keys.get(i) else {
+            return e;
+        };
+        match e {
+            ConfigError::Invalid { key, message } => {
+                let own = keys
+                    .iter()
+                    .any(|k| k == &key || k.starts_with(&format!("{key}.")) || key.starts_with(&format!("{k}.")));
+                if own {
+                    let shown = key.strip_prefix("ppmd.").filter(|k| *k == "output" || *k == "frame_log").unwrap_or(&key);
+                    ConfigError::Invalid {
+                        key: format!("outputs[{i}].{shown}"),
+                        message,
+                    }
+                } else if !["ppm.", "ingress.", "failsafe."].iter().any(|p| key.starts_with(p)) {
+                    ConfigError::Invalid { key, message }
+                } else {
+                    let name = &self.outputs[i].name;
+                    ConfigError::Invalid {
+                        key,
+                        message: format!("{message} (inherited by output `{name}`, outputs[{i}])"),
+                    }
+                }
+            }
+            other => other,
+        }
+    }
+
     /// The address blocks of `ingress.allow` (a bare address is a block of one).
     pub fn allow(&self) -> Result<Vec<ipnet::IpNet>, ConfigError> {
         self.ingress
@@ -537,6 +821,54 @@ impl Config {
             .output
             .parse()
             .map_err(|m| ConfigError::invalid("ppmd.output", m))
+    }
+}
+
+/// Most outputs one ppmd drives.
+pub const MAX_OUTPUTS: usize = 8;
+
+/// `NAME=SPEC` as ppmd's `--output` takes it, when NAME is a valid output name.
+pub fn split_named_output(arg: &str) -> Option<(&str, &str)> {
+    let (name, spec) = arg.split_once('=')?;
+    (!name.contains(':') && validate_name(name).is_ok()).then_some((name, spec))
+}
+
+/// The value at a dotted key path in a TOML table.
+fn lookup<'a>(table: &'a toml::Table, dotted: &str) -> Option<&'a toml::Value> {
+    let mut parts = dotted.split('.');
+    let mut v = table.get(parts.next()?)?;
+    for p in parts {
+        v = v.as_table()?.get(p)?;
+    }
+    Some(v)
+}
+
+/// Every leaf key under `prefix` in `v`, dotted.
+fn collect_keys(prefix: &str, v: &toml::Value, out: &mut Vec<String>) {
+    match v {
+        toml::Value::Table(t) => {
+            for (k, v) in t {
+                collect_keys(&format!("{prefix}.{k}"), v, out);
+            }
+        }
+        _ => out.push(prefix.to_string()),
+    }
+}
+
+/// Lays `top` over `base`: tables merge key by key, anything else replaces.
+fn overlay(base: &mut toml::Value, top: toml::Value) {
+    match (base, top) {
+        (toml::Value::Table(b), toml::Value::Table(t)) => {
+            for (k, v) in t {
+                match b.get_mut(&k) {
+                    Some(slot) => overlay(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v,
     }
 }
 
@@ -1091,5 +1423,154 @@ mod units_tests {
         assert_eq!(m.units_to_ns(0, f64::MIN), Some((1_000_000, true)));
         let cmd = crate::protocol::parse(br#"{"units": {"ail": 1e308}}"#, &m).unwrap();
         assert_eq!(cmd.channels.as_ns()[0], 2_000_000);
+    }
+
+    const TWO_OUTPUTS: &str = r#"
+[ppm]
+order = "AETR"
+[ppm.channel.ail]
+reverse = true
+[failsafe]
+after_ms = 150
+
+[[outputs]]
+name = "plane"
+output = "sim:plane.trace"
+frame_log = "plane.jsonl"
+ingress.listen = "0.0.0.0:5005"
+
+[[outputs]]
+name = "rover"
+output = "gpio:gpiochip0:18"
+[outputs.ingress]
+listen = "0.0.0.0:5006"
+[outputs.ppm]
+channels = 6
+order = "TAER"
+frame_us = 20000.0
+[outputs.ppm.channel.thr]
+max_us = 1900.0
+[outputs.failsafe]
+action = "hold"
+"#;
+
+    #[test]
+    fn outputs_inherit_the_top_level_and_override_it() {
+        let cfg = Config::parse(TWO_OUTPUTS).unwrap();
+        let outs = cfg.validate_outputs().unwrap();
+        assert_eq!(outs.len(), 2);
+        let ((plane, pm), (rover, rm)) = (&outs[0], &outs[1]);
+        assert_eq!(plane.name, "plane");
+        assert_eq!(plane.ppmd.output, "sim:plane.trace");
+        assert_eq!(plane.ppmd.frame_log, Some(PathBuf::from("plane.jsonl")));
+        assert_eq!(plane.ingress.listen.port(), 5005);
+        assert_eq!(pm.channels(), 8);
+        assert_eq!(plane.failsafe.after_ms, 150);
+        assert_eq!(plane.failsafe.action, FailsafeAction::Silence);
+        assert_eq!(rover.ppmd.output, "gpio:gpiochip0:18");
+        assert_eq!(rover.ppmd.frame_log, None);
+        assert_eq!(rover.ingress.listen.port(), 5006);
+        assert_eq!(rm.channels(), 6);
+        assert_eq!(rm.names()[..4], ["thr", "ail", "ele", "rud"]);
+        assert_eq!(rm.frame_ns(), 20_000_000);
+        assert_eq!(rover.failsafe.after_ms, 150, "inherited");
+        assert_eq!(rover.failsafe.action, FailsafeAction::Hold);
+        // ppm.channel merges key by key: rover keeps the inherited ail reverse.
+        assert!(rover.ppm.channel["ail"].reverse);
+        assert_eq!(rover.ppm.channel["thr"].max_us, Some(1900.0));
+        assert!(!plane.ppm.channel.contains_key("thr"));
+        // The shared sections stay shared.
+        assert_eq!(plane.rt, rover.rt);
+        assert_eq!(plane.ipc, rover.ipc);
+    }
+
+    fn refusal(text: &str) -> ConfigError {
+        match Config::parse(text) {
+            Ok(c) => c
+                .validate_outputs()
+                .map(|_| ())
+                .expect_err(&text[text.len().saturating_sub(300)..]),
+            Err(e) => e,
+        }
+    }
+
+    #[test]
+    fn output_entries_are_checked_and_named() {
+        let with = |extra: &str| format!("{TWO_OUTPUTS}{extra}");
+        let e = refusal(&TWO_OUTPUTS.replace("channels = 6", "channels = 17"));
+        assert_eq!(e.key(), Some("outputs[1].ppm.channels"), "{e}");
+        let e = refusal(&TWO_OUTPUTS.replace("\"0.0.0.0:5006\"", "\"0.0.0.0:5005\""));
+        assert_eq!(e.key(), Some("outputs[1].ingress.listen"), "{e}");
+        assert!(e.to_string().contains("`plane`"), "{e}");
+        let e = refusal(&TWO_OUTPUTS.replace("name = \"rover\"", "name = \"plane\""));
+        assert_eq!(e.key(), Some("outputs[1].name"), "{e}");
+        let e = refusal(&TWO_OUTPUTS.replace("gpio:gpiochip0:18", "sim:plane.trace"));
+        assert_eq!(e.key(), Some("outputs[1].output"), "{e}");
+        let e = refusal(&TWO_OUTPUTS.replace("name = \"rover\"\n", ""));
+        assert_eq!(e.key(), Some("outputs[1].name"), "{e}");
+        // An inherited value that fails for one output keeps its own key.
+        let e = refusal(&TWO_OUTPUTS.replace("order = \"AETR\"", "order = \"AETR\"\nchannels = 12"));
+        assert_eq!(e.key(), Some("ppm.frame_us"), "{e}");
+        assert!(e.to_string().contains("output `plane`"), "{e}");
+        let e = refusal(&with("[rt]\npriority = 100\n"));
+        assert_eq!(e.key(), Some("rt.priority"), "{e}");
+        let e = refusal(&format!("name = \"x\"\n{TWO_OUTPUTS}"));
+        assert_eq!(e.key(), Some("name"), "{e}");
+        let e = refusal(&TWO_OUTPUTS.replace("frame_log = \"plane.jsonl\"", "rt.priority = 10"));
+        assert!(e.to_string().contains("outputs[0]: unknown key `rt`"), "{e}");
+        let e = refusal(&TWO_OUTPUTS.replace("channels = 6", "chanels = 6"));
+        assert!(e.to_string().contains("outputs[1]") && e.to_string().contains("chanels"), "{e}");
+        let many: String = (0..9)
+            .map(|i| format!("[[outputs]]\nname = \"o{i}\"\ningress.listen = \"127.0.0.1:{}\"\n", 6000 + i))
+            .collect();
+        assert_eq!(refusal(&many).key(), Some("outputs"));
+    }
+
+    #[test]
+    fn select_picks_one_output() {
+        let cfg = Config::parse(TWO_OUTPUTS).unwrap();
+        assert_eq!(cfg.select(Some("rover")).unwrap().ppm.channels, 6);
+        let e = cfg.select(None).unwrap_err().to_string();
+        assert!(e.contains("2 outputs (plane, rover)") && e.contains("--name"), "{e}");
+        let e = cfg.select(Some("boat")).unwrap_err().to_string();
+        assert!(e.contains("no output `boat`") && e.contains("plane, rover"), "{e}");
+        // Without [[outputs]] --name renames the one output.
+        assert_eq!(Config::default().select(Some("x")).unwrap().name, "x");
+        assert_eq!(Config::default().output_names(), ["ppm"]);
+    }
+
+    #[test]
+    fn cli_outputs() {
+        let args = |a: &[&str]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let mut c = Config::default();
+        c.apply_cli_outputs(&args(&["gpio:0:18"])).unwrap();
+        assert_eq!(c.ppmd.output, "gpio:0:18");
+        assert!(c.outputs.is_empty());
+        let mut c = Config::default();
+        c.apply_cli_outputs(&args(&["a=sim:a.trace", "b=sim"])).unwrap();
+        let outs = c.validate_outputs().unwrap();
+        assert_eq!(outs.len(), 2);
+        assert_eq!((outs[0].0.name.as_str(), outs[0].0.ppmd.output.as_str()), ("a", "sim:a.trace"));
+        assert_eq!((outs[1].0.name.as_str(), outs[1].0.ppmd.output.as_str()), ("b", "sim"));
+        // Both inherit the default listen address: ppmd does not listen, and
+        // each output's udp-ingress gets its own --listen.
+        assert_eq!(outs[0].0.ingress.listen, outs[1].0.ingress.listen);
+        let mut c = Config::parse(TWO_OUTPUTS).unwrap();
+        c.apply_cli_outputs(&args(&["rover=sim:r.trace"])).unwrap();
+        assert_eq!(c.select(Some("rover")).unwrap().ppmd.output, "sim:r.trace");
+        assert_eq!(c.select(Some("plane")).unwrap().ppmd.output, "sim:plane.trace");
+        for (bad, says) in [
+            (&["sim"][..], "NAME=SPEC"),
+            (&["boat=sim"][..], "no output `boat`"),
+            (&["plane=sim", "sim"][..], "not both"),
+            (&["plane=pwm:3"][..], "--output plane=pwm:3"),
+        ] {
+            let e = Config::parse(TWO_OUTPUTS).unwrap().apply_cli_outputs(&args(bad)).unwrap_err();
+            assert!(e.to_string().contains(says), "{bad:?}: {e}");
+        }
+        let e = Config::default().apply_cli_outputs(&args(&["sim", "sim:x"])).unwrap_err();
+        assert!(e.to_string().contains("more than once"), "{e}");
+        assert_eq!(split_named_output("sim:/a=b"), None);
+        assert_eq!(split_named_output("a=sim:/x"), Some(("a", "sim:/x")));
     }
 }

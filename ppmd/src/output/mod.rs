@@ -35,6 +35,17 @@ pub trait Output: Send {
     fn park(&mut self, level: Level) -> Result<(), OutputError>;
 }
 
+/// Several lines written together: bit `i` of a mask is the bank's line
+/// `i`. Like [`Output`], must not allocate, block, log or take a lock.
+pub trait Bank: Send {
+    /// Drives every line in `mask` to its bit in `levels` (1 is high), in
+    /// one call; lines outside `mask` keep their level.
+    fn write(&mut self, mask: u64, levels: u64) -> Result<(), OutputError>;
+
+    /// Leaves line `bit` at `level` (at exit, outside the loop).
+    fn park(&mut self, bit: u32, level: Level) -> Result<(), OutputError>;
+}
+
 /// How many edges the simulated line buffers between the loop and the
 /// writer thread: about 40 s of 16-channel frames at 50 Hz.
 const SIM_BUFFER_EDGES: usize = 1 << 16;
