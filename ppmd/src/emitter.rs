@@ -312,7 +312,7 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
 
 /// The first point at or after `t` on the grid through `anchor` with period
 /// `period` (just `t` without an anchor).
-fn align(t: u64, anchor: Option<u64>, period: u64) -> u64 {
+pub(crate) fn align(t: u64, anchor: Option<u64>, period: u64) -> u64 {
     match anchor {
         None => t,
         Some(a) if a >= t => a - (a - t) / period * period,
@@ -380,13 +380,22 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     let edges = schedule.edges();
     let last_pulse = edges[edges.len() - 2].at_ns;
     let sync_ns = frame_ns - last_pulse;
-    let mut start = match p.next_start {
+    // The frame's place on the grid; a late frame moves off it, the next
+    // one returns to it.
+    let grid_start = match p.next_start {
         Some(s) => s,
         None => {
             p.prev_sync_ns = 0;
-            align(now + lead, anchor, frame_ns)
+            // Joining a running grid costs up to one frame, once; a grid
+            // point is taken while it is still DECIDE_NS away (spinning
+            // longer than the margin if need be).
+            match anchor {
+                Some(_) => align(now + DECIDE_NS, anchor, frame_ns),
+                None => now + lead,
+            }
         }
     };
+    let mut start = grid_start;
     let ready = clock::now_ns() + DECIDE_NS / 2;
     if ready > start {
         // Moving the frame later by `late` lengthens the gap before it and
@@ -405,7 +414,6 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
             return;
         }
     }
-    let grid_start = p.next_start.unwrap_or(start);
     // Where the frame starts on the wall clock, from one pair of readings.
     let start_real_ns = clock::realtime_ns() + start.saturating_sub(clock::now_ns());
     let from_command = p.state == LineState::Active || cfg.failsafe_action == FailsafeAction::Hold;
@@ -473,7 +481,7 @@ fn emit_due(
         if bank_mask[b] == 0 {
             continue;
         }
-        let failed = bank.write(bank_mask[b], bank_levels[b]).is_err();
+        let failed = bank.write(due, bank_mask[b], bank_levels[b]).is_err();
         let written = clock::now_ns();
         for (lane, p) in lanes.iter_mut().zip(prog.iter_mut()) {
             let Sink::Bank { bank, .. } = lane.sink else {
@@ -687,5 +695,261 @@ mod tests {
         assert!(frames
             .iter()
             .all(|f| f.channels_us()[..4] == [1100, 1200, 1300, 1400]));
+    }
+
+    /// Records bank writes: (scheduled, mask, levels).
+    #[derive(Default)]
+    struct BankRecorder(Vec<(u64, u64, u64)>);
+
+    impl Bank for BankRecorder {
+        fn write(&mut self, due: u64, mask: u64, levels: u64) -> Result<(), OutputError> {
+            self.0.push((due, mask, levels));
+            Ok(())
+        }
+        fn park(&mut self, _: u32, _: Level) -> Result<(), OutputError> {
+            Ok(())
+        }
+    }
+
+    fn repeat(
+        cmd: &[u8],
+        model: &FrameModel,
+        frames: u64,
+        stop: &Arc<AtomicBool>,
+    ) -> crate::source::RepeatSource {
+        crate::source::RepeatSource {
+            sample: CommandSample::new(&parse(cmd, model).unwrap(), 1, 0, 0),
+            frames,
+            stop: stop.clone(),
+        }
+    }
+
+    fn lane_cfg() -> EmitterConfig {
+        EmitterConfig {
+            margin: Margin::Fixed(100_000),
+            failsafe_after_ns: 100_000_000,
+            failsafe_action: FailsafeAction::Silence,
+            startup: FailsafeAction::Silence,
+        }
+    }
+
+    fn channels_of(edges: &[(u64, Level)]) -> Vec<Vec<u64>> {
+        decode(edges.iter().copied(), Level::High, DecoderLimits::default())
+            .iter()
+            .map(|f| f.channels_us().to_vec())
+            .collect()
+    }
+
+    #[test]
+    fn align_finds_the_next_grid_point() {
+        assert_eq!(align(1_000, None, 300), 1_000);
+        assert_eq!(align(1_000, Some(1_000), 300), 1_000);
+        assert_eq!(align(1_000, Some(100), 300), 1_000);
+        assert_eq!(align(1_001, Some(100), 300), 1_300);
+        assert_eq!(align(1_000, Some(1_050), 300), 1_050);
+        assert_eq!(align(1_000, Some(1_900), 300), 1_000);
+        assert_eq!(align(1_000, Some(1_901), 300), 1_001);
+    }
+
+    #[test]
+    fn two_lanes_emit_their_own_frames_from_one_loop() {
+        let a = Config::default().validate().unwrap();
+        let mut cb = Config::default();
+        cb.ppm.channels = 6;
+        cb.ppm.order = "TAER".into();
+        cb.ppm.frame_us = 20_000.0;
+        let b = cb.validate().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut src_a = repeat(b"[1100, 1200, 1300, 1400]", &a, 20, &stop);
+        let mut src_b = repeat(b"[1900, 1800, 1700, 1600, 1500, 1000]", &b, 1_000, &stop);
+        let (mut out_a, mut out_b) = (Recorder::default(), Recorder::default());
+        let (stats_a, stats_b) = (Stats::default(), Stats::default());
+        let (mut meter_a, _ra) = crate::meter::meter(1_000_000_000);
+        let (mut meter_b, _rb) = crate::meter::meter(1_000_000_000);
+        let mut lanes = [
+            Lane {
+                model: &a,
+                cfg: lane_cfg(),
+                source: &mut src_a,
+                sink: Sink::Line(&mut out_a),
+                stats: &stats_a,
+                meter: &mut meter_a,
+                log: None,
+            },
+            Lane {
+                model: &b,
+                cfg: lane_cfg(),
+                source: &mut src_b,
+                sink: Sink::Line(&mut out_b),
+                stats: &stats_b,
+                meter: &mut meter_b,
+                log: None,
+            },
+        ];
+        run_lanes(&mut lanes, &mut [], &stop);
+        let fa = channels_of(
+            &out_a
+                .0
+                .iter()
+                .map(|e| (e.scheduled_ns, e.level))
+                .collect::<Vec<_>>(),
+        );
+        let fb = channels_of(
+            &out_b
+                .0
+                .iter()
+                .map(|e| (e.scheduled_ns, e.level))
+                .collect::<Vec<_>>(),
+        );
+        assert!(fa.len() >= 15, "{} frames on a", fa.len());
+        assert!(fb.len() >= 15, "{} frames on b", fb.len());
+        assert!(
+            fa.iter()
+                .all(|f| f[..] == [1100, 1200, 1300, 1400, 1500, 1500, 1500, 1500]),
+            "{fa:?}"
+        );
+        assert!(
+            fb.iter()
+                .all(|f| f[..] == [1900, 1800, 1700, 1600, 1500, 1000]),
+            "{fb:?}"
+        );
+        for (out, stats, frame_ns, per_frame) in [
+            (&out_a, &stats_a, 22_500_000, 18),
+            (&out_b, &stats_b, 20_000_000, 14),
+        ] {
+            assert_eq!(out.0.len() as u64, stats.edges.load(Relaxed));
+            assert_eq!(out.0.len() as u64, stats.frames.load(Relaxed) * per_frame);
+            assert!(
+                out.0.iter().all(|e| e.actual_ns >= e.scheduled_ns),
+                "never early"
+            );
+            let starts: Vec<u64> = out
+                .0
+                .iter()
+                .step_by(per_frame as usize)
+                .map(|e| e.scheduled_ns)
+                .collect();
+            let off_grid = starts
+                .iter()
+                .filter(|&&s| !(s - starts[0]).is_multiple_of(frame_ns))
+                .count() as u64;
+            assert!(
+                off_grid <= stats.late_frames.load(Relaxed),
+                "{off_grid} frames off the grid"
+            );
+        }
+    }
+
+    #[test]
+    fn a_bank_writes_simultaneous_edges_in_one_call() {
+        let model = Config::default().validate().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        // Same values on both: every edge coincides. Different values on the
+        // third: only its frame starts coincide (its grid joins the others').
+        let mut s0 = repeat(b"[1100, 1200, 1300, 1400]", &model, 20, &stop);
+        let mut s1 = repeat(b"[1100, 1200, 1300, 1400]", &model, 1_000, &stop);
+        let mut s2 = repeat(b"[2000, 1000, 2000, 1000]", &model, 1_000, &stop);
+        let mut bank = BankRecorder::default();
+        let stats: [Stats; 3] = Default::default();
+        let (mut m0, _r0) = crate::meter::meter(1_000_000_000);
+        let (mut m1, _r1) = crate::meter::meter(1_000_000_000);
+        let (mut m2, _r2) = crate::meter::meter(1_000_000_000);
+        let mut lanes = [
+            Lane {
+                model: &model,
+                cfg: lane_cfg(),
+                source: &mut s0,
+                sink: Sink::Bank { bank: 0, bit: 0 },
+                stats: &stats[0],
+                meter: &mut m0,
+                log: None,
+            },
+            Lane {
+                model: &model,
+                cfg: lane_cfg(),
+                source: &mut s1,
+                sink: Sink::Bank { bank: 0, bit: 1 },
+                stats: &stats[1],
+                meter: &mut m1,
+                log: None,
+            },
+            Lane {
+                model: &model,
+                cfg: lane_cfg(),
+                source: &mut s2,
+                sink: Sink::Bank { bank: 0, bit: 2 },
+                stats: &stats[2],
+                meter: &mut m2,
+                log: None,
+            },
+        ];
+        {
+            let mut banks: [&mut dyn Bank; 1] = [&mut bank];
+            run_lanes(&mut lanes, &mut banks, &stop);
+        }
+        let writes = &bank.0;
+        // Each line's waveform, decoded on its own.
+        let line = |bit: u32| -> Vec<(u64, Level)> {
+            writes
+                .iter()
+                .filter(|(_, m, _)| m & (1 << bit) != 0)
+                .map(|&(t, _, l)| (t, Level::from_bit(l & (1 << bit) != 0)))
+                .collect()
+        };
+        let (l0, l1, l2) = (
+            channels_of(&line(0)),
+            channels_of(&line(1)),
+            channels_of(&line(2)),
+        );
+        assert!(l0.len() >= 15, "{l0:?}");
+        assert!(l0
+            .iter()
+            .chain(&l1)
+            .all(|f| f[..4] == [1100, 1200, 1300, 1400]));
+        // The stop comes from line 0's source: the others may miss its last frame.
+        assert!(
+            l1.len() + 1 >= l0.len() && l2.len() + 1 >= l0.len(),
+            "{} {} {}: {:?}",
+            l0.len(),
+            l1.len(),
+            l2.len(),
+            &writes[..12]
+        );
+        assert!(
+            l2.iter().all(|f| f[..4] == [2000, 1000, 2000, 1000]),
+            "{l2:?}"
+        );
+        // Never two writes for one time, and the lines 0 and 1 always together.
+        for w in writes.windows(2) {
+            assert!(w[0].0 < w[1].0, "two writes for one time: {w:?}");
+        }
+        // A frame whose decision came late is moved off the grid (counted);
+        // every other edge of lines 0 and 1 is written in one call.
+        let late = |i: usize| stats[i].late_frames.load(Relaxed) as usize;
+        let only = |bit: u64| writes.iter().filter(|(_, m, _)| m & 0b11 == bit).count();
+        assert!(
+            only(0b10) <= 18 * (late(0) + late(1)),
+            "line 1 alone: {} edges",
+            only(0b10)
+        );
+        assert!(
+            only(0b01) <= 18 * (late(0) + late(1) + 1),
+            "line 0 alone: {} edges",
+            only(0b01)
+        );
+        // Frame starts of line 2 coincide with those of line 0 while both run.
+        let starts0: Vec<u64> = line(0).iter().step_by(18).map(|e| e.0).collect();
+        let joined = starts0
+            .iter()
+            .filter(|t| writes.iter().any(|(w, m, _)| w == *t && m & 0b111 == 0b111))
+            .count();
+        assert!(
+            joined + 2 + late(0) + late(2) >= starts0.len(),
+            "{joined} of {} frame starts shared",
+            starts0.len()
+        );
+        for s in &stats {
+            assert_eq!(s.write_errors.load(Relaxed), 0);
+        }
     }
 }

@@ -462,7 +462,9 @@ impl Config {
             path: PathBuf::from("<text>"),
             message: message.trim_end().replace('\n', " | "),
         };
-        let mut table: toml::Table = text.parse().map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
+        let mut table: toml::Table = text
+            .parse()
+            .map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
         let entries = match table.remove("outputs") {
             None => Vec::new(),
             Some(toml::Value::Array(a)) => a,
@@ -653,7 +655,10 @@ impl Config {
     /// file's settings.
     pub fn apply_cli_outputs(&mut self, args: &[String]) -> Result<(), ConfigError> {
         let named: Vec<Option<(&str, &str)>> = args.iter().map(|a| split_named_output(a)).collect();
-        match (named.iter().all(Option::is_some), named.iter().all(Option::is_none)) {
+        match (
+            named.iter().all(Option::is_some),
+            named.iter().all(Option::is_none),
+        ) {
             _ if args.is_empty() => Ok(()),
             (false, true) => {
                 args[0]
@@ -661,7 +666,8 @@ impl Config {
                     .map_err(|m| ConfigError::Usage(format!("--output {}: {m}", args[0])))?;
                 if args.len() > 1 {
                     return Err(ConfigError::Usage(
-                        "--output SPEC given more than once: name each output, --output NAME=SPEC".into(),
+                        "--output SPEC given more than once: name each output, --output NAME=SPEC"
+                            .into(),
                     ));
                 }
                 if !self.outputs.is_empty() {
@@ -715,7 +721,10 @@ impl Config {
         if list.len() > MAX_OUTPUTS {
             return Err(ConfigError::invalid(
                 "outputs",
-                format!("{} outputs; one ppmd drives at most {MAX_OUTPUTS}", list.len()),
+                format!(
+                    "{} outputs; one ppmd drives at most {MAX_OUTPUTS}",
+                    list.len()
+                ),
             ));
         }
         let mut done: Vec<(Config, FrameModel)> = Vec::new();
@@ -725,7 +734,10 @@ impl Config {
                 let clash = |key: &str, what: String| {
                     Err(self.locate(
                         i,
-                        ConfigError::invalid(key, format!("{what}, as output `{}` (outputs[{j}])", other.name)),
+                        ConfigError::invalid(
+                            key,
+                            format!("{what}, as output `{}` (outputs[{j}])", other.name),
+                        ),
                     ))
                 };
                 if other.name == c.name {
@@ -737,17 +749,26 @@ impl Config {
                 if other.ingress.listen == c.ingress.listen && from_file(i) && from_file(j) {
                     return clash(
                         "ingress.listen",
-                        format!("{} is the same address (each output has its own udp-ingress and port)", c.ingress.listen),
+                        format!(
+                            "{} is the same address (each output has its own udp-ingress and port)",
+                            c.ingress.listen
+                        ),
                     );
                 }
                 if c.output_target() == other.output_target() {
-                    return clash("ppmd.output", format!("`{}` is the same line", c.ppmd.output));
+                    return clash(
+                        "ppmd.output",
+                        format!("`{}` is the same line", c.ppmd.output),
+                    );
                 }
                 if c.ppmd.frame_log.is_some() && c.ppmd.frame_log == other.ppmd.frame_log {
                     return clash("ppmd.frame_log", "the same frame log file".into());
                 }
                 if c.seq_file() == other.seq_file() {
-                    return clash("ingress.seq_file", format!("{} is the same seq file", c.seq_file().display()));
+                    return clash(
+                        "ingress.seq_file",
+                        format!("{} is the same seq file", c.seq_file().display()),
+                    );
                 }
             }
             done.push((c, model));
@@ -774,16 +795,24 @@ impl Config {
         };
         match e {
             ConfigError::Invalid { key, message } => {
-                let own = keys
-                    .iter()
-                    .any(|k| k == &key || k.starts_with(&format!("{key}.")) || key.starts_with(&format!("{k}.")));
+                let own = keys.iter().any(|k| {
+                    k == &key
+                        || k.starts_with(&format!("{key}."))
+                        || key.starts_with(&format!("{k}."))
+                });
                 if own {
-                    let shown = key.strip_prefix("ppmd.").filter(|k| *k == "output" || *k == "frame_log").unwrap_or(&key);
+                    let shown = key
+                        .strip_prefix("ppmd.")
+                        .filter(|k| *k == "output" || *k == "frame_log")
+                        .unwrap_or(&key);
                     ConfigError::Invalid {
                         key: format!("outputs[{i}].{shown}"),
                         message,
                     }
-                } else if !["ppm.", "ingress.", "failsafe."].iter().any(|p| key.starts_with(p)) {
+                } else if !["ppm.", "ingress.", "failsafe."]
+                    .iter()
+                    .any(|p| key.starts_with(p))
+                {
                     ConfigError::Invalid { key, message }
                 } else {
                     let name = &self.outputs[i].name;
@@ -1509,7 +1538,8 @@ action = "hold"
         let e = refusal(&TWO_OUTPUTS.replace("name = \"rover\"\n", ""));
         assert_eq!(e.key(), Some("outputs[1].name"), "{e}");
         // An inherited value that fails for one output keeps its own key.
-        let e = refusal(&TWO_OUTPUTS.replace("order = \"AETR\"", "order = \"AETR\"\nchannels = 12"));
+        let e =
+            refusal(&TWO_OUTPUTS.replace("order = \"AETR\"", "order = \"AETR\"\nchannels = 12"));
         assert_eq!(e.key(), Some("ppm.frame_us"), "{e}");
         assert!(e.to_string().contains("output `plane`"), "{e}");
         let e = refusal(&with("[rt]\npriority = 100\n"));
@@ -1517,11 +1547,22 @@ action = "hold"
         let e = refusal(&format!("name = \"x\"\n{TWO_OUTPUTS}"));
         assert_eq!(e.key(), Some("name"), "{e}");
         let e = refusal(&TWO_OUTPUTS.replace("frame_log = \"plane.jsonl\"", "rt.priority = 10"));
-        assert!(e.to_string().contains("outputs[0]: unknown key `rt`"), "{e}");
+        assert!(
+            e.to_string().contains("outputs[0]: unknown key `rt`"),
+            "{e}"
+        );
         let e = refusal(&TWO_OUTPUTS.replace("channels = 6", "chanels = 6"));
-        assert!(e.to_string().contains("outputs[1]") && e.to_string().contains("chanels"), "{e}");
+        assert!(
+            e.to_string().contains("outputs[1]") && e.to_string().contains("chanels"),
+            "{e}"
+        );
         let many: String = (0..9)
-            .map(|i| format!("[[outputs]]\nname = \"o{i}\"\ningress.listen = \"127.0.0.1:{}\"\n", 6000 + i))
+            .map(|i| {
+                format!(
+                    "[[outputs]]\nname = \"o{i}\"\ningress.listen = \"127.0.0.1:{}\"\n",
+                    6000 + i
+                )
+            })
             .collect();
         assert_eq!(refusal(&many).key(), Some("outputs"));
     }
@@ -1531,9 +1572,15 @@ action = "hold"
         let cfg = Config::parse(TWO_OUTPUTS).unwrap();
         assert_eq!(cfg.select(Some("rover")).unwrap().ppm.channels, 6);
         let e = cfg.select(None).unwrap_err().to_string();
-        assert!(e.contains("2 outputs (plane, rover)") && e.contains("--name"), "{e}");
+        assert!(
+            e.contains("2 outputs (plane, rover)") && e.contains("--name"),
+            "{e}"
+        );
         let e = cfg.select(Some("boat")).unwrap_err().to_string();
-        assert!(e.contains("no output `boat`") && e.contains("plane, rover"), "{e}");
+        assert!(
+            e.contains("no output `boat`") && e.contains("plane, rover"),
+            "{e}"
+        );
         // Without [[outputs]] --name renames the one output.
         assert_eq!(Config::default().select(Some("x")).unwrap().name, "x");
         assert_eq!(Config::default().output_names(), ["ppm"]);
@@ -1547,28 +1594,43 @@ action = "hold"
         assert_eq!(c.ppmd.output, "gpio:0:18");
         assert!(c.outputs.is_empty());
         let mut c = Config::default();
-        c.apply_cli_outputs(&args(&["a=sim:a.trace", "b=sim"])).unwrap();
+        c.apply_cli_outputs(&args(&["a=sim:a.trace", "b=sim"]))
+            .unwrap();
         let outs = c.validate_outputs().unwrap();
         assert_eq!(outs.len(), 2);
-        assert_eq!((outs[0].0.name.as_str(), outs[0].0.ppmd.output.as_str()), ("a", "sim:a.trace"));
-        assert_eq!((outs[1].0.name.as_str(), outs[1].0.ppmd.output.as_str()), ("b", "sim"));
+        assert_eq!(
+            (outs[0].0.name.as_str(), outs[0].0.ppmd.output.as_str()),
+            ("a", "sim:a.trace")
+        );
+        assert_eq!(
+            (outs[1].0.name.as_str(), outs[1].0.ppmd.output.as_str()),
+            ("b", "sim")
+        );
         // Both inherit the default listen address: ppmd does not listen, and
         // each output's udp-ingress gets its own --listen.
         assert_eq!(outs[0].0.ingress.listen, outs[1].0.ingress.listen);
         let mut c = Config::parse(TWO_OUTPUTS).unwrap();
         c.apply_cli_outputs(&args(&["rover=sim:r.trace"])).unwrap();
         assert_eq!(c.select(Some("rover")).unwrap().ppmd.output, "sim:r.trace");
-        assert_eq!(c.select(Some("plane")).unwrap().ppmd.output, "sim:plane.trace");
+        assert_eq!(
+            c.select(Some("plane")).unwrap().ppmd.output,
+            "sim:plane.trace"
+        );
         for (bad, says) in [
             (&["sim"][..], "NAME=SPEC"),
             (&["boat=sim"][..], "no output `boat`"),
             (&["plane=sim", "sim"][..], "not both"),
             (&["plane=pwm:3"][..], "--output plane=pwm:3"),
         ] {
-            let e = Config::parse(TWO_OUTPUTS).unwrap().apply_cli_outputs(&args(bad)).unwrap_err();
+            let e = Config::parse(TWO_OUTPUTS)
+                .unwrap()
+                .apply_cli_outputs(&args(bad))
+                .unwrap_err();
             assert!(e.to_string().contains(says), "{bad:?}: {e}");
         }
-        let e = Config::default().apply_cli_outputs(&args(&["sim", "sim:x"])).unwrap_err();
+        let e = Config::default()
+            .apply_cli_outputs(&args(&["sim", "sim:x"]))
+            .unwrap_err();
         assert!(e.to_string().contains("more than once"), "{e}");
         assert_eq!(split_named_output("sim:/a=b"), None);
         assert_eq!(split_named_output("a=sim:/x"), Some(("a", "sim:/x")));

@@ -39,8 +39,9 @@ pub trait Output: Send {
 /// `i`. Like [`Output`], must not allocate, block, log or take a lock.
 pub trait Bank: Send {
     /// Drives every line in `mask` to its bit in `levels` (1 is high), in
-    /// one call; lines outside `mask` keep their level.
-    fn write(&mut self, mask: u64, levels: u64) -> Result<(), OutputError>;
+    /// one call; lines outside `mask` keep their level. `scheduled_ns` is
+    /// when the edges were due.
+    fn write(&mut self, scheduled_ns: u64, mask: u64, levels: u64) -> Result<(), OutputError>;
 
     /// Leaves line `bit` at `level` (at exit, outside the loop).
     fn park(&mut self, bit: u32, level: Level) -> Result<(), OutputError>;
