@@ -111,9 +111,11 @@ fn add(c: &AtomicU64, n: u64) {
 /// Most outputs (lanes) one loop drives.
 pub const MAX_LANES: usize = ppm_shared::config::MAX_OUTPUTS;
 
-/// Time one decision (take the command, encode the frame) may take. A
-/// decision is made only when no edge is due within this time plus the spin
-/// margin; when its time falls on an edge, it is made early, before the edge.
+/// Time kept free for one decision (take the command, encode the frame), at
+/// least; the loop widens it to a decaying peak of the decision times it
+/// measures plus a quarter of this. A decision is made only when no edge is
+/// due within that time plus the spin margin; when its time falls on an edge,
+/// it is made early, before the edge.
 pub const DECIDE_SLOT_NS: u64 = 50_000;
 
 /// Where a lane's edges go.
@@ -249,6 +251,7 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
     for lane in lanes.iter_mut() {
         lane.meter.start(now);
     }
+    let mut decide_peak_ns = 0u64;
     loop {
         let stopping = stop.load(Relaxed);
         let margin = timer.margin_ns();
@@ -264,15 +267,16 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
                 .filter_map(|i| prog[i].decide_at(lead).map(|d| (d, i)))
                 .min()
         };
+        let slot = DECIDE_SLOT_NS.max(decide_peak_ns + DECIDE_SLOT_NS / 4);
         let decide = match (decision, edge_due) {
             (None, None) => break,
             (None, Some(_)) => None,
             (Some((at, i)), None) => Some((at, i, true)),
             (Some((at, i)), Some(due)) => {
                 let spin_from = due.saturating_sub(margin);
-                if at + DECIDE_SLOT_NS <= spin_from {
+                if at + slot <= spin_from {
                     Some((at, i, true))
-                } else if at <= due && clock::now_ns() + DECIDE_SLOT_NS <= spin_from {
+                } else if at <= due && clock::now_ns() + slot <= spin_from {
                     // Its time falls on an edge: decide now, before it.
                     Some((at, i, false))
                 } else {
@@ -282,14 +286,22 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
         };
         match decide {
             Some((at, i, sleep)) => {
-                if sleep {
+                if sleep && edge_due.is_some() {
+                    // Another line's edge follows closely: wake as precisely
+                    // as for an edge, so a late wake-up cannot delay it.
+                    timer.wait(at);
+                } else if sleep {
                     clock::sleep_until(at);
                 }
+                let took_from = clock::now_ns();
                 let frame_ns = lanes[i].model.frame_ns();
                 let anchor = (0..n)
                     .filter(|&j| j != i && lanes[j].model.frame_ns() == frame_ns)
                     .find_map(|j| prog[j].next_start);
                 decide_frame(&mut lanes[i], &mut prog[i], lead, anchor);
+                // A decaying peak of the decision time sizes the slot.
+                let took = clock::now_ns() - took_from;
+                decide_peak_ns = took.max(decide_peak_ns - decide_peak_ns / 64);
             }
             None => {
                 let due = edge_due.expect("an edge is due");

@@ -8,12 +8,12 @@
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Parser;
 use ppm_shared::config::{Config, OutputSpec, SpinMargin};
-use ppm_shared::frame::FrameModel;
+use ppm_shared::frame::{FrameModel, Level};
 use ppm_shared::ipc::{self, Summary, TimingSnapshot};
 use ppmd::clock::{self, Margin};
-use ppmd::emitter::{self, EmitterConfig, LineState, Stats};
+use ppmd::emitter::{self, EmitterConfig, Lane, LineState, Sink, Stats};
 use ppmd::meter::{self, Interval, MeterReader};
-use ppmd::output::{Output, SimOutput};
+use ppmd::output::{Bank, Output, SimOutput};
 use ppmd::rt::{RtSetup, RT_STACK_BYTES};
 use ppmd::source::{CommandSource, IpcSource};
 use std::path::PathBuf;
@@ -29,14 +29,17 @@ struct Cli {
     /// Configuration file (TOML); every key has a default.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Output name; must match udp-ingress's. Overrides `name`.
+    /// Output name; must match udp-ingress's. Overrides `name`; with
+    /// `[[outputs]]` in the configuration, runs that output alone.
     #[arg(long)]
     name: Option<String>,
     /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, or `gpio:CHIP:LINE` (CHIP:
     /// a path, name or label such as pinctrl-bcm2711; LINE: an offset or a
-    /// name such as GPIO18). Overrides `ppmd.output`.
-    #[arg(long, value_name = "SPEC")]
-    output: Option<String>,
+    /// name such as GPIO18). Overrides `ppmd.output`. Repeat as
+    /// `--output NAME=SPEC` to drive several outputs from one timing thread,
+    /// each fed by its own `udp-ingress --name NAME`.
+    #[arg(long, value_name = "[NAME=]SPEC")]
+    output: Vec<String>,
     /// Run even when a real-time setting cannot be had (the run is then
     /// marked degraded). Sets `rt.allow_degraded`.
     #[arg(long)]
@@ -69,74 +72,134 @@ fn main() {
     }
 }
 
+/// One output as the main thread sets it up.
+struct Setup {
+    cfg: Config,
+    model: FrameModel,
+    ecfg: EmitterConfig,
+    stats: Arc<Stats>,
+    meter: Option<meter::Meter>,
+    reader: Option<MeterReader>,
+    log: Option<ppmd::framelog::Producer>,
+    log_writer: Option<ppmd::framelog::Writer>,
+}
+
+/// The lines, as the timing thread owns them: lines of their own and banks
+/// (several lines of one GPIO chip), and which one each output uses.
+struct Lines {
+    own: Vec<Option<Box<dyn Output>>>,
+    banks: Vec<ppmd::output::gpio::GpioBank>,
+    /// Per output: `Some((bank, bit))` when the output's line is in a bank.
+    banked: Vec<Option<(usize, u32)>>,
+}
+
 fn run(cli: Cli) -> Result<()> {
     let mut cfg = Config::load_or_default(cli.config.as_deref())?;
-    if let Some(name) = cli.name {
-        cfg.name = name;
+    if let Some(name) = cli.name.as_deref() {
+        // With [[outputs]], --name runs that output alone.
+        cfg = cfg.select(Some(name))?;
     }
-    if let Some(output) = cli.output {
-        cfg.ppmd.output = output;
-    }
+    cfg.apply_cli_outputs(&cli.output)?;
     cfg.rt.allow_degraded |= cli.allow_degraded;
-    if cli.frame_log.is_some() {
-        cfg.ppmd.frame_log = cli.frame_log;
+    for out in cfg.outputs.iter_mut() {
+        out.rt.allow_degraded = cfg.rt.allow_degraded;
     }
-    let model = cfg.validate()?;
-    let output = open_output(&cfg, &model)?;
+    if let Some(path) = cli.frame_log {
+        if !cfg.outputs.is_empty() {
+            bail!("--frame-log with several outputs: set frame_log in each output's [[outputs]] entry instead");
+        }
+        cfg.ppmd.frame_log = Some(path);
+    }
+    let outputs = cfg.validate_outputs()?;
+    let several = outputs.len() > 1;
+    // Shared settings (rt, ipc) are the same in every output.
+    let shared = outputs[0].0.clone();
+    let lines = open_lines(&outputs)?;
 
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;
     }
-    let node = ipc::create_node(&cfg.ipc.root, &format!("ppmd-{}", cfg.name))?;
-    let stats_service = ipc::open_stats_service(&node, &cfg.name)?;
-    let publisher = stats_service
-        .publisher_builder()
-        .create()
-        .map_err(|e| anyhow!("creating the timing snapshot publisher: {e:?}"))?;
-
-    let ecfg = EmitterConfig {
-        margin: match cfg.rt.spin_margin_us {
-            SpinMargin::Fixed(us) => Margin::Fixed(us as u64 * 1_000),
-            SpinMargin::Auto => Margin::Auto {
-                min_ns: cfg.rt.spin_margin_min_us as u64 * 1_000,
-                max_ns: cfg.rt.spin_margin_max_us as u64 * 1_000,
-            },
+    let margin = match shared.rt.spin_margin_us {
+        SpinMargin::Fixed(us) => Margin::Fixed(us as u64 * 1_000),
+        SpinMargin::Auto => Margin::Auto {
+            min_ns: shared.rt.spin_margin_min_us as u64 * 1_000,
+            max_ns: shared.rt.spin_margin_max_us as u64 * 1_000,
         },
-        failsafe_after_ns: cfg.failsafe.after_ms * 1_000_000,
-        failsafe_action: cfg.failsafe.action,
-        startup: cfg.failsafe.startup,
     };
-    let (mut log_producer, mut log_writer) = match &cfg.ppmd.frame_log {
-        Some(path) => {
-            let (p, w) = ppmd::framelog::open(path, cfg.ppmd.frame_log_max_mb << 20)
-                .with_context(|| format!("opening the frame log {}", path.display()))?;
-            log::info!("frame log: {}", path.display());
-            (Some(p), Some(w))
-        }
-        None => (None, None),
-    };
-    let stats = Arc::new(Stats::default());
-    let (mut meter, reader) = meter::meter(SNAPSHOT_EVERY_NS);
-    let setup = RtSetup::from_config(&cfg.rt);
+    let mut setups = Vec::new();
+    for (c, model) in outputs {
+        let (log, log_writer) = match &c.ppmd.frame_log {
+            Some(path) => {
+                let (p, w) = ppmd::framelog::open(path, c.ppmd.frame_log_max_mb << 20)
+                    .with_context(|| format!("opening the frame log {}", path.display()))?;
+                log::info!("{}frame log: {}", tag(several, &c.name), path.display());
+                (Some(p), Some(w))
+            }
+            None => (None, None),
+        };
+        let (meter, reader) = meter::meter(SNAPSHOT_EVERY_NS);
+        setups.push(Setup {
+            ecfg: EmitterConfig {
+                margin,
+                failsafe_after_ns: c.failsafe.after_ms * 1_000_000,
+                failsafe_action: c.failsafe.action,
+                startup: c.failsafe.startup,
+            },
+            cfg: c,
+            model,
+            stats: Arc::new(Stats::default()),
+            meter: Some(meter),
+            reader: Some(reader),
+            log,
+            log_writer,
+        });
+    }
+    let mut nodes = Vec::new();
+    let mut publishers = Vec::new();
+    for s in &setups {
+        let node = ipc::create_node(&shared.ipc.root, &format!("ppmd-{}", s.cfg.name))?;
+        let service = ipc::open_stats_service(&node, &s.cfg.name)?;
+        let publisher = service.publisher_builder().create().map_err(|e| {
+            anyhow!(
+                "creating the timing snapshot publisher of `{}`: {e:?}",
+                s.cfg.name
+            )
+        })?;
+        publishers.push(publisher);
+        nodes.push((node, service));
+    }
+
+    let setup = RtSetup::from_config(&shared.rt);
     let (ready_tx, ready_rx) = std::sync::mpsc::channel();
     let timing = {
-        let (stats, stop, model, root, name) = (
-            stats.clone(),
-            stop.clone(),
-            model.clone(),
-            cfg.ipc.root.clone(),
-            cfg.name.clone(),
-        );
-        let mut output = output;
+        let stop = stop.clone();
+        let root = shared.ipc.root.clone();
+        let mut parts: Vec<_> = setups
+            .iter_mut()
+            .map(|s| {
+                (
+                    s.cfg.name.clone(),
+                    s.model.clone(),
+                    s.ecfg,
+                    s.stats.clone(),
+                    s.meter.take().expect("meter"),
+                    s.log.take(),
+                )
+            })
+            .collect();
+        let mut lines = lines;
         std::thread::Builder::new()
             .name("ppmd-timing".into())
             .stack_size(RT_STACK_BYTES)
-            .spawn(move || -> Result<u64> {
-                let started = IpcSource::open(&root, &name)
+            .spawn(move || -> Result<Vec<u64>> {
+                let started = parts
+                    .iter()
+                    .map(|p| IpcSource::open(&root, &p.0))
+                    .collect::<Result<Vec<_>, _>>()
                     .map_err(anyhow::Error::from)
-                    .and_then(|source| Ok((source, setup.apply()?)));
-                let (mut source, obtained) = match started {
+                    .and_then(|sources| Ok((sources, setup.apply()?)));
+                let (mut sources, obtained) = match started {
                     Ok(v) => v,
                     Err(e) => {
                         let _ = ready_tx.send(None);
@@ -144,19 +207,36 @@ fn run(cli: Cli) -> Result<()> {
                     }
                 };
                 let _ = ready_tx.send(Some(Obtained::from(&obtained)));
-                emitter::run(
-                    &model,
-                    &ecfg,
-                    &mut source,
-                    output.as_mut(),
-                    &stop,
-                    &stats,
-                    &mut meter,
-                    log_producer.as_mut(),
-                );
-                drop(output); // sets the line idle, flushes the sim trace
+                {
+                    let Lines { own, banks, banked } = &mut lines;
+                    let mut lanes: Vec<Lane> = parts
+                        .iter_mut()
+                        .zip(sources.iter_mut())
+                        .zip(own.iter_mut().zip(banked.iter()))
+                        .map(|((p, source), (own, banked))| Lane {
+                            model: &p.1,
+                            cfg: p.2,
+                            source,
+                            sink: match (own, banked) {
+                                (Some(out), _) => Sink::Line(out.as_mut()),
+                                (None, Some((bank, bit))) => Sink::Bank {
+                                    bank: *bank,
+                                    bit: *bit,
+                                },
+                                (None, None) => unreachable!("every output has a line"),
+                            },
+                            stats: &p.3,
+                            meter: &mut p.4,
+                            log: p.5.as_mut(),
+                        })
+                        .collect();
+                    let mut bank_refs: Vec<&mut dyn Bank> =
+                        banks.iter_mut().map(|b| b as &mut dyn Bank).collect();
+                    emitter::run_lanes(&mut lanes, &mut bank_refs, &stop);
+                }
+                drop(lines); // sets the lines idle, flushes the sim traces
                 drop(obtained); // releases /dev/cpu_dma_latency
-                Ok(source.errors())
+                Ok(sources.iter().map(|s| s.errors()).collect())
             })
             .context("spawning the timing thread")?
     };
@@ -170,99 +250,189 @@ fn run(cli: Cli) -> Result<()> {
     for s in &obtained.shortfalls {
         log::warn!("DEGRADED RUN: {s}");
     }
-    log::info!(
-        "{} channels ({}), frame {} us, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
-        model.channels(),
-        model.names().join(" "),
-        model.frame_ns() as f64 / 1e3,
-        model.pulse_ns() as f64 / 1e3,
-        model.idle_level(),
-        ipc::command_service_name(&cfg.name),
-        cfg.ipc.root.display(),
-        cfg.failsafe.action,
-        cfg.failsafe.after_ms,
-        cfg.rt.spin_margin_us,
-    );
+    for s in &setups {
+        let (c, model) = (&s.cfg, &s.model);
+        log::info!(
+            "{}{} channels ({}), frame {} us, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
+            tag(several, &c.name),
+            model.channels(),
+            model.names().join(" "),
+            model.frame_ns() as f64 / 1e3,
+            model.pulse_ns() as f64 / 1e3,
+            model.idle_level(),
+            ipc::command_service_name(&c.name),
+            shared.ipc.root.display(),
+            c.failsafe.action,
+            c.failsafe.after_ms,
+            shared.rt.spin_margin_us,
+        );
+    }
 
-    let mut monitor = Monitor::new(
-        &model,
-        &obtained,
-        reader,
-        stats.clone(),
-        cli.hdr_log.as_deref(),
-    )?;
+    let mut hdr = cli
+        .hdr_log
+        .as_deref()
+        .map(HdrLog::open)
+        .transpose()
+        .with_context(|| {
+            let p = cli
+                .hdr_log
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default();
+            format!("opening the HdrHistogram log {p}")
+        })?;
+    let mut monitors = Vec::new();
+    for s in setups.iter_mut() {
+        monitors.push(Monitor::new(
+            &s.model,
+            &obtained,
+            s.reader.take().expect("reader"),
+            s.stats.clone(),
+            if several {
+                format!("{}.", s.cfg.name)
+            } else {
+                String::new()
+            },
+        ));
+    }
     while !stop.load(Relaxed) && !timing.is_finished() {
         std::thread::sleep(MONITOR_EVERY);
-        if let Some(snapshot) = monitor.tick()? {
-            let sent = publisher
-                .loan_uninit()
-                .map(|s| s.write_payload(snapshot))
-                .map_err(|e| format!("{e:?}"))
-                .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
-            if let Err(e) = sent {
-                log::debug!("publishing timing snapshot: {e}");
+        for (monitor, publisher) in monitors.iter_mut().zip(&publishers) {
+            if let Some(snapshot) = monitor.tick(hdr.as_mut())? {
+                let sent = publisher
+                    .loan_uninit()
+                    .map(|s| s.write_payload(snapshot))
+                    .map_err(|e| format!("{e:?}"))
+                    .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
+                if let Err(e) = sent {
+                    log::debug!("publishing timing snapshot: {e}");
+                }
             }
         }
     }
     let receive_errors = timing
         .join()
         .map_err(|_| anyhow!("the timing thread panicked"))??;
-    monitor.tick()?;
-    if let Some(w) = log_writer.as_mut() {
-        w.finish().context("writing the frame log")?;
-        if w.dropped() > 0 {
-            log::warn!(
-                "frame log: {} rows dropped (the writer fell behind)",
-                w.dropped()
-            );
+    for ((s, monitor), errors) in setups
+        .iter_mut()
+        .zip(monitors.iter_mut())
+        .zip(receive_errors)
+    {
+        monitor.tick(hdr.as_mut())?;
+        if let Some(w) = s.log_writer.as_mut() {
+            w.finish().context("writing the frame log")?;
+            if w.dropped() > 0 {
+                log::warn!(
+                    "{}frame log: {} rows dropped (the writer fell behind)",
+                    tag(several, &s.cfg.name),
+                    w.dropped()
+                );
+            }
         }
+        let t = &monitor.snapshot;
+        log::info!(
+            "{}stopped{}: {} frames, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} late frames, {} overruns, {} write errors, {} mismatched samples, {} receive errors",
+            tag(several, &s.cfg.name),
+            if t.degraded != 0 { " (DEGRADED RUN)" } else { "" },
+            t.frames,
+            t.commands,
+            t.total.p50 as f64 / 1e3,
+            t.total.p99 as f64 / 1e3,
+            t.total.p999 as f64 / 1e3,
+            t.total.max as f64 / 1e3,
+            t.late_edges,
+            emitter::LATE_EDGE_NS / 1_000,
+            t.late_frames,
+            t.overruns,
+            t.write_errors,
+            s.stats.mismatched.load(Relaxed),
+            errors,
+        );
     }
-    let t = &monitor.snapshot;
-    log::info!(
-        "stopped{}: {} frames, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} late frames, {} overruns, {} write errors, {} mismatched samples, {} receive errors",
-        if t.degraded != 0 { " (DEGRADED RUN)" } else { "" },
-        t.frames,
-        t.commands,
-        t.total.p50 as f64 / 1e3,
-        t.total.p99 as f64 / 1e3,
-        t.total.p999 as f64 / 1e3,
-        t.total.max as f64 / 1e3,
-        t.late_edges,
-        emitter::LATE_EDGE_NS / 1_000,
-        t.late_frames,
-        t.overruns,
-        t.write_errors,
-        stats.mismatched.load(Relaxed),
-        receive_errors,
-    );
     Ok(())
 }
 
-fn open_output(cfg: &Config, model: &FrameModel) -> Result<Box<dyn Output>> {
-    Ok(match cfg.output()? {
-        OutputSpec::Sim { path } => {
-            let path = path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", cfg.name)));
-            let header = [
-                "ppm simulated line: <scheduled_ns> <actual_ns> <level>, CLOCK_MONOTONIC"
-                    .to_string(),
-                format!("name {}", cfg.name),
-                format!("idle_level {}", model.idle_level().as_u8()),
-                format!("channels {}", model.names().join(",")),
-                format!("frame_ns {}", model.frame_ns()),
-                format!("pulse_ns {}", model.pulse_ns()),
-            ];
-            let sim = SimOutput::create(&path, &header)
-                .with_context(|| format!("creating sim trace {}", path.display()))?;
-            log::info!("output sim: trace in {}", path.display());
-            Box::new(sim)
+/// `NAME: ` in front of a log line when there are several outputs.
+fn tag(several: bool, name: &str) -> String {
+    if several {
+        format!("{name}: ")
+    } else {
+        String::new()
+    }
+}
+
+/// Opens every output's line. GPIO lines on one chip (however the chip is
+/// named) share one request, a bank, so their simultaneous edges are written
+/// in one call; a chip with one of our lines gets a request of its own.
+fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
+    let mut own: Vec<Option<Box<dyn Output>>> = Vec::new();
+    let mut banked = vec![None; outputs.len()];
+    /// A chip's path, its CHIP as first given, and its outputs (index, LINE).
+    type Chip = (PathBuf, String, Vec<(usize, String)>);
+    let mut chips: Vec<Chip> = Vec::new();
+    for (i, (cfg, model)) in outputs.iter().enumerate() {
+        match cfg.output()? {
+            OutputSpec::Sim { path } => {
+                own.push(Some(open_sim(cfg, model, path)?));
+            }
+            OutputSpec::Gpio { chip, line } => {
+                own.push(None);
+                let (_, summary, _) = ppmd::output::gpio::resolve_line(&chip, &line)
+                    .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
+                match chips.iter_mut().find(|c| c.0 == summary.path) {
+                    Some(c) => c.2.push((i, line)),
+                    None => chips.push((summary.path, chip, vec![(i, line)])),
+                }
+            }
         }
-        OutputSpec::Gpio { chip, line } => {
-            let out = ppmd::output::gpio::open(&chip, &line, model.idle_level())
-                .with_context(|| format!("output gpio:{chip}:{line}"))?;
-            log::info!("output gpio: {}", out.description());
-            Box::new(out)
+    }
+    let mut banks = Vec::new();
+    for (path, chip, members) in chips {
+        if let [(i, line)] = members.as_slice() {
+            let (cfg, model) = &outputs[*i];
+            let out = ppmd::output::gpio::open(&chip, line, model.idle_level())
+                .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
+            log::info!("output `{}`: gpio {}", cfg.name, out.description());
+            own[*i] = Some(Box::new(out));
+            continue;
         }
-    })
+        let lines: Vec<(String, Level)> = members
+            .iter()
+            .map(|(i, line)| (line.clone(), outputs[*i].1.idle_level()))
+            .collect();
+        let names: Vec<&str> = members
+            .iter()
+            .map(|(i, _)| outputs[*i].0.name.as_str())
+            .collect();
+        let bank = ppmd::output::gpio::open_bank(&path.to_string_lossy(), &lines)
+            .with_context(|| format!("outputs {}: GPIO chip {chip}", names.join(", ")))?;
+        for (bit, ((i, _), d)) in members.iter().zip(bank.descriptions()).enumerate() {
+            log::info!(
+                "output `{}`: gpio {d} (one request with {})",
+                outputs[*i].0.name,
+                names.join(", ")
+            );
+            banked[*i] = Some((banks.len(), bit as u32));
+        }
+        banks.push(bank);
+    }
+    Ok(Lines { own, banks, banked })
+}
+
+fn open_sim(cfg: &Config, model: &FrameModel, path: Option<PathBuf>) -> Result<Box<dyn Output>> {
+    let path = path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", cfg.name)));
+    let header = [
+        "ppm simulated line: <scheduled_ns> <actual_ns> <level>, CLOCK_MONOTONIC".to_string(),
+        format!("name {}", cfg.name),
+        format!("idle_level {}", model.idle_level().as_u8()),
+        format!("channels {}", model.names().join(",")),
+        format!("frame_ns {}", model.frame_ns()),
+        format!("pulse_ns {}", model.pulse_ns()),
+    ];
+    let sim = SimOutput::create(&path, &header)
+        .with_context(|| format!("creating sim trace {}", path.display()))?;
+    log::info!("output `{}`: sim, trace in {}", cfg.name, path.display());
+    Ok(Box::new(sim))
 }
 
 /// What the timing thread's real-time setup obtained, as the main thread needs it.
@@ -298,7 +468,8 @@ struct Monitor {
     next_log_ns: u64,
     state: LineState,
     mismatched: u64,
-    hdr: Option<HdrLog>,
+    /// `NAME.` before the HdrHistogram log's tags, with several outputs.
+    tag_prefix: String,
 }
 
 impl Monitor {
@@ -307,14 +478,10 @@ impl Monitor {
         obtained: &Obtained,
         reader: MeterReader,
         stats: Arc<Stats>,
-        hdr_log: Option<&std::path::Path>,
-    ) -> Result<Monitor> {
+        tag_prefix: String,
+    ) -> Monitor {
         let start_ns = clock::now_ns();
-        let hdr = hdr_log.map(HdrLog::open).transpose().with_context(|| {
-            let p = hdr_log.map(|p| p.display().to_string()).unwrap_or_default();
-            format!("opening the HdrHistogram log {p}")
-        })?;
-        Ok(Monitor {
+        Monitor {
             reader,
             stats,
             total_error: meter::histogram(),
@@ -332,20 +499,20 @@ impl Monitor {
             next_log_ns: start_ns + LOG_EVERY_NS,
             state: LineState::Silent,
             mismatched: 0,
-            hdr,
-        })
+            tag_prefix,
+        }
     }
 
     /// Reads what the loop handed over; returns a snapshot when an interval ended.
-    fn tick(&mut self) -> Result<Option<TimingSnapshot>> {
+    fn tick(&mut self, mut hdr: Option<&mut HdrLog>) -> Result<Option<TimingSnapshot>> {
         let mut intervals = 0;
         let (mut last, mut hdr_result) = (None, Ok(()));
-        let (total_error, total_write, snap, hdr, start_ns) = (
+        let (total_error, total_write, snap, start_ns, prefix) = (
             &mut self.total_error,
             &mut self.total_write,
             &mut self.snapshot,
-            &mut self.hdr,
             self.start_ns,
+            &self.tag_prefix,
         );
         self.reader.drain(|iv: &Interval| {
             intervals += 1;
@@ -361,7 +528,7 @@ impl Monitor {
             last = Some(summarize(&iv.edge_error));
             if let Some(h) = hdr.as_mut() {
                 if hdr_result.is_ok() {
-                    hdr_result = h.write(iv, start_ns);
+                    hdr_result = h.write(iv, start_ns, prefix);
                 }
             }
         });
@@ -395,7 +562,8 @@ impl Monitor {
         if now >= self.next_log_ns {
             self.next_log_ns = now + LOG_EVERY_NS;
             log::info!(
-                "timing: {} frames; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} late frames, {} overruns; spin margin {} us, spinning {:.1}% of the time",
+                "{}timing: {} frames; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} late frames, {} overruns; spin margin {} us, spinning {:.1}% of the time",
+                self.tag_prefix.replace('.', ": "),
                 snap.frames,
                 snap.total.p50 as f64 / 1e3,
                 snap.total.p99 as f64 / 1e3,
@@ -410,19 +578,25 @@ impl Monitor {
     }
 
     fn log_changes(&mut self) {
+        let who = match self.tag_prefix.strip_suffix('.') {
+            Some(name) => format!("{name}: "),
+            None => String::new(),
+        };
         let now = self.stats.state();
         if now != self.state {
             match now {
-                LineState::Active => log::info!("commands arriving: emitting frames"),
-                LineState::Silent => log::warn!("no fresh command: line silent"),
-                LineState::Failsafe => log::warn!("no fresh command: emitting failsafe frames"),
+                LineState::Active => log::info!("{who}commands arriving: emitting frames"),
+                LineState::Silent => log::warn!("{who}no fresh command: line silent"),
+                LineState::Failsafe => {
+                    log::warn!("{who}no fresh command: emitting failsafe frames")
+                }
             }
             self.state = now;
         }
         let m = self.stats.mismatched.load(Relaxed);
         if m != self.mismatched {
             log::warn!(
-                "{} command(s) ignored: their channel count differs from this daemon's configuration (udp-ingress runs with another config?)",
+                "{who}{} command(s) ignored: their channel count differs from this daemon's configuration (udp-ingress runs with another config?)",
                 m - self.mismatched
             );
             self.mismatched = m;
@@ -468,7 +642,7 @@ impl HdrLog {
         })
     }
 
-    fn write(&mut self, iv: &Interval, start_ns: u64) -> Result<()> {
+    fn write(&mut self, iv: &Interval, start_ns: u64, prefix: &str) -> Result<()> {
         use hdrhistogram::serialization::interval_log::{IntervalLogWriterBuilder, Tag};
         let mut builder = IntervalLogWriterBuilder::new();
         if !self.started {
@@ -486,7 +660,8 @@ impl HdrLog {
         let length = Duration::from_nanos(iv.end_ns.saturating_sub(iv.start_ns));
         for (h, tag) in [(&iv.edge_error, "edge_error"), (&iv.write, "write")] {
             if !h.is_empty() {
-                w.write_histogram(h, from, length, Tag::new(tag))
+                let tag = format!("{prefix}{tag}");
+                w.write_histogram(h, from, length, Tag::new(&tag))
                     .map_err(|e| anyhow!("{e:?}"))?;
             }
         }

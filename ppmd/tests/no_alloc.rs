@@ -178,3 +178,32 @@ fn the_timing_loop_does_not_allocate_after_start() {
     );
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// A GPIO bank's write fills a preallocated value set (the ioctl itself
+/// takes it by reference): every mask and level pattern, without allocating.
+#[test]
+fn filling_a_bank_value_set_does_not_allocate() {
+    use gpiocdev::line::{Value, Values};
+    use ppmd::output::gpio::fill_values;
+    let offsets = [18u32, 3, 27, 4];
+    let mut values = Values::from_offsets(&offsets);
+    fill_values(&mut values, &offsets, 0, 0);
+    COUNTING.with(|c| c.set(true));
+    for round in 0..1_000u64 {
+        let mask = round % 16;
+        let levels = round.rotate_left(3) % 16;
+        fill_values(&mut values, &offsets, mask, levels);
+        let held = (0..4).filter(|i| mask & (1 << i) != 0).count();
+        assert_eq!(values.len(), held);
+    }
+    COUNTING.with(|c| c.set(false));
+    assert_eq!(
+        ALLOCATIONS.load(Relaxed),
+        0,
+        "filling the value set allocated"
+    );
+    fill_values(&mut values, &offsets, 0b0101, 0b0001);
+    assert_eq!(values.get(18), Some(Value::Active));
+    assert_eq!(values.get(27), Some(Value::Inactive));
+    assert_eq!(values.get(3), None);
+}

@@ -794,6 +794,11 @@ impl Config {
             return e;
         };
         match e {
+            // An output made by ppmd's --output NAME=SPEC.
+            ConfigError::Invalid { key, message } if keys.is_empty() && key == "ppmd.output" => {
+                let c = &self.outputs[i];
+                ConfigError::Usage(format!("--output {}={}: {message}", c.name, c.ppmd.output))
+            }
             ConfigError::Invalid { key, message } => {
                 let own = keys.iter().any(|k| {
                     k == &key

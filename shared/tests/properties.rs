@@ -173,7 +173,8 @@ proptest! {
             8 => { bad.order = ["AETRA", "AER", "XETR", "aetr x"][pick % 4].into(); "ppm.order".into() }
             _ => { bad.channel.insert(format!("aux{}", 13 + pick), ChannelOverride::default()); format!("ppm.channel.aux{}", 13 + pick) }
         };
-        let cfg = Config { ppm: bad, ..Config::default() };
+        let mut cfg = Config::default();
+        cfg.ppm = bad;
         let err = cfg.validate().expect_err("mutated config must be refused");
         prop_assert_eq!(err.key(), Some(key.as_str()), "{}", err);
         prop_assert!(err.to_string().contains(&key), "{}", err);

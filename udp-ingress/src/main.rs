@@ -29,7 +29,9 @@ struct Cli {
     /// Configuration file (TOML); every key has a default.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Output name; must match ppmd's. Overrides `name`.
+    /// Output name; must match ppmd's. Overrides `name`; with `[[outputs]]`
+    /// in the configuration, picks that output (its listen address, channels
+    /// and units).
     #[arg(long)]
     name: Option<String>,
     /// Address and port to receive on. Overrides `ingress.listen`.
@@ -111,10 +113,8 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    let mut cfg = Config::load_or_default(cli.config.as_deref())?;
-    if let Some(name) = cli.name {
-        cfg.name = name;
-    }
+    // With [[outputs]] in the file, --name picks this ingress's output.
+    let mut cfg = Config::load_or_default(cli.config.as_deref())?.select(cli.name.as_deref())?;
     if let Some(listen) = cli.listen {
         cfg.ingress.listen = listen;
     }

@@ -14,8 +14,8 @@
 //! [`find_line`] work on lists of [`ChipSummary`] and line infos, so they are
 //! testable without GPIO hardware.
 
-use super::{Output, OutputError};
-use gpiocdev::line::{Info as LineInfo, Offset, Value};
+use super::{Bank, Output, OutputError};
+use gpiocdev::line::{Info as LineInfo, Offset, Value, Values};
 use gpiocdev::{Chip, Request};
 use nix::errno::Errno;
 use ppm_shared::frame::Level;
@@ -595,6 +595,151 @@ pub fn open(chip: &str, line: &str, idle: Level) -> Result<GpioOutput, GpioError
         request,
         idle,
         description: format!("{title} on {summary}"),
+    })
+}
+
+/// Several lines of one GPIO chip in one request: the lines of several
+/// outputs, written together when their edges are due at the same time. Every
+/// [`Bank::write`] is one `GPIO_V2_LINE_SET_VALUES` ioctl; the value set is
+/// kept with room for every line, so updating it never allocates. Each line
+/// is set back to its idle level when this is dropped.
+pub struct GpioBank {
+    request: Request,
+    offsets: Vec<Offset>,
+    idle: Vec<Level>,
+    values: Values,
+    descriptions: Vec<String>,
+}
+
+impl fmt::Debug for GpioBank {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("GpioBank")
+            .field("lines", &self.descriptions)
+            .finish_non_exhaustive()
+    }
+}
+
+impl GpioBank {
+    /// Each line and its chip, for logs, in the order given to [`open_bank`].
+    pub fn descriptions(&self) -> &[String] {
+        &self.descriptions
+    }
+
+    /// Sets the value set to `mask`'s lines at `levels` and writes it.
+    fn set(&mut self, mask: u64, levels: u64) -> Result<(), OutputError> {
+        fill_values(&mut self.values, &self.offsets, mask, levels);
+        self.request
+            .set_values(&self.values)
+            .map_err(|e| OutputError::Write(write_errno(&e)))
+    }
+}
+
+impl Bank for GpioBank {
+    fn write(&mut self, _scheduled_ns: u64, mask: u64, levels: u64) -> Result<(), OutputError> {
+        self.set(mask, levels)
+    }
+
+    fn park(&mut self, bit: u32, level: Level) -> Result<(), OutputError> {
+        self.set(1 << bit, (level == Level::High) as u64 * (1 << bit))
+    }
+}
+
+impl Drop for GpioBank {
+    fn drop(&mut self) {
+        let levels = self
+            .idle
+            .iter()
+            .enumerate()
+            .fold(0, |acc, (i, l)| acc | ((*l == Level::High) as u64) << i);
+        let _ = self.set((1 << self.offsets.len()) - 1, levels);
+    }
+}
+
+/// Makes `values` hold exactly the lines of `offsets` in `mask` (bit `i` is
+/// `offsets[i]`), each at its bit in `levels`. Never allocates once `values`
+/// has held every line (as [`open_bank`] leaves it): removing and inserting
+/// keep the capacity.
+pub fn fill_values(values: &mut Values, offsets: &[Offset], mask: u64, levels: u64) {
+    for (i, &offset) in offsets.iter().enumerate() {
+        if mask & (1 << i) == 0 {
+            values.unset(offset);
+        } else {
+            let high = levels & (1 << i) != 0;
+            values.set(offset, value_of(Level::from_bit(high)));
+        }
+    }
+}
+
+/// Opens several lines of one chip as outputs in one request (consumer
+/// `ppmd`), each initially at its idle level: `lines` holds each line's LINE
+/// (an offset or a name) and idle level. Line `i` of the bank is `lines[i]`.
+pub fn open_bank(chip: &str, lines: &[(String, Level)]) -> Result<GpioBank, GpioError> {
+    assert!((1..=64).contains(&lines.len()), "1..=64 lines");
+    let (handle, summary) = open_chip(chip)?;
+    let infos = handle
+        .line_info_iter()
+        .and_then(|it| it.collect::<Result<Vec<_>, _>>())
+        .map_err(|e| chip_error(&summary, "reading line info", &e))?;
+    let mut found: Vec<LineInfo> = Vec::new();
+    for (line, _) in lines {
+        let info = find_line(&summary, line, &infos)?.clone();
+        if let Some(prev) = found.iter().find(|i| i.offset == info.offset) {
+            return Err(GpioError::Failed {
+                chip: summary.name.clone(),
+                line: Some(line_title(&info)),
+                op: "requesting the lines",
+                detail: format!(
+                    "two outputs name the same line (`{line}` is {})",
+                    line_title(prev)
+                ),
+            });
+        }
+        found.push(info);
+    }
+    let mut builder = Request::builder();
+    builder.on_chip(&summary.path).with_consumer(CONSUMER);
+    for (info, (_, idle)) in found.iter().zip(lines) {
+        builder
+            .with_line(info.offset)
+            .as_active_high()
+            .as_output(value_of(*idle));
+    }
+    let titles = || found.iter().map(line_title).collect::<Vec<_>>().join(", ");
+    let request = builder.request().map_err(|e| match errno_of(&e) {
+        Some(Errno::EBUSY) => {
+            let held = found.iter().find_map(|i| {
+                let now = handle.line_info(i.offset).ok()?;
+                now.used.then(|| (line_title(i), now.consumer))
+            });
+            let (line, consumer) = held.unwrap_or_else(|| (titles(), String::new()));
+            GpioError::Busy {
+                chip: summary.name.clone(),
+                line,
+                consumer,
+            }
+        }
+        Some(Errno::EACCES | Errno::EPERM | Errno::ENOTTY) => chip_error(&summary, "", &e),
+        _ => GpioError::Failed {
+            chip: summary.name.clone(),
+            line: Some(titles()),
+            op: "requesting the lines as outputs",
+            detail: e.to_string(),
+        },
+    })?;
+    let offsets: Vec<Offset> = found.iter().map(|i| i.offset).collect();
+    let mut values = Values::from_offsets(&offsets);
+    for o in &offsets {
+        values.unset(*o);
+    }
+    Ok(GpioBank {
+        request,
+        idle: lines.iter().map(|(_, l)| *l).collect(),
+        descriptions: found
+            .iter()
+            .map(|i| format!("{} on {summary}", line_title(i)))
+            .collect(),
+        offsets,
+        values,
     })
 }
 

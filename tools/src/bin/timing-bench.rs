@@ -15,7 +15,7 @@ use ppm_shared::ipc::CommandSample;
 use ppm_shared::protocol::parse;
 use ppm_tools::analysis::Percentiles;
 use ppmd::clock::{self, Margin};
-use ppmd::emitter::{self, EmitterConfig, Stats};
+use ppmd::emitter::{self, EmitterConfig, Lane, Sink, Stats};
 use ppmd::output::SimOutput;
 use ppmd::rt::{RtSetup, RT_STACK_BYTES};
 use ppmd::source::RepeatSource;
@@ -125,6 +125,76 @@ fn run_block(
     Ok(())
 }
 
+/// Two outputs from one loop: `model` with `sample` as in [`run_block`], and
+/// a second output with another frame length and channel count, so the two
+/// lines' edges interleave irregularly. Both lines' edge errors are counted.
+fn run_block_two(
+    model: &FrameModel,
+    sample: CommandSample,
+    other: &FrameModel,
+    other_sample: CommandSample,
+    margin: Margin,
+    frames: u64,
+    totals: &mut Totals,
+) -> Result<()> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut source = RepeatSource {
+        sample,
+        frames,
+        stop: stop.clone(),
+    };
+    let mut other_source = RepeatSource {
+        sample: other_sample,
+        frames: u64::MAX,
+        stop: stop.clone(),
+    };
+    let null = std::path::Path::new("/dev/null");
+    let (mut out, mut other_out) = (SimOutput::create(null, &[])?, SimOutput::create(null, &[])?);
+    let cfg = EmitterConfig {
+        margin,
+        failsafe_after_ns: 1_000_000_000,
+        failsafe_action: FailsafeAction::Silence,
+        startup: FailsafeAction::Silence,
+    };
+    let (stats, other_stats) = (Stats::default(), Stats::default());
+    let (mut meter, _r) = ppmd::meter::meter(u64::MAX);
+    let (mut other_meter, _r2) = ppmd::meter::meter(u64::MAX);
+    let (cpu0, wall0) = (thread_cpu_ns(), clock::now_ns());
+    let mut lanes = [
+        Lane {
+            model,
+            cfg,
+            source: &mut source,
+            sink: Sink::Line(&mut out),
+            stats: &stats,
+            meter: &mut meter,
+            log: None,
+        },
+        Lane {
+            model: other,
+            cfg,
+            source: &mut other_source,
+            sink: Sink::Line(&mut other_out),
+            stats: &other_stats,
+            meter: &mut other_meter,
+            log: None,
+        },
+    ];
+    emitter::run_lanes(&mut lanes, &mut [], &stop);
+    totals.cpu_ns += thread_cpu_ns() - cpu0;
+    totals.wall_ns += clock::now_ns() - wall0;
+    for (s, m) in [(&stats, &meter), (&other_stats, &other_meter)] {
+        totals.spin_ns += s.spin_ns.load(Relaxed);
+        totals.late_frames += s.late_frames.load(Relaxed);
+        totals.overruns += s.overruns.load(Relaxed);
+        totals
+            .error
+            .add(&m.current().edge_error)
+            .context("merging histograms")?;
+    }
+    Ok(())
+}
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
     let cfg = Config::load_or_default(cli.config.as_deref())?;
@@ -139,28 +209,44 @@ fn main() -> Result<()> {
         max_ns: rt.spin_margin_max_us as u64 * 1_000,
     };
     let block_frames = cli.block * 1_000_000_000 / model.frame_ns();
-    let blocks = (cli.seconds / cli.block.max(1)).max(2);
+    let blocks = (cli.seconds / cli.block.max(1)).max(3);
     let cmd = parse(b"[1000, 1200, 1700, 2000]", &model).context("bench command")?;
     let sample = CommandSample::new(&cmd, 1, 0, 0);
+    let mut other_cfg = cfg.clone();
+    other_cfg.ppm.channels = 6;
+    other_cfg.ppm.frame_us = 20_000.0;
+    let other = other_cfg.validate()?;
+    let other_cmd =
+        parse(b"[1900, 1111, 1333, 1555, 1777, 1050]", &other).context("bench command")?;
+    let other_sample = CommandSample::new(&other_cmd, 1, 0, 0);
     let m2 = model.clone();
+    let other2 = other.clone();
     let worker = std::thread::Builder::new()
         .name("timing-bench".into())
         .stack_size(RT_STACK_BYTES)
-        .spawn(move || -> Result<(String, Totals, Totals)> {
+        .spawn(move || -> Result<(String, Totals, Totals, Totals)> {
             let obtained = setup.apply()?;
             let mut summary = obtained.summary();
             for s in &obtained.shortfalls {
                 summary += &format!("\nDEGRADED: {s}");
             }
-            let (mut spin, mut sleep) = (Totals::new(), Totals::new());
+            let (mut spin, mut sleep, mut two) = (Totals::new(), Totals::new(), Totals::new());
             for b in 0..blocks {
-                if b % 2 == 0 {
-                    run_block(&m2, sample, auto, block_frames, &mut spin)?;
-                } else {
-                    run_block(&m2, sample, Margin::Fixed(0), block_frames, &mut sleep)?;
+                match b % 3 {
+                    0 => run_block(&m2, sample, auto, block_frames, &mut spin)?,
+                    1 => run_block(&m2, sample, Margin::Fixed(0), block_frames, &mut sleep)?,
+                    _ => run_block_two(
+                        &m2,
+                        sample,
+                        &other2,
+                        other_sample,
+                        auto,
+                        block_frames,
+                        &mut two,
+                    )?,
                 }
             }
-            Ok((summary, spin, sleep))
+            Ok((summary, spin, sleep, two))
         })?;
     println!(
         "ppm timing benchmark: ppmd's emission loop on the sim backend, {} channels, {:.1} ms frames, {} edges a frame",
@@ -169,11 +255,13 @@ fn main() -> Result<()> {
         2 * (model.channels() + 1)
     );
     println!(
-        "{} s in {blocks} alternating blocks of {} s, same frame schedule for both loops",
+        "{} s in {blocks} alternating blocks of {} s, same frame schedule for every loop; \"two outputs\" adds a second line of {} channels at {:.1} ms from the same thread (both lines counted)",
         blocks * cli.block,
-        cli.block
+        cli.block,
+        other.channels(),
+        other.frame_ns() as f64 / 1e6
     );
-    let (summary, spin, sleep) = worker
+    let (summary, spin, sleep, two) = worker
         .join()
         .map_err(|_| anyhow::anyhow!("benchmark thread panicked"))??;
     println!("real-time: {summary}");
@@ -184,6 +272,7 @@ fn main() -> Result<()> {
     );
     for (name, t) in [
         ("ppmd (sleep, then spin)", &spin),
+        ("ppmd, two outputs", &two),
         ("baseline (absolute sleep)", &sleep),
     ] {
         let p = t.percentiles();
@@ -199,13 +288,19 @@ fn main() -> Result<()> {
             t.overruns
         );
     }
-    let (a, b) = (spin.percentiles(), sleep.percentiles());
+    let (a, b, c) = (spin.percentiles(), sleep.percentiles(), two.percentiles());
     println!();
     println!(
         "p99 edge error: baseline / ppmd = {:.0}x (p50 {:.0}x, p99.9 {:.0}x)",
         b.p99 / a.p99.max(1.0),
         b.p50 / a.p50.max(1.0),
         b.p999 / a.p999.max(1.0)
+    );
+    println!(
+        "two outputs / one output: p50 {:.2}x, p99 {:.2}x, p99.9 {:.2}x",
+        c.p50 / a.p50.max(1.0),
+        c.p99 / a.p99.max(1.0),
+        c.p999 / a.p999.max(1.0)
     );
     println!(
         "spinning costs {:.1}% of the pinned core: ppmd's loop uses {:.1}% CPU, the baseline {:.1}%; time spent spinning {:.1}% of wall time",

@@ -1,0 +1,254 @@
+//! Several outputs from one ppmd: `[[outputs]]` with two simulated lines of
+//! different PPM settings, each fed by its own `udp-ingress --name NAME` on
+//! its own port, all edges from one timing thread. Each line's trace is
+//! decoded on its own with transmitter semantics and must carry exactly its
+//! own commands, on its own frame grid; each output publishes its own
+//! timing, which its ingress's status reply shows.
+
+use nix::sys::signal::Signal;
+use ppm_shared::time::now_ns;
+use ppm_tests::{bin, free_udp_port, read_trace, Sandbox, Sender};
+use serde_json::Value;
+use std::net::{SocketAddr, UdpSocket};
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
+
+const SECOND: Duration = Duration::from_secs(1);
+
+/// Two outputs: `<name>a`, 8 channels AETR at 22.5 ms; `<name>b`, 6 channels
+/// TAER at 20 ms with a unit range on aileron and failsafe `hold`.
+fn config(sb: &Sandbox, port_b: u16) -> String {
+    format!(
+        r#"
+[ingress]
+listen = "127.0.0.1:{port_a}"
+[ipc]
+root = "{root}"
+[rt]
+allow_degraded = true
+
+[[outputs]]
+name = "{name}a"
+output = "sim:a.trace"
+frame_log = "a.jsonl"
+
+[[outputs]]
+name = "{name}b"
+output = "sim:b.trace"
+[outputs.ingress]
+listen = "127.0.0.1:{port_b}"
+[outputs.ppm]
+channels = 6
+order = "TAER"
+frame_us = 20000.0
+[outputs.ppm.channel.ail]
+unit_min = -10.0
+unit_max = 10.0
+[outputs.failsafe]
+action = "hold"
+"#,
+        port_a = sb.port,
+        root = sb.dir.join("ipc").display(),
+        name = sb.name,
+    )
+}
+
+/// One status query to an ingress, and its reply.
+fn status(to: SocketAddr) -> Value {
+    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    socket.set_read_timeout(Some(5 * SECOND)).unwrap();
+    socket.send_to(br#"{"get":"status"}"#, to).unwrap();
+    let mut buf = [0u8; 65_536];
+    let (n, _) = socket.recv_from(&mut buf).expect("a status reply");
+    serde_json::from_slice(&buf[..n]).unwrap()
+}
+
+/// Every frame of the trace at `path`, as whole microseconds, with the
+/// scheduled frame starts.
+fn frames(path: &Path) -> Vec<(u64, Vec<u64>)> {
+    read_trace(path)
+        .decode(false)
+        .iter()
+        .map(|f| (f.start_ns, f.channels_us()))
+        .collect()
+}
+
+#[test]
+fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
+    let sb = Sandbox::new("outputs");
+    let port_b = free_udp_port();
+    let cfg_path = sb.dir.join("ppm.toml");
+    std::fs::write(&cfg_path, config(&sb, port_b)).unwrap();
+    let cfg = cfg_path.to_str().unwrap();
+    let (name_a, name_b) = (format!("{}a", sb.name), format!("{}b", sb.name));
+
+    // An ingress must say which output it feeds.
+    let out = Command::new(bin("udp-ingress"))
+        .args(["--config", cfg])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("2 outputs") && err.contains(&name_a) && err.contains("--name"),
+        "{err}"
+    );
+
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg], "ppmd");
+    let mut ing_a = sb.spawn(
+        "udp-ingress",
+        &["--config", cfg, "--name", &name_a],
+        "ing-a",
+    );
+    let mut ing_b = sb.spawn(
+        "udp-ingress",
+        &["--config", cfg, "--name", &name_b],
+        "ing-b",
+    );
+    ppmd.wait_for_log(&format!("{name_b}: 6 channels"), 30 * SECOND);
+    ing_a.wait_for_log("listening on", 30 * SECOND);
+    ing_b.wait_for_log("listening on", 30 * SECOND);
+
+    let (to_a, to_b) = (sb.addr(), SocketAddr::from(([127, 0, 0, 1], port_b)));
+    let (send_a, send_b) = (Sender::new(to_a), Sender::new(to_b));
+    let start = now_ns();
+    let mut statuses = Vec::new();
+    for i in 0..100u64 {
+        send_a.send(b"[1100, 1200, 1300, 1400]");
+        // b is TAER (throttle first), its values normalised on 1000..2000 us.
+        send_b.send(br#"{"norm": {"thr": 0.8, "ail": 0.5, "ele": -0.4, "rud": 0.2, "aux1": -1}}"#);
+        if i == 80 {
+            statuses = vec![status(to_a), status(to_b)];
+        }
+        let next = start + (i + 1) * 20_000_000;
+        let now = now_ns();
+        if next > now {
+            std::thread::sleep(Duration::from_nanos(next - now));
+        }
+    }
+    assert!(
+        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
+        "{}",
+        ppmd.log_text()
+    );
+    for ing in [&mut ing_a, &mut ing_b] {
+        assert!(ing.signal_and_wait(Signal::SIGINT, 10 * SECOND).success());
+    }
+
+    // Each line carries its own commands, decoded on its own.
+    let log = ppmd.log_text();
+    for (trace, want, frame_ns) in [
+        (
+            "a.trace",
+            vec![1100, 1200, 1300, 1400, 1500, 1500, 1500, 1500],
+            22_500_000,
+        ),
+        (
+            "b.trace",
+            vec![1900, 1750, 1300, 1600, 1000, 1500],
+            20_000_000,
+        ),
+    ] {
+        let got = frames(&sb.dir.join(trace));
+        assert!(got.len() >= 70, "{trace}: {} frames\n{log}", got.len());
+        for (start, ch) in &got {
+            assert_eq!(ch, &want, "{trace}: frame at {start}");
+        }
+        // On the output's own grid, but for frames moved late (counted).
+        let starts: Vec<u64> = got.iter().map(|f| f.0).collect();
+        let off = starts
+            .iter()
+            .filter(|&&s| !(s - starts[0]).is_multiple_of(frame_ns))
+            .count();
+        assert!(off <= 3, "{trace}: {off} frames off the grid\n{log}");
+    }
+    for name in [&name_a, &name_b] {
+        let line = log
+            .lines()
+            .find(|l| l.contains(&format!("{name}: stopped")))
+            .unwrap_or_else(|| panic!("no summary for {name}:\n{log}"));
+        assert!(line.contains(" 0 write errors"), "{line}");
+        assert!(line.contains(" 0 mismatched"), "{line}");
+    }
+    // Each output's timing reaches its own ingress.
+    for (s, name) in statuses.iter().zip([&name_a, &name_b]) {
+        assert_eq!(s["ppmd"]["state"], "active", "{name}: {s}");
+        assert!(s["ppmd"]["frames"].as_u64().unwrap() > 0, "{name}: {s}");
+    }
+    // The frame log belongs to output a alone.
+    let rows = std::fs::read_to_string(sb.dir.join("a.jsonl")).unwrap();
+    assert!(rows.lines().filter(|l| l.contains("\"frame\"")).count() >= 70);
+    assert!(!sb.dir.join("b.jsonl").exists());
+}
+
+#[test]
+fn output_arguments_make_outputs_and_bad_ones_are_refused() {
+    let sb = Sandbox::new("outputs-cli");
+    let cfg_path = sb.config("");
+    let cfg = cfg_path.to_str().unwrap();
+    // --output NAME=SPEC twice: two outputs from the file's settings.
+    let mut ppmd = sb.spawn(
+        "ppmd",
+        &[
+            "--config",
+            cfg,
+            "--output",
+            "x=sim:x.trace",
+            "--output",
+            "y=sim:y.trace",
+        ],
+        "ppmd",
+    );
+    ppmd.wait_for_log("y: 8 channels", 30 * SECOND);
+    let mut ing = sb.spawn("udp-ingress", &["--config", cfg, "--name", "y"], "ing");
+    ing.wait_for_log("listening on", 30 * SECOND);
+    let sender = Sender::new(sb.addr());
+    for _ in 0..30 {
+        sender.send(b"[1234]");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    assert!(ing.signal_and_wait(Signal::SIGINT, 10 * SECOND).success());
+    let y = frames(&sb.dir.join("y.trace"));
+    assert!(y.len() >= 15, "{} frames", y.len());
+    assert!(y.iter().all(|f| f.1[0] == 1234));
+    assert!(
+        frames(&sb.dir.join("x.trace")).is_empty(),
+        "x got no command"
+    );
+
+    for (args, says) in [
+        (&["--output", "sim", "--output", "z=sim"][..], "not both"),
+        (
+            &[
+                "--output",
+                "x=sim:same.trace",
+                "--output",
+                "y=sim:same.trace",
+            ][..],
+            "--output y=sim:same.trace",
+        ),
+        (
+            &[
+                "--output",
+                "x=sim",
+                "--output",
+                "y=sim",
+                "--frame-log",
+                "f.jsonl",
+            ][..],
+            "--frame-log with several outputs",
+        ),
+    ] {
+        let out = Command::new(bin("ppmd"))
+            .args(["--config", cfg])
+            .args(args)
+            .current_dir(&sb.dir)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(err.contains(says), "{args:?}: {err}");
+    }
+}
