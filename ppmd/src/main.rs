@@ -534,13 +534,12 @@ impl Monitor {
         });
         hdr_result.context("writing the HdrHistogram log")?;
         self.log_changes();
-        if intervals == 0 {
-            return Ok(None);
-        }
+        // The counters are brought up to date on every tick (the summary at
+        // exit reads them); a snapshot goes out once an interval ended.
         let now = clock::now_ns();
         let s = &self.stats;
         let snap = &mut self.snapshot;
-        snap.seq += 1;
+        snap.seq += (intervals > 0) as u64;
         snap.mono_ns = now;
         snap.uptime_ns = now - self.start_ns;
         snap.margin_ns = s.margin_ns.load(Relaxed);
@@ -574,7 +573,7 @@ impl Monitor {
                 snap.spin_share_ppm as f64 / 1e4,
             );
         }
-        Ok(Some(*snap))
+        Ok((intervals > 0).then_some(*snap))
     }
 
     fn log_changes(&mut self) {
