@@ -66,6 +66,23 @@ fn production_config_is_valid() {
 }
 
 #[test]
+fn the_ingress_template_is_the_ingress_unit_with_a_name() {
+    let plain = directives("udp-ingress.service");
+    let template = directives("udp-ingress@.service");
+    assert_eq!(
+        value(&template, "ExecStart"),
+        format!("/usr/local/bin/udp-ingress --config {CONFIG_PATH} --name %i")
+    );
+    let rest = |d: &[(String, String)]| -> Vec<(String, String)> {
+        d.iter()
+            .filter(|(k, _)| k != "ExecStart" && k != "Description")
+            .cloned()
+            .collect()
+    };
+    assert_eq!(rest(&template), rest(&plain));
+}
+
+#[test]
 fn units_share_the_root_and_read_the_config() {
     let cfg = production();
     for (unit, binary) in [

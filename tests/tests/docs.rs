@@ -97,3 +97,27 @@ fn readme_python_sender_flies_the_line() {
     assert!(thr[0] < 1_020 && *thr.last().unwrap() > 1_480, "{thr:?}");
     assert!(frames.iter().all(|f| f.channels_us()[..2] == [1500, 1500]));
 }
+
+#[test]
+fn readme_several_outputs_example_is_valid() {
+    let readme = read("README.md");
+    let section = readme
+        .split("## Several vehicles from one board")
+        .nth(1)
+        .expect("the README has the section");
+    let toml = section
+        .split("```toml\n")
+        .nth(1)
+        .and_then(|s| s.split("```").next())
+        .expect("a toml block");
+    let cfg = ppm_shared::config::Config::parse(toml).unwrap();
+    let outs = cfg.validate_outputs().unwrap();
+    let names: Vec<&str> = outs.iter().map(|(c, _)| c.name.as_str()).collect();
+    assert_eq!(names, ["plane", "rover"]);
+    assert_eq!(outs[1].1.names()[0], "thr");
+    assert_eq!(outs[0].0.ingress.listen.port(), 5005);
+    assert_eq!(outs[1].0.ingress.listen.port(), 5006);
+    for (c, _) in &outs {
+        assert!(section.contains(&format!("--name {}", c.name)));
+    }
+}
