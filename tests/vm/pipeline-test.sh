@@ -5,8 +5,10 @@
 #     a line already in use (by a running ppmd);
 #   - udp-ingress and ppmd on GPIO18 of a gpio-sim chip, commands from
 #     ppm-send over loopback at 50 Hz, then SIGTERM to ppmd.
+#   - one ppmd with two outputs on GPIO19 and GPIO20 (one request), fed by
+#     two udp-ingress, traced with the calls that set the values.
 # Results in /out: gpio_trace.txt, *.log, chip.txt, ppmd_exit.txt,
-# debug_gpio_after.txt, frames.jsonl.
+# debug_gpio_after.txt, frames.jsonl, two_trace.txt.
 set -eu
 . /lib/vmtest.sh
 
@@ -56,6 +58,52 @@ echo 0 > $VMTEST_TRACEFS/options/raw
 cat /sys/kernel/debug/gpio > /out/debug_gpio_after.txt
 kill -TERM "$ingress"
 wait "$ingress" || true
+
+# Two outputs of one ppmd on GPIO19 and GPIO20 of the same chip: one
+# request, so edges due together are set in one call. The function tracer
+# marks each call of gpiod_set_array_value_complex (one per
+# GPIO_V2_LINE_SET_VALUES ioctl) between the gpio_value events.
+cat > /tmp/two.toml <<CONF
+[ipc]
+root = "/tmp/ppm-ipc"
+[[outputs]]
+name = "two-a"
+output = "gpio:$chip:GPIO19"
+ingress.listen = "127.0.0.1:5006"
+[[outputs]]
+name = "two-b"
+output = "gpio:$chip:GPIO20"
+ingress.listen = "127.0.0.1:5007"
+[outputs.ppm]
+order = "TAER"
+CONF
+echo gpiod_set_array_value_complex > $VMTEST_TRACEFS/set_ftrace_filter \
+    || vmtest_die "cannot trace gpiod_set_array_value_complex"
+echo function > $VMTEST_TRACEFS/current_tracer || vmtest_die "no function tracer"
+start_gpio_trace gpio_value
+udp-ingress --config /tmp/two.toml --name two-a 2> /out/two_ingress_a.log &
+ing_a=$!
+udp-ingress --config /tmp/two.toml --name two-b 2> /out/two_ingress_b.log &
+ing_b=$!
+ppmd --config /tmp/two.toml 2> /out/two_ppmd.log &
+ppmd2=$!
+sleep 1
+ppm-send --to 127.0.0.1:5006 --rate 50 --count 50 '[1000, 1200, 1700, 2000]' &
+send_a=$!
+ppm-send --to 127.0.0.1:5007 --rate 50 --count 50 '[2000, 1100, 1600, 1300]'
+wait "$send_a"
+sleep 0.5
+kill -TERM "$ppmd2"
+status=0
+wait "$ppmd2" || status=$?
+echo "$status" > /out/two_ppmd_exit.txt
+stop_gpio_trace /out/two_trace.txt
+echo 1 > $VMTEST_TRACEFS/options/raw
+cat $VMTEST_TRACEFS/trace > /out/two_trace_raw.txt
+echo 0 > $VMTEST_TRACEFS/options/raw
+echo nop > $VMTEST_TRACEFS/current_tracer
+kill -TERM "$ing_a" "$ing_b"
+wait "$ing_a" "$ing_b" || true
 
 # jitter --capture: GPIO17 requested as an input with edge detection, driven
 # from outside by pull-ppm (ppmd's timing loop writing gpio-sim's pull
