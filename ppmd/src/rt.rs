@@ -8,8 +8,9 @@
 //! was allowed; then it records every shortfall so the statistics can say
 //! the run was degraded.
 
-use ppm_shared::config::{CpuChoice, RtSection};
-use std::fmt;
+use ppm_shared::config::RtSection;
+pub use ppm_shared::sched::{online_cpus, parse_cpu_list, Shortfall};
+use ppm_shared::sched::{pin, resolve_rt_cpu, set_fifo};
 use std::fs::File;
 use std::io::Write;
 
@@ -38,11 +39,7 @@ impl RtSetup {
     pub fn from_config(rt: &RtSection) -> RtSetup {
         RtSetup {
             priority: rt.priority,
-            cpu: match rt.cpu {
-                CpuChoice::None => None,
-                CpuChoice::Last => Some(online_cpus().last().copied().unwrap_or(0)),
-                CpuChoice::Index(i) => Some(i),
-            },
+            cpu: resolve_rt_cpu(rt.cpu),
             mlock: rt.mlock,
             cpu_dma_latency: rt.cpu_dma_latency,
             allow_degraded: rt.allow_degraded,
@@ -75,7 +72,7 @@ impl RtSetup {
             Shortfall::new("timer slack", format!("prctl(PR_SET_TIMERSLACK): {e}"), "")
         }))?;
         if let Some(cpu) = self.cpu {
-            if obtained(pin(cpu))? {
+            if obtained(pin(cpu, "rt.cpu"))? {
                 got.cpu = Some(cpu);
             }
         }
@@ -90,49 +87,13 @@ impl RtSetup {
                 }
             }
         }
-        if self.priority > 0 && obtained(set_fifo(self.priority))? {
+        if self.priority > 0 && obtained(set_fifo(self.priority, "ppmd"))? {
             got.priority = self.priority;
         }
         got.shortfalls = shortfalls;
         Ok(got)
     }
 }
-
-/// One real-time setting that could not be had, and how to get it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Shortfall {
-    /// The setting.
-    pub what: &'static str,
-    /// What went wrong.
-    pub detail: String,
-    /// How to fix it.
-    pub fix: String,
-}
-
-impl Shortfall {
-    fn new(what: &'static str, detail: String, fix: &str) -> Shortfall {
-        Shortfall {
-            what,
-            detail,
-            fix: fix.into(),
-        }
-    }
-}
-
-impl fmt::Display for Shortfall {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}: {}", self.what, self.detail)?;
-        if !self.fix.is_empty() {
-            write!(f, ". Fix: {}", self.fix)?;
-        }
-        write!(
-            f,
-            " (or set rt.allow_degraded = true / --allow-degraded to run without it)"
-        )
-    }
-}
-
-impl std::error::Error for Shortfall {}
 
 /// What the setup obtained.
 #[derive(Debug, Default)]
@@ -247,60 +208,6 @@ pub fn describe_throttling(runtime_us: Option<i64>, period_us: Option<i64>) -> S
     }
 }
 
-/// The online CPUs, from sysfs (falls back to the process's affinity).
-pub fn online_cpus() -> Vec<usize> {
-    if let Ok(s) = std::fs::read_to_string("/sys/devices/system/cpu/online") {
-        if let Some(v) = parse_cpu_list(s.trim()) {
-            return v;
-        }
-    }
-    let n = std::thread::available_parallelism().map_or(1, |n| n.get());
-    (0..n).collect()
-}
-
-/// Parses a kernel CPU list such as `0-3,6,8-9`.
-pub fn parse_cpu_list(s: &str) -> Option<Vec<usize>> {
-    let mut out = Vec::new();
-    for part in s.split(',').filter(|p| !p.is_empty()) {
-        match part.split_once('-') {
-            Some((a, b)) => out.extend(a.trim().parse::<usize>().ok()?..=b.trim().parse().ok()?),
-            None => out.push(part.trim().parse().ok()?),
-        }
-    }
-    Some(out)
-}
-
-fn pin(cpu: usize) -> Result<(), Shortfall> {
-    use nix::sched::{sched_setaffinity, CpuSet};
-    let online = online_cpus();
-    let list = |v: &[usize]| {
-        v.iter()
-            .map(|c| c.to_string())
-            .collect::<Vec<_>>()
-            .join(",")
-    };
-    if !online.contains(&cpu) {
-        return Err(Shortfall::new(
-            "CPU pinning",
-            format!(
-                "CPU {cpu} does not exist or is offline (online: {})",
-                list(&online)
-            ),
-            "set rt.cpu to one of the online CPUs",
-        ));
-    }
-    let mut set = CpuSet::new();
-    set.set(cpu)
-        .and_then(|_| sched_setaffinity(nix::unistd::Pid::from_raw(0), &set))
-        .map_err(|e| {
-            Shortfall::new(
-                "CPU pinning",
-                format!("sched_setaffinity to CPU {cpu}: {e}"),
-                "check that the CPU is not excluded by a cgroup cpuset (systemd AllowedCPUs=)",
-            )
-        })
-}
-
 fn lock_memory() -> Result<(), Shortfall> {
     use nix::sys::mman::{mlockall, MlockAllFlags};
     mlockall(MlockAllFlags::MCL_CURRENT | MlockAllFlags::MCL_FUTURE).map_err(|e| {
@@ -336,42 +243,9 @@ fn hold_dma_latency() -> Result<File, Shortfall> {
     Ok(f)
 }
 
-fn set_fifo(priority: u8) -> Result<(), Shortfall> {
-    use thread_priority::unix::{
-        set_thread_priority_and_policy, thread_native_id, RealtimeThreadSchedulePolicy,
-        ScheduleParams, ThreadSchedulePolicy,
-    };
-    use thread_priority::ThreadPriority;
-    let p = ThreadPriority::from_posix(ScheduleParams {
-        sched_priority: priority as i32,
-    });
-    set_thread_priority_and_policy(
-        thread_native_id(),
-        p,
-        ThreadSchedulePolicy::Realtime(RealtimeThreadSchedulePolicy::Fifo),
-    )
-    .map_err(|e| {
-        let rtprio = nix::sys::resource::getrlimit(nix::sys::resource::Resource::RLIMIT_RTPRIO)
-            .map_or("unknown".to_string(), |(soft, _)| soft.to_string());
-        Shortfall::new(
-            "SCHED_FIFO",
-            format!("priority {priority} refused ({e}; RLIMIT_RTPRIO is {rtprio})"),
-            "run as root, give the binary CAP_SYS_NICE (`setcap cap_sys_nice+ep ppmd`), or raise RLIMIT_RTPRIO (systemd LimitRTPRIO=99, `ulimit -r 99`)",
-        )
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn cpu_lists() {
-        assert_eq!(parse_cpu_list("0-3,6,8-9"), Some(vec![0, 1, 2, 3, 6, 8, 9]));
-        assert_eq!(parse_cpu_list("0"), Some(vec![0]));
-        assert_eq!(parse_cpu_list("x"), None);
-        assert!(!online_cpus().is_empty());
-    }
 
     #[test]
     fn preemption_models() {

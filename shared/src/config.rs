@@ -207,6 +207,16 @@ pub struct IngressSection {
     /// Sources allowed to send, as address blocks (`"10.0.0.0/24"`,
     /// `"::1/128"`, or a bare address). Default empty: any source.
     pub allow: Vec<String>,
+    /// SCHED_FIFO priority of the receive thread, 1..=99 and below
+    /// `rt.priority` (ppmd's timing thread must preempt it), or 0 for the
+    /// normal scheduler (default).
+    pub priority: u8,
+    /// CPU the receive thread is pinned to: a number, or `"none"` (default).
+    pub cpu: IngressCpu,
+    /// Spin on the socket instead of sleeping until a datagram arrives: the
+    /// receive thread never sleeps and takes one whole CPU, which must not be
+    /// ppmd's (`rt.cpu`). Default false.
+    pub busy_poll: bool,
 }
 
 impl Default for IngressSection {
@@ -218,6 +228,9 @@ impl Default for IngressSection {
             auth_key: None,
             seq_file: None,
             allow: Vec::new(),
+            priority: 0,
+            cpu: IngressCpu::None,
+            busy_poll: false,
         }
     }
 }
@@ -301,6 +314,37 @@ pub enum CpuChoice {
     Index(usize),
 }
 
+/// Which CPU udp-ingress's receive thread runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(try_from = "NumberOrWord")]
+pub enum IngressCpu {
+    /// Not pinned.
+    None,
+    /// This CPU.
+    Index(usize),
+}
+
+impl IngressCpu {
+    /// The CPU, when pinned.
+    pub fn index(self) -> Option<usize> {
+        match self {
+            IngressCpu::None => None,
+            IngressCpu::Index(i) => Some(i),
+        }
+    }
+}
+
+impl std::str::FromStr for IngressCpu {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let v = match s.trim().parse::<i64>() {
+            Ok(n) => NumberOrWord::Number(n),
+            Err(_) => NumberOrWord::Word(s.trim().to_string()),
+        };
+        IngressCpu::try_from(v)
+    }
+}
+
 /// The spin margin before each edge.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
 #[serde(try_from = "NumberOrWord")]
@@ -327,6 +371,17 @@ impl TryFrom<NumberOrWord> for CpuChoice {
             NumberOrWord::Word(w) if w == "last" => Ok(CpuChoice::Last),
             NumberOrWord::Word(w) if w == "none" => Ok(CpuChoice::None),
             _ => Err("rt.cpu must be a CPU number, \"last\" or \"none\"".into()),
+        }
+    }
+}
+
+impl TryFrom<NumberOrWord> for IngressCpu {
+    type Error = String;
+    fn try_from(v: NumberOrWord) -> Result<Self, String> {
+        match v {
+            NumberOrWord::Number(n) if (0..4096).contains(&n) => Ok(IngressCpu::Index(n as usize)),
+            NumberOrWord::Word(w) if w == "none" => Ok(IngressCpu::None),
+            _ => Err("ingress.cpu must be a CPU number or \"none\"".into()),
         }
     }
 }
@@ -549,6 +604,26 @@ impl Config {
             ));
         }
         self.allow()?;
+        if i.priority > 99 {
+            return Err(ConfigError::invalid(
+                "ingress.priority",
+                format!("{} is outside 0..=99 (0: normal scheduler)", i.priority),
+            ));
+        }
+        if i.priority > 0 && i.priority >= self.rt.priority {
+            return Err(ConfigError::invalid(
+                "ingress.priority",
+                format!(
+                    "{} is not below rt.priority = {}: ppmd's timing thread must be able to preempt the receive thread",
+                    i.priority, self.rt.priority
+                ),
+            ));
+        }
+        // "last" is resolved by udp-ingress, which knows the online CPUs.
+        self.check_busy_poll_cpu(match self.rt.cpu {
+            CpuChoice::Index(r) => Some(r),
+            _ => None,
+        })?;
         self.output()?;
         if !(1..=65_536).contains(&self.ppmd.frame_log_max_mb) {
             return Err(ConfigError::invalid(
@@ -828,6 +903,20 @@ impl Config {
                 }
             }
             other => other,
+        }
+    }
+
+    /// Refuses a busy-polling receive thread pinned to the CPU of ppmd's
+    /// timing thread: `rt_cpu` is `rt.cpu` resolved on this machine.
+    pub fn check_busy_poll_cpu(&self, rt_cpu: Option<usize>) -> Result<(), ConfigError> {
+        match (self.ingress.busy_poll, self.ingress.cpu.index(), rt_cpu) {
+            (true, Some(c), Some(r)) if c == r => Err(ConfigError::invalid(
+                "ingress.cpu",
+                format!(
+                    "busy_poll would spin on CPU {c}, the CPU ppmd's timing thread is pinned to (rt.cpu): pick another CPU"
+                ),
+            )),
+            _ => Ok(()),
         }
     }
 
@@ -1216,6 +1305,48 @@ mod tests {
     }
 
     #[test]
+    fn ingress_scheduling_keys() {
+        let c = Config::parse("[ingress]\npriority = 79\ncpu = 0\nbusy_poll = true").unwrap();
+        c.validate().unwrap();
+        assert_eq!(
+            (c.ingress.priority, c.ingress.cpu, c.ingress.busy_poll),
+            (79, IngressCpu::Index(0), true)
+        );
+        let c = Config::parse("[ingress]\ncpu = 'none'").unwrap();
+        assert_eq!(c.ingress.cpu, IngressCpu::None);
+        // Pinned to ppmd's CPU without busy_poll is allowed (the thread sleeps).
+        Config::parse("[ingress]\ncpu = 1\n[rt]\ncpu = 1")
+            .unwrap()
+            .validate()
+            .unwrap();
+        // Values of the wrong kind are refused while parsing, naming the key.
+        for (text, key) in [
+            ("[ingress]\ncpu = 'last'", "ingress.cpu"),
+            ("[ingress]\ncpu = -1", "ingress.cpu"),
+            ("[ingress]\ncpu = 4096", "ingress.cpu"),
+            ("[ingress]\nbusy_poll = 'yes'", "busy_poll"),
+            ("[ingress]\nbusy_poll = 1", "busy_poll"),
+            ("[ingress]\npriority = -1", "priority"),
+            ("[ingress]\npriority = 'high'", "priority"),
+        ] {
+            let e = Config::parse(text).unwrap_err().to_string();
+            assert!(e.contains(key), "{text}: {e}");
+        }
+        // `rt.cpu = "last"` is resolved on the machine: the caller gives it.
+        let c = Config::parse("[ingress]\nbusy_poll = true\ncpu = 1").unwrap();
+        c.validate().unwrap();
+        assert_eq!(
+            c.check_busy_poll_cpu(Some(1)).unwrap_err().key(),
+            Some("ingress.cpu")
+        );
+        c.check_busy_poll_cpu(Some(0)).unwrap();
+        c.check_busy_poll_cpu(None).unwrap();
+        assert_eq!("3".parse(), Ok(IngressCpu::Index(3)));
+        assert_eq!("none".parse(), Ok(IngressCpu::None));
+        assert!("last".parse::<IngressCpu>().is_err());
+    }
+
+    #[test]
     fn wrong_type_is_named() {
         let e = Config::parse("[ppm]\nchannels = \"eight\"\n").unwrap_err();
         assert!(e.to_string().contains("channels"), "{e}");
@@ -1298,6 +1429,20 @@ mod tests {
             ),
             ("[ingress]\nallow = ['10.0.0.0/33']", "ingress.allow"),
             ("[ingress]\nallow = ['localhost']", "ingress.allow"),
+            ("[ingress]\npriority = 100", "ingress.priority"),
+            ("[ingress]\npriority = 80", "ingress.priority"),
+            (
+                "[ingress]\npriority = 70\n[rt]\npriority = 60",
+                "ingress.priority",
+            ),
+            (
+                "[ingress]\npriority = 1\n[rt]\npriority = 0",
+                "ingress.priority",
+            ),
+            (
+                "[ingress]\nbusy_poll = true\ncpu = 3\n[rt]\ncpu = 3",
+                "ingress.cpu",
+            ),
         ];
         for (text, key) in cases {
             let c = Config::parse(text).unwrap_or_else(|e| panic!("{text}: {e}"));

@@ -1,5 +1,5 @@
 //! Logic shared by `ppmd` and `udp-ingress`: no I/O beyond reading the
-//! configuration file.
+//! configuration file, and [`sched`]'s scheduling of the calling thread.
 //!
 //! - [`config`]: the TOML configuration both binaries read, and its validation.
 //! - [`frame`]: the PPM frame model built from that configuration, and the
@@ -10,6 +10,8 @@
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
+//! - [`sched`]: CPU pinning and SCHED_FIFO of the calling thread (ppmd's
+//!   timing thread, udp-ingress's receive thread).
 
 pub mod auth;
 pub mod config;
@@ -17,6 +19,7 @@ pub mod decode;
 pub mod frame;
 pub mod ipc;
 pub mod protocol;
+pub mod sched;
 pub mod time;
 pub mod trace;
 

@@ -85,6 +85,12 @@ impl Sandbox {
     /// `extra` has an `[rt]` section, a degraded run is allowed, so the tests
     /// also pass without the privileges for real-time scheduling.
     pub fn config(&self, extra: &str) -> PathBuf {
+        self.config_with_ingress("", extra)
+    }
+
+    /// Like [`Sandbox::config`], with the lines `ingress` added to the
+    /// `[ingress]` section.
+    pub fn config_with_ingress(&self, ingress: &str, extra: &str) -> PathBuf {
         let path = self.dir.join("ppm.toml");
         let rt = if extra.contains("[rt]") {
             ""
@@ -92,7 +98,7 @@ impl Sandbox {
             "[rt]\nallow_degraded = true\n"
         };
         let text = format!(
-            "name = \"{}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n{rt}{extra}\n",
+            "name = \"{}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\n{ingress}\n[ipc]\nroot = \"{}\"\n{rt}{extra}\n",
             self.name,
             self.port,
             self.dir.join("ipc").display()

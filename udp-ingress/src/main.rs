@@ -3,6 +3,11 @@
 //! queries (`{"get": "status"}`) with its counters and ppmd's timing summary.
 //! Optionally it applies only signed commands (`--auth-key`) and takes
 //! datagrams only from some sources (`--allow`).
+//!
+//! The receive thread sleeps in mio's poll until datagrams arrive (the
+//! default), or with `ingress.busy_poll` spins on the socket and never
+//! sleeps; it may be pinned to a CPU (`ingress.cpu`) and run SCHED_FIFO
+//! (`ingress.priority`).
 
 use anyhow::{Context, Result};
 use clap::Parser;
@@ -10,8 +15,9 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
 use mio::{Events, Interest, Poll, Token};
 use ppm_shared::auth::AuthKey;
-use ppm_shared::config::{parse_net, Config};
+use ppm_shared::config::{parse_net, Config, IngressCpu, IngressSection};
 use ppm_shared::ipc::{self, CommandSample, TimingSnapshot};
+use ppm_shared::sched;
 use ppm_shared::time::{now_ns, realtime_ns};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -45,6 +51,21 @@ struct Cli {
     /// 10.0.0.0/24, ::1/128). Replaces `ingress.allow`.
     #[arg(long, value_name = "CIDR", value_parser = parse_net)]
     allow: Vec<ipnet::IpNet>,
+    /// SCHED_FIFO priority of the receive thread, 1..=99 and below
+    /// `rt.priority`; 0: the normal scheduler. Overrides `ingress.priority`.
+    #[arg(long, value_name = "PRIO")]
+    priority: Option<u8>,
+    /// Pin the receive thread to this CPU, or `none`. Overrides `ingress.cpu`.
+    #[arg(long, value_name = "CPU|none")]
+    cpu: Option<IngressCpu>,
+    /// Spin on the socket instead of sleeping: lower latency for one whole
+    /// CPU; pin it (--cpu) to a CPU other than ppmd's. Sets `ingress.busy_poll`.
+    #[arg(long)]
+    busy_poll: bool,
+    /// Run on when the receive thread's priority or CPU cannot be had,
+    /// logging DEGRADED RUN. Sets `rt.allow_degraded`.
+    #[arg(long)]
+    allow_degraded: bool,
 }
 
 const SOCKET: Token = Token(0);
@@ -124,7 +145,16 @@ fn run(cli: Cli) -> Result<()> {
     if !cli.allow.is_empty() {
         cfg.ingress.allow = cli.allow.iter().map(|n| n.to_string()).collect();
     }
+    if let Some(p) = cli.priority {
+        cfg.ingress.priority = p;
+    }
+    if let Some(cpu) = cli.cpu {
+        cfg.ingress.cpu = cpu;
+    }
+    cfg.ingress.busy_poll |= cli.busy_poll;
+    cfg.rt.allow_degraded |= cli.allow_degraded;
     let model = cfg.validate()?;
+    cfg.check_busy_poll_cpu(sched::resolve_rt_cpu(cfg.rt.cpu))?;
     let allow = cfg.allow()?;
     let key = cfg
         .ingress
@@ -132,7 +162,7 @@ fn run(cli: Cli) -> Result<()> {
         .as_deref()
         .map(AuthKey::load)
         .transpose()?;
-    let (mut seq_file, floor) = match &key {
+    let (seq_file, floor) = match &key {
         Some(_) => {
             let (file, floor) = SeqFile::open(&cfg.seq_file(), SEQ_SAVE_EVERY)?;
             (Some(file), floor)
@@ -172,9 +202,21 @@ fn run(cli: Cli) -> Result<()> {
         signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;
     }
 
-    let mut poll = Poll::new().context("creating mio poll")?;
-    poll.registry()
-        .register(&mut socket, SOCKET, Interest::READABLE)?;
+    // The busy-polling loop never waits: it needs no poll.
+    let poll = if cfg.ingress.busy_poll {
+        None
+    } else {
+        let poll = Poll::new().context("creating mio poll")?;
+        poll.registry()
+            .register(&mut socket, SOCKET, Interest::READABLE)?;
+        Some(poll)
+    };
+    // This thread receives: its priority and CPU are set here, after the
+    // start-up work.
+    log::info!(
+        "receive thread: {}",
+        schedule_receive_thread(&cfg.ingress, cfg.rt.allow_degraded)?
+    );
     log::info!(
         "listening on {} (receive buffer {} bytes), {} channels ({}); publishing to `{}` (ipc root {})",
         socket.local_addr()?,
@@ -201,7 +243,6 @@ fn run(cli: Cli) -> Result<()> {
         );
         intake = intake.with_auth(key, floor);
     }
-    let mut seq_save_failed = false;
     if !allow.is_empty() {
         log::info!(
             "taking datagrams only from {}",
@@ -213,39 +254,164 @@ fn run(cli: Cli) -> Result<()> {
         );
         intake = intake.with_allowlist(allow);
     }
-    let started = Instant::now();
-    let mut events = Events::with_capacity(8);
-    let mut buf = vec![0u8; MAX_DATAGRAM];
-    let mut cmsg = nix::cmsg_space!(nix::sys::time::TimeSpec);
-    let mut status_to: Vec<SocketAddr> = Vec::with_capacity(MAX_STATUS_PER_WAKE);
-    let mut ppmd_snapshot: Option<TimingSnapshot> = None;
-    let mut reply_budget = ReplyBudget::new();
-    let mut ingress_seq = 0u64;
-    let mut publish_errors = 0u64;
-    let mut last_report = Instant::now();
-    let mut reported_received = 0;
-    while !stop.load(Relaxed) {
-        if let Err(e) = poll.poll(&mut events, Some(POLL_TIMEOUT)) {
-            if e.kind() == std::io::ErrorKind::Interrupted {
-                continue;
+    let mut rx = Receiver {
+        name: cfg.name.clone(),
+        socket,
+        publisher,
+        stats,
+        intake,
+        seq_file,
+        seq_save_failed: false,
+        started: Instant::now(),
+        buf: vec![0u8; MAX_DATAGRAM],
+        cmsg: nix::cmsg_space!(nix::sys::time::TimeSpec),
+        status_to: Vec::with_capacity(MAX_STATUS_PER_WAKE),
+        ppmd_snapshot: None,
+        reply_budget: ReplyBudget::new(),
+        ingress_seq: 0,
+        publish_errors: 0,
+        last_report: Instant::now(),
+        reported_received: 0,
+    };
+    match poll {
+        Some(mut poll) => {
+            let mut events = Events::with_capacity(8);
+            while !stop.load(Relaxed) {
+                if let Err(e) = poll.poll(&mut events, Some(POLL_TIMEOUT)) {
+                    if e.kind() == std::io::ErrorKind::Interrupted {
+                        continue;
+                    }
+                    return Err(e).context("waiting for datagrams");
+                }
+                rx.drain();
+                rx.settle();
             }
-            return Err(e).context("waiting for datagrams");
         }
+        None => {
+            // Spin: drain, publish, repeat. What a wake-up of the sleeping
+            // loop does without datagrams (offering the last sample to a
+            // restarted ppmd, saving the seq, the counters' log line) is
+            // done every POLL_TIMEOUT while nothing arrives.
+            let mut settled = Instant::now();
+            while !stop.load(Relaxed) {
+                if rx.drain() > 0 || settled.elapsed() >= POLL_TIMEOUT {
+                    rx.settle();
+                    settled = Instant::now();
+                } else {
+                    std::hint::spin_loop();
+                }
+            }
+        }
+    }
+    rx.finish();
+    Ok(())
+}
+
+/// Pins the calling thread (the receive thread) and gives it SCHED_FIFO as
+/// `[ingress]` asks. A setting that cannot be had stops the program, unless
+/// a degraded run is allowed: then each is logged as DEGRADED RUN. Returns a
+/// summary for the start-up log.
+fn schedule_receive_thread(ingress: &IngressSection, allow_degraded: bool) -> Result<String> {
+    let mut shortfalls = Vec::new();
+    let mut obtained = |key: &str, r: Result<(), sched::Shortfall>| -> Result<bool> {
+        match r {
+            Ok(()) => Ok(true),
+            Err(s) if allow_degraded => {
+                shortfalls.push(s);
+                Ok(false)
+            }
+            Err(s) => Err(anyhow::Error::new(s).context(format!("receive thread ({key})"))),
+        }
+    };
+    let mut cpu = None;
+    if let Some(c) = ingress.cpu.index() {
+        if obtained(&format!("ingress.cpu = {c}"), sched::pin(c, "ingress.cpu"))? {
+            cpu = Some(c);
+        }
+    }
+    let mut priority = 0;
+    if ingress.priority > 0
+        && obtained(
+            &format!("ingress.priority = {}", ingress.priority),
+            sched::set_fifo(ingress.priority, "udp-ingress"),
+        )?
+    {
+        priority = ingress.priority;
+    }
+    for s in &shortfalls {
+        log::warn!("DEGRADED RUN: receive thread: {s}");
+    }
+    let on = cpu.map_or("any CPU".to_string(), |c| format!("CPU {c}"));
+    if ingress.busy_poll {
+        if cpu.is_none() {
+            log::warn!(
+                "busy_poll without a CPU of its own: the spinning thread may share ppmd's; pin it with ingress.cpu (or --cpu) to another CPU"
+            );
+        }
+        if priority > 0 {
+            log::warn!(
+                "busy_poll at SCHED_FIFO priority {priority}: normal tasks on {} run only in the time RT throttling reserves for them (/proc/sys/kernel/sched_rt_runtime_us), and the receive thread stops while they do",
+                cpu.map_or("the CPU it spins on".to_string(), |c| format!("CPU {c}"))
+            );
+        }
+    }
+    Ok(format!(
+        "policy {} priority {priority}; {on}; {}",
+        if priority > 0 {
+            "SCHED_FIFO"
+        } else {
+            "SCHED_OTHER"
+        },
+        if ingress.busy_poll {
+            "busy_poll: spins on the socket, never sleeps (takes a whole CPU)"
+        } else {
+            "sleeps until datagrams arrive (mio)"
+        }
+    ))
+}
+
+/// The receive loop's state: the socket, the intake and the publisher.
+struct Receiver {
+    name: String,
+    socket: UdpSocket,
+    publisher: Publisher,
+    stats: Option<StatsSubscriber>,
+    intake: Intake,
+    seq_file: Option<SeqFile>,
+    seq_save_failed: bool,
+    started: Instant,
+    buf: Vec<u8>,
+    cmsg: Vec<u8>,
+    status_to: Vec<SocketAddr>,
+    ppmd_snapshot: Option<TimingSnapshot>,
+    reply_budget: ReplyBudget,
+    ingress_seq: u64,
+    publish_errors: u64,
+    last_report: Instant,
+    reported_received: u64,
+}
+
+impl Receiver {
+    /// Receives everything pending, keeping the newest valid command and
+    /// noting status queries; returns how many datagrams it received.
+    fn drain(&mut self) -> usize {
         // Drain everything pending: only the newest valid command is published.
         // Under a flood the socket may never run dry; the newest so far is
         // then published every DRAIN_PUBLISH_EVERY, so it never gets old.
         let mut drain_started = Instant::now();
+        let mut n_received = 0;
         loop {
             if drain_started.elapsed() >= DRAIN_PUBLISH_EVERY {
                 publish(
-                    &mut intake,
-                    &publisher,
-                    &mut ingress_seq,
-                    &mut publish_errors,
+                    &mut self.intake,
+                    &self.publisher,
+                    &mut self.ingress_seq,
+                    &mut self.publish_errors,
                 );
                 drain_started = Instant::now();
             }
-            let (n, from, kernel_real) = match receive(&socket, &mut buf, &mut cmsg) {
+            let (n, from, kernel_real) = match receive(&self.socket, &mut self.buf, &mut self.cmsg)
+            {
                 Ok(Some(got)) => got,
                 Ok(None) => break,
                 Err(e) => {
@@ -253,6 +419,7 @@ fn run(cli: Cli) -> Result<()> {
                     break;
                 }
             };
+            n_received += 1;
             // Stamped with the kernel's receive time (SO_TIMESTAMPNS, on
             // CLOCK_REALTIME), carried over to CLOCK_MONOTONIC for ppmd.
             let (mono_now, real_now) = (now_ns(), realtime_ns());
@@ -260,57 +427,72 @@ fn run(cli: Cli) -> Result<()> {
                 Some(k) => (mono_now.saturating_sub(real_now.saturating_sub(k)), k),
                 None => (mono_now, real_now),
             };
-            match intake.offer(&buf[..n], from, mono, real, Instant::now()) {
+            match self
+                .intake
+                .offer(&self.buf[..n], from, mono, real, Instant::now())
+            {
                 Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
                 Outcome::Stale => log::debug!("stale command from {from} dropped"),
-                Outcome::Status if status_to.len() < MAX_STATUS_PER_WAKE => status_to.push(from),
-                Outcome::Status => intake.status_dropped(),
+                Outcome::Status if self.status_to.len() < MAX_STATUS_PER_WAKE => {
+                    self.status_to.push(from)
+                }
+                Outcome::Status => self.intake.status_dropped(),
                 _ => {}
             }
         }
+        n_received
+    }
+
+    /// After a drain: publishes its newest command (or offers the last one
+    /// to subscribers that connected since), answers the status queries,
+    /// saves the seq and logs the counters now and then.
+    fn settle(&mut self) {
         if !publish(
-            &mut intake,
-            &publisher,
-            &mut ingress_seq,
-            &mut publish_errors,
+            &mut self.intake,
+            &self.publisher,
+            &mut self.ingress_seq,
+            &mut self.publish_errors,
         ) {
-            if let Err(e) = publisher.update_connections() {
+            if let Err(e) = self.publisher.update_connections() {
                 log::debug!("updating connections: {e:?}");
             }
         }
         // Answered after publishing, so the counters add up.
-        if !status_to.is_empty() {
-            if let Some(sub) = &stats {
-                newest_snapshot(sub, &mut ppmd_snapshot);
+        if !self.status_to.is_empty() {
+            if let Some(sub) = &self.stats {
+                newest_snapshot(sub, &mut self.ppmd_snapshot);
             }
-            let reply = intake
+            let reply = self
+                .intake
                 .status(
-                    &cfg.name,
-                    started.elapsed(),
+                    &self.name,
+                    self.started.elapsed(),
                     now_ns(),
-                    ppmd_snapshot.as_ref(),
+                    self.ppmd_snapshot.as_ref(),
                 )
                 .to_string();
-            for to in status_to.drain(..) {
-                if !reply_budget.take() {
-                    intake.status_dropped();
+            for to in self.status_to.drain(..) {
+                if !self.reply_budget.take() {
+                    self.intake.status_dropped();
                     continue;
                 }
-                match socket.send_to(reply.as_bytes(), to) {
+                match self.socket.send_to(reply.as_bytes(), to) {
                     Ok(_) => {}
-                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => intake.status_dropped(),
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                        self.intake.status_dropped()
+                    }
                     Err(e) => {
                         log::debug!("status reply to {to}: {e}");
-                        intake.status_dropped();
+                        self.intake.status_dropped();
                     }
                 }
             }
         }
-        if let Some(f) = &mut seq_file {
-            match f.note(intake.last_seq(), Instant::now()) {
-                Ok(_) => seq_save_failed = false,
-                Err(e) if !seq_save_failed => {
-                    seq_save_failed = true;
+        if let Some(f) = &mut self.seq_file {
+            match f.note(self.intake.last_seq(), Instant::now()) {
+                Ok(_) => self.seq_save_failed = false,
+                Err(e) if !self.seq_save_failed => {
+                    self.seq_save_failed = true;
                     log::warn!(
                         "cannot write the seq file {}: {e}; after a restart, replays of commands accepted since could be accepted",
                         f.path().display()
@@ -319,23 +501,27 @@ fn run(cli: Cli) -> Result<()> {
                 Err(_) => {}
             }
         }
-        let received = intake.counters().received;
-        if last_report.elapsed() >= REPORT_EVERY && received != reported_received {
-            log::info!("{}", intake.counters().summary());
-            last_report = Instant::now();
-            reported_received = received;
+        let received = self.intake.counters().received;
+        if self.last_report.elapsed() >= REPORT_EVERY && received != self.reported_received {
+            log::info!("{}", self.intake.counters().summary());
+            self.last_report = Instant::now();
+            self.reported_received = received;
         }
     }
-    if let Some(f) = &mut seq_file {
-        if let Err(e) = f.flush(intake.last_seq()) {
-            log::warn!("cannot write the seq file {}: {e}", f.path().display());
+
+    /// At the end: saves the seq and logs the counters.
+    fn finish(mut self) {
+        if let Some(f) = &mut self.seq_file {
+            if let Err(e) = f.flush(self.intake.last_seq()) {
+                log::warn!("cannot write the seq file {}: {e}", f.path().display());
+            }
         }
+        log::info!(
+            "stopped: {}, publish errors {}",
+            self.intake.counters().summary(),
+            self.publish_errors
+        );
     }
-    log::info!(
-        "stopped: {}, publish errors {publish_errors}",
-        intake.counters().summary()
-    );
-    Ok(())
 }
 
 /// Subscribes to ppmd's timing snapshots for status replies. Status is not

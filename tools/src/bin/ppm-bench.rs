@@ -2,11 +2,13 @@
 //! approach, with the real binaries as separate processes on loopback.
 //!
 //! 1. ingress latency: kernel receive timestamp (SO_TIMESTAMPNS) to the
-//!    command published, udp-ingress against a Python receiver written as
-//!    the seed's was (blocking socket, json.loads, hand-off to a generator
-//!    process), same traffic, same run;
+//!    command published, udp-ingress (sleeping in mio's poll, the default;
+//!    the same at SCHED_FIFO on a CPU of its own; busy-polling on that CPU)
+//!    against a Python receiver written as the seed's was (blocking socket,
+//!    json.loads, hand-off to a generator process), same traffic, same run;
 //! 2. flood: datagrams/s drained, memory before and after, ppmd's edge error
-//!    and the newest command's age at each frame start during the flood;
+//!    and the newest command's age at each frame start during the flood,
+//!    for each of those ways of receiving;
 //! 3. end to end: send time to the first frame that carries a command, and
 //!    whether commands that arrive at least 1 ms before a frame are in it;
 //! 4. memory and CPU of both processes at idle and at 50 Hz.
@@ -41,6 +43,75 @@ struct Cli {
     /// Run only this part: ingress, flood, e2e or resources.
     #[arg(long)]
     only: Option<String>,
+    /// CPU for the pinned udp-ingress runs (SCHED_FIFO, and
+    /// `ingress.busy_poll`); default: the first online CPU that is not
+    /// ppmd's (`rt.cpu = "last"`). `none` leaves out these runs.
+    #[arg(long, value_name = "CPU|none")]
+    pin_cpu: Option<String>,
+}
+
+/// How udp-ingress receives in one run.
+#[derive(Debug, Clone)]
+struct Variant {
+    /// Row label.
+    label: String,
+    /// Lines added to `[ingress]`.
+    ingress: String,
+}
+
+impl Variant {
+    /// The default: the receive thread sleeps in mio's poll.
+    fn mio() -> Variant {
+        Variant {
+            label: "udp-ingress (mio)".into(),
+            ingress: String::new(),
+        }
+    }
+
+    /// Sleeping in mio's poll at SCHED_FIFO `priority`, pinned to `cpu`.
+    fn fifo(priority: u8, cpu: usize) -> Variant {
+        Variant {
+            label: format!("udp-ingress (mio, FIFO {priority}, CPU {cpu})"),
+            ingress: format!("priority = {priority}\ncpu = {cpu}\n"),
+        }
+    }
+
+    /// Spinning on the socket, pinned to `cpu`.
+    fn busy_poll(cpu: usize) -> Variant {
+        Variant {
+            label: format!("udp-ingress (busy_poll, CPU {cpu})"),
+            ingress: format!("busy_poll = true\ncpu = {cpu}\n"),
+        }
+    }
+}
+
+/// SCHED_FIFO priority of the receive thread in the `fifo` runs: below
+/// ppmd's (80 by default).
+const INGRESS_FIFO_PRIORITY: u8 = 70;
+
+/// The variants to measure: the default, and when there is a CPU besides
+/// ppmd's, pinned to it at SCHED_FIFO and busy-polling on it.
+fn variants(cli: &Cli) -> Result<Vec<Variant>> {
+    let online = ppm_shared::sched::online_cpus();
+    let pin_cpu = match cli.pin_cpu.as_deref() {
+        Some("none") => None,
+        Some(c) => Some(
+            c.parse::<usize>()
+                .context("--pin-cpu takes a CPU number or none")?,
+        ),
+        // ppmd's timing thread takes the last CPU (rt.cpu = "last").
+        None if online.len() >= 2 => online.first().copied(),
+        None => {
+            println!("(one CPU only: no pinned runs, they need a CPU besides ppmd's)");
+            None
+        }
+    };
+    let mut v = vec![Variant::mio()];
+    if let Some(cpu) = pin_cpu {
+        v.push(Variant::fifo(INGRESS_FIFO_PRIORITY, cpu));
+        v.push(Variant::busy_poll(cpu));
+    }
+    Ok(v)
 }
 
 /// A running program of ppm's, stopped when dropped.
@@ -106,13 +177,14 @@ struct Setup {
 }
 
 impl Setup {
-    fn new(label: &str) -> Result<Setup> {
+    /// A setup whose `[ingress]` section gets the lines `ingress` too.
+    fn new(label: &str, ingress: &str) -> Result<Setup> {
         let dir = std::env::temp_dir().join(format!("ppm-bench-{label}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir)?;
         let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
         let config = format!(
-            "name = \"bench{label}\"\n[ingress]\nlisten = \"127.0.0.1:{port}\"\nrecv_buffer_bytes = 1048576\n[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n",
+            "name = \"bench{label}\"\n[ingress]\nlisten = \"127.0.0.1:{port}\"\nrecv_buffer_bytes = 1048576\n{ingress}[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n",
             dir.join("ipc").display()
         );
         std::fs::write(dir.join("ppm.toml"), config)?;
@@ -202,20 +274,43 @@ fn us(v: f64) -> String {
     format!("{v:.1}")
 }
 
-fn ingress_latency(cli: &Cli) -> Result<()> {
-    println!(
-        "== 1. ingress: kernel receive to command handed over ({} datagrams at 1 kHz)",
-        cli.latency_count
-    );
-    let setup = Setup::new("lat")?;
+/// The "DEGRADED" mark of a row whose program ran without some of its
+/// real-time settings (it logged DEGRADED RUN).
+fn degraded_mark(setup: &Setup, bin: &str) -> &'static str {
+    let log = std::fs::read_to_string(setup.dir.join(format!("{bin}.log"))).unwrap_or_default();
+    if log.contains("DEGRADED RUN") {
+        " DEGRADED"
+    } else {
+        ""
+    }
+}
+
+/// Latency of one udp-ingress variant under the latency traffic: the row
+/// label and its status reply.
+fn ingress_run(cli: &Cli, v: &Variant) -> Result<(String, Value)> {
+    let setup = Setup::new("lat", &v.ingress)?;
     let ingress = setup.spawn("udp-ingress", &[])?;
     paced(setup.port, cli.latency_count, 1000.0, |i| {
         format!("[{}, 1500, 1000, 1500]", 1000 + i % 1000).into_bytes()
     })?;
     std::thread::sleep(Duration::from_millis(200));
     let st = setup.status()?;
-    let ours = &st["publish_latency_us"];
     ingress.stop();
+    Ok((
+        format!("{}{}", v.label, degraded_mark(&setup, "udp-ingress")),
+        st,
+    ))
+}
+
+fn ingress_latency(cli: &Cli, variants: &[Variant]) -> Result<()> {
+    println!(
+        "== 1. ingress: kernel receive to command handed over ({} datagrams at 1 kHz)",
+        cli.latency_count
+    );
+    let mut ours = Vec::new();
+    for v in variants {
+        ours.push(ingress_run(cli, v)?);
+    }
 
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/seed_receiver.py");
     let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
@@ -257,31 +352,50 @@ fn ingress_latency(cli: &Cli) -> Result<()> {
     let _ = py.wait();
 
     let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+    let count = |v: &Value| v.as_u64().map_or("?".to_string(), |n| n.to_string());
     println!(
-        "{:<36} {:>8} {:>10} {:>10} {:>10}",
-        "receiver", "count", "p50 us", "p99 us", "max us"
+        "{:<44} {:>8} {:>10} {:>10} {:>10} {:>10}",
+        "receiver", "count", "superseded", "p50 us", "p99 us", "max us"
     );
+    for (label, st) in &ours {
+        let l = &st["publish_latency_us"];
+        println!(
+            "{:<44} {:>8} {:>10} {:>10} {:>10} {:>10}",
+            label,
+            count(&l["count"]),
+            count(&st["datagrams"]["superseded"]),
+            us(f(&l["p50"])),
+            us(f(&l["p99"])),
+            us(f(&l["max"]))
+        );
+    }
     println!(
-        "{:<36} {:>8} {:>10} {:>10} {:>10}",
-        "udp-ingress (mio, iceoryx2)",
-        ours["count"],
-        us(f(&ours["p50"])),
-        us(f(&ours["p99"])),
-        us(f(&ours["max"]))
-    );
-    println!(
-        "{:<36} {:>8} {:>10} {:>10} {:>10}",
+        "{:<44} {:>8} {:>10} {:>10} {:>10} {:>10}",
         "seed-style Python (blocking, pipe)",
-        base["count"],
+        count(&base["count"]),
+        "-",
         us(f(&base["p50_us"])),
         us(f(&base["p99_us"])),
         us(f(&base["max_us"]))
     );
-    println!(
-        "ratio Python / udp-ingress: p50 {:.1}x, p99 {:.1}x",
-        f(&base["p50_us"]) / f(&ours["p50"]),
-        f(&base["p99_us"]) / f(&ours["p99"])
-    );
+    let superseded: u64 = ours
+        .iter()
+        .filter_map(|(_, st)| st["datagrams"]["superseded"].as_u64())
+        .sum();
+    if superseded > 0 {
+        println!(
+            "(superseded: commands replaced by a newer one before being handed over; their latency is not in the figures)"
+        );
+    }
+    for (label, st) in &ours {
+        let l = &st["publish_latency_us"];
+        println!(
+            "ratio Python / {label}: p50 {:.1}x, p99 {:.1}x, max {:.1}x",
+            f(&base["p50_us"]) / f(&l["p50"]),
+            f(&base["p99_us"]) / f(&l["p99"]),
+            f(&base["max_us"]) / f(&l["max"])
+        );
+    }
     Ok(())
 }
 
@@ -298,12 +412,19 @@ fn frame_ages(log: &Path, from_ns: u64, to_ns: u64) -> Vec<f64> {
         .collect()
 }
 
-fn flood(cli: &Cli) -> Result<()> {
+fn flood(cli: &Cli, variants: &[Variant]) -> Result<()> {
     println!(
         "== 2. flood: one sender as fast as it can for {} s, changing values",
         cli.flood_seconds
     );
-    let setup = Setup::new("flood")?;
+    for v in variants {
+        flood_run(cli, v)?;
+    }
+    Ok(())
+}
+
+fn flood_run(cli: &Cli, v: &Variant) -> Result<()> {
+    let setup = Setup::new("flood", &v.ingress)?;
     let log = setup.dir.join("frames.jsonl");
     let ppmd = setup.spawn(
         "ppmd",
@@ -353,6 +474,7 @@ fn flood(cli: &Cli) -> Result<()> {
     std::thread::sleep(Duration::from_millis(300));
     let after = setup.status()?;
     let rss_after = ingress.rss_kib();
+    println!("-- {}{}", v.label, degraded_mark(&setup, "udp-ingress"));
     let secs = (flood_end - flood_start) as f64 / 1e9;
     let received = after["datagrams"]["received"].as_u64().unwrap_or(0) - received_before;
     let sent = sent.load(Relaxed);
@@ -388,7 +510,7 @@ fn e2e(cli: &Cli) -> Result<()> {
         "== 3. end to end: send to the first frame carrying the command ({} commands at 50 Hz)",
         cli.e2e_count
     );
-    let setup = Setup::new("e2e")?;
+    let setup = Setup::new("e2e", "")?;
     let trace = setup.dir.join("line.trace");
     let ppmd = setup.spawn("ppmd", &["--output", &format!("sim:{}", trace.display())])?;
     let ingress = setup.spawn("udp-ingress", &[])?;
@@ -451,7 +573,7 @@ fn e2e(cli: &Cli) -> Result<()> {
 
 fn resources() -> Result<()> {
     println!("== 4. memory and CPU (3 s idle, then 3 s at 50 Hz)");
-    let setup = Setup::new("res")?;
+    let setup = Setup::new("res", "")?;
     let ppmd = setup.spawn("ppmd", &["--output", "sim:/dev/null"])?;
     let ingress = setup.spawn("udp-ingress", &[])?;
     let measure = |label: &str, traffic: bool| -> Result<()> {
@@ -492,11 +614,12 @@ fn main() -> Result<()> {
         "ppm-bench: the real binaries on loopback ({} CPUs)",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
+    let variants = variants(&cli)?;
     if only.is_none_or(|o| o == "ingress") {
-        ingress_latency(&cli)?;
+        ingress_latency(&cli, &variants)?;
     }
     if only.is_none_or(|o| o == "flood") {
-        flood(&cli)?;
+        flood(&cli, &variants)?;
     }
     if only.is_none_or(|o| o == "e2e") {
         e2e(&cli)?;
