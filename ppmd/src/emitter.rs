@@ -1,9 +1,10 @@
-//! The timing loop. Once per frame, as late as possible before the frame's
-//! first edge (the spin margin plus [`DECIDE_NS`]), it takes the newest
-//! command, decides what the frame carries (the command, or the failsafe
-//! action when the command is too old), encodes it and emits every edge at its
-//! scheduled time through an [`EdgeTimer`]: an absolute sleep until a margin
-//! before the edge, a spin on CLOCK_MONOTONIC, then one write.
+//! The timing loop. Once per frame, [`DECIDE_NS`] before the frame's first
+//! edge (woken as precisely as for an edge), it takes the newest command,
+//! decides what the frame carries (the command, or the failsafe action when
+//! the command is too old), encodes it and emits every edge at its scheduled
+//! time through an [`EdgeTimer`]: an absolute sleep until a margin before the
+//! edge, a spin on CLOCK_MONOTONIC, then one write. So a command is at most
+//! about `DECIDE_NS` old when its frame starts, whatever the spin margin.
 //!
 //! Frames sit on a fixed grid (`start_k = start_0 + k * frame`), so a late
 //! edge never shifts later ones. When a frame's start has already passed, the
@@ -24,8 +25,13 @@ use ppm_shared::ipc::CommandSample;
 use ppm_shared::trace::TraceEdge;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering::Relaxed};
 
-/// Time budget to take the command and encode the frame, before the margin.
-pub const DECIDE_NS: u64 = 100_000;
+/// How long before a frame's start its lane takes the newest command and
+/// encodes the frame; with several lanes, [`DECIDE_SLOT_NS`] more per further
+/// lane, so lanes that share a frame start all decide before it.
+pub const DECIDE_NS: u64 = 150_000;
+/// Time from the end of a decision to the frame's first edge that the loop
+/// needs at least; a frame decided later than that is moved (a late frame).
+pub const READY_NS: u64 = 20_000;
 /// How often the loop looks for a command while the line is silent.
 pub const IDLE_POLL_NS: u64 = 2_000_000;
 /// An edge written later than this after its scheduled time counts as late.
@@ -214,12 +220,14 @@ struct Progress {
 }
 
 impl Progress {
-    /// When this lane next needs a decision (it has no frame in progress).
-    fn decide_at(&self, lead: u64) -> Option<u64> {
+    /// When this lane next needs a decision (it has no frame in progress),
+    /// and whether that time matters to the microsecond (a frame follows,
+    /// rather than a poll while silent).
+    fn decide_at(&self, lead: u64) -> Option<(u64, bool)> {
         match (self.frame, self.next_start) {
             (Some(_), _) => None,
-            (None, Some(s)) => Some(s.saturating_sub(lead)),
-            (None, None) => Some(self.poll_at),
+            (None, Some(s)) => Some((s.saturating_sub(lead), true)),
+            (None, None) => Some((self.poll_at, false)),
         }
     }
 }
@@ -254,8 +262,7 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
     let mut decide_peak_ns = 0u64;
     loop {
         let stopping = stop.load(Relaxed);
-        let margin = timer.margin_ns();
-        let lead = margin + DECIDE_NS;
+        let lead = DECIDE_NS + DECIDE_SLOT_NS * (n as u64 - 1);
         let edge_due = prog[..n]
             .iter()
             .filter_map(|p| p.frame.map(|f| f.due()))
@@ -264,31 +271,32 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
             None
         } else {
             (0..n)
-                .filter_map(|i| prog[i].decide_at(lead).map(|d| (d, i)))
+                .filter_map(|i| prog[i].decide_at(lead).map(|(d, precise)| (d, i, precise)))
                 .min()
         };
         let slot = DECIDE_SLOT_NS.max(decide_peak_ns + DECIDE_SLOT_NS / 4);
         let decide = match (decision, edge_due) {
             (None, None) => break,
             (None, Some(_)) => None,
-            (Some((at, i)), None) => Some((at, i, true)),
-            (Some((at, i)), Some(due)) => {
-                let spin_from = due.saturating_sub(margin);
-                if at + slot <= spin_from {
-                    Some((at, i, true))
-                } else if at <= due && clock::now_ns() + slot <= spin_from {
+            (Some((at, i, precise)), None) => Some((at, i, true, precise)),
+            (Some((at, i, precise)), Some(due)) => {
+                // A decision made awake may use an edge's spin margin: it
+                // only has to end before the edge.
+                if at + slot <= due {
+                    Some((at, i, true, precise))
+                } else if at <= due && clock::now_ns() + slot <= due {
                     // Its time falls on an edge: decide now, before it.
-                    Some((at, i, false))
+                    Some((at, i, false, precise))
                 } else {
                     None
                 }
             }
         };
         match decide {
-            Some((at, i, sleep)) => {
-                if sleep && edge_due.is_some() {
-                    // Another line's edge follows closely: wake as precisely
-                    // as for an edge, so a late wake-up cannot delay it.
+            Some((at, i, sleep, precise)) => {
+                if sleep && (precise || edge_due.is_some()) {
+                    // A frame or another line's edge follows closely: wake as
+                    // precisely as for an edge.
                     timer.wait(at);
                 } else if sleep {
                     clock::sleep_until(at);
@@ -399,16 +407,15 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
         None => {
             p.prev_sync_ns = 0;
             // Joining a running grid costs up to one frame, once; a grid
-            // point is taken while it is still DECIDE_NS away (spinning
-            // longer than the margin if need be).
+            // point is taken while it is still twice READY_NS away.
             match anchor {
-                Some(_) => align(now + DECIDE_NS, anchor, frame_ns),
+                Some(_) => align(now + 2 * READY_NS, anchor, frame_ns),
                 None => now + lead,
             }
         }
     };
     let mut start = grid_start;
-    let ready = clock::now_ns() + DECIDE_NS / 2;
+    let ready = clock::now_ns() + READY_NS;
     if ready > start {
         // Moving the frame later by `late` lengthens the gap before it and
         // shortens the one after it: both must stay sync periods.
