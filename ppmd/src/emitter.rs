@@ -32,6 +32,10 @@ pub const DECIDE_NS: u64 = 150_000;
 /// Time from the end of a decision to the frame's first edge that the loop
 /// needs at least; a frame decided later than that is moved (a late frame).
 pub const READY_NS: u64 = 20_000;
+/// After silence, how long before the first frame a lone pulse goes out: a
+/// sync period (4..19 ms) before the frame, so a transmitter reads that first
+/// frame instead of waiting for the second.
+pub const LEAD_IN_NS: u64 = 5_000_000;
 /// How often the loop looks for a command while the line is silent.
 pub const IDLE_POLL_NS: u64 = 2_000_000;
 /// An edge written later than this after its scheduled time counts as late.
@@ -188,8 +192,10 @@ pub fn run(
 #[derive(Clone, Copy)]
 struct Frame {
     schedule: EdgeSchedule,
-    /// The next edge to write.
+    /// The next edge to write, counting the lead-in pulse's two first.
     next: usize,
+    /// How long before `start` the lead-in pulse starts (0: none).
+    lead_in_ns: u64,
     start: u64,
     start_real_ns: u64,
     channels: Channels,
@@ -199,8 +205,35 @@ struct Frame {
 }
 
 impl Frame {
+    /// Edges before the frame's own: the lead-in pulse's two, or none.
+    fn pre(&self) -> usize {
+        if self.lead_in_ns > 0 {
+            2
+        } else {
+            0
+        }
+    }
+
+    /// Every edge to write, the lead-in pulse's included.
+    fn len(&self) -> usize {
+        self.pre() + self.schedule.edges().len()
+    }
+
+    /// The next edge: when and to which level. The lead-in pulse is the
+    /// frame's first pulse, `lead_in_ns` earlier.
+    fn edge(&self) -> (u64, Level) {
+        let e = self.schedule.edges();
+        match self.next.checked_sub(self.pre()) {
+            Some(i) => (self.start + e[i].at_ns, e[i].level),
+            None => (
+                self.start - self.lead_in_ns + e[self.next].at_ns,
+                e[self.next].level,
+            ),
+        }
+    }
+
     fn due(&self) -> u64 {
-        self.start + self.schedule.edges()[self.next].at_ns
+        self.edge().0
     }
 }
 
@@ -400,6 +433,13 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     let edges = schedule.edges();
     let last_pulse = edges[edges.len() - 2].at_ns;
     let sync_ns = frame_ns - last_pulse;
+    // After silence, a lone pulse LEAD_IN_NS before the frame gives it the
+    // sync before it that a transmitter needs to read it.
+    let lead_in_ns = if p.next_start.is_none() {
+        LEAD_IN_NS
+    } else {
+        0
+    };
     // The frame's place on the grid; a late frame moves off it, the next
     // one returns to it.
     let grid_start = match p.next_start {
@@ -409,17 +449,18 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
             // Joining a running grid costs up to one frame, once; a grid
             // point is taken while it is still twice READY_NS away.
             match anchor {
-                Some(_) => align(now + 2 * READY_NS, anchor, frame_ns),
-                None => now + lead,
+                Some(_) => align(now + LEAD_IN_NS + 2 * READY_NS, anchor, frame_ns),
+                None => now + lead + LEAD_IN_NS,
             }
         }
     };
     let mut start = grid_start;
     let ready = clock::now_ns() + READY_NS;
-    if ready > start {
+    if ready > start - lead_in_ns {
         // Moving the frame later by `late` lengthens the gap before it and
-        // shortens the one after it: both must stay sync periods.
-        let late = ready - start;
+        // shortens the one after it: both must stay sync periods (a lead-in
+        // pulse moves with its frame).
+        let late = ready - (start - lead_in_ns);
         let fits_after = sync_ns >= sync_min_ns + late;
         let fits_before = p.prev_sync_ns == 0 || p.prev_sync_ns + late <= sync_max_ns;
         if fits_after && fits_before {
@@ -439,6 +480,7 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     p.frame = Some(Frame {
         schedule,
         next: 0,
+        lead_in_ns,
         start,
         start_real_ns,
         channels,
@@ -475,7 +517,7 @@ fn emit_due(
             continue;
         };
         first.get_or_insert(i);
-        let level = f.schedule.edges()[f.next].level;
+        let level = f.edge().1;
         match &mut lane.sink {
             Sink::Line(out) => {
                 let edge = TraceEdge {
@@ -529,7 +571,7 @@ fn emit_due(
             continue;
         };
         f.next += 1;
-        if f.next == f.schedule.edges().len() {
+        if f.next == f.len() {
             finish_frame(lane, p, timer.margin_ns());
         }
     }
@@ -668,9 +710,17 @@ mod tests {
         let n = stats.frames.load(Relaxed);
         assert!((4..=6).contains(&n), "{n} frames");
         assert_eq!(stats.failsafe_entries.load(Relaxed), 1);
-        assert_eq!(edges.len() as u64, n * 18);
+        // Every frame's 18 edges, and the lead-in pulse before the first.
+        assert_eq!(edges.len() as u64, n * 18 + 2);
+        assert_eq!(edges[2].scheduled_ns - edges[0].scheduled_ns, LEAD_IN_NS);
+        // So the decoder reads the first frame too.
+        assert_eq!(frames[0].start_ns, edges[2].scheduled_ns);
         // Frames sit on one grid, but for those moved later as a whole.
-        let starts: Vec<u64> = edges.iter().step_by(18).map(|e| e.scheduled_ns).collect();
+        let starts: Vec<u64> = edges[2..]
+            .iter()
+            .step_by(18)
+            .map(|e| e.scheduled_ns)
+            .collect();
         let off_grid = starts
             .iter()
             .filter(|&&s| !(s - starts[0]).is_multiple_of(22_500_000))
@@ -837,13 +887,15 @@ mod tests {
             (&out_b, &stats_b, 20_000_000, 14),
         ] {
             assert_eq!(out.0.len() as u64, stats.edges.load(Relaxed));
-            assert_eq!(out.0.len() as u64, stats.frames.load(Relaxed) * per_frame);
+            assert_eq!(
+                out.0.len() as u64,
+                stats.frames.load(Relaxed) * per_frame + 2
+            );
             assert!(
                 out.0.iter().all(|e| e.actual_ns >= e.scheduled_ns),
                 "never early"
             );
-            let starts: Vec<u64> = out
-                .0
+            let starts: Vec<u64> = out.0[2..]
                 .iter()
                 .step_by(per_frame as usize)
                 .map(|e| e.scheduled_ns)
@@ -947,23 +999,23 @@ mod tests {
         let late = |i: usize| stats[i].late_frames.load(Relaxed) as usize;
         let only = |bit: u64| writes.iter().filter(|(_, m, _)| m & 0b11 == bit).count();
         assert!(
-            only(0b10) <= 18 * (late(0) + late(1)),
+            only(0b10) <= 2 + 18 * (late(0) + late(1)),
             "line 1 alone: {} edges",
             only(0b10)
         );
         assert!(
-            only(0b01) <= 18 * (late(0) + late(1) + 1),
+            only(0b01) <= 2 + 18 * (late(0) + late(1) + 2),
             "line 0 alone: {} edges",
             only(0b01)
         );
         // Frame starts of line 2 coincide with those of line 0 while both run.
-        let starts0: Vec<u64> = line(0).iter().step_by(18).map(|e| e.0).collect();
+        let starts0: Vec<u64> = line(0)[2..].iter().step_by(18).map(|e| e.0).collect();
         let joined = starts0
             .iter()
             .filter(|t| writes.iter().any(|(w, m, _)| w == *t && m & 0b111 == 0b111))
             .count();
         assert!(
-            joined + 2 + late(0) + late(2) >= starts0.len(),
+            joined + 3 + late(0) + late(2) >= starts0.len(),
             "{joined} of {} frame starts shared",
             starts0.len()
         );

@@ -84,10 +84,16 @@ fn commands_reach_the_line_and_malformed_datagrams_change_nothing() {
         .iter()
         .map(|us| us * 1_000)
         .collect();
-    // 1.5 s of commands: about 66 frames, the first one unreadable (no sync before it).
+    // 1.5 s of commands: about 66 frames. The first is readable: a lone pulse
+    // a sync period before it stands in for the previous frame's last pulse.
     assert!(frames.len() >= 55, "only {} frames decoded", frames.len());
+    assert_eq!(
+        frames[0].start_ns,
+        trace.edges[0].scheduled_ns + ppmd::emitter::LEAD_IN_NS,
+        "the first frame follows the lead-in pulse"
+    );
     assert!(
-        frames[0].start_ns <= first + 3 * FRAME_NS,
+        frames[0].start_ns <= first + 2 * FRAME_NS,
         "first readable frame starts {} ms after the first datagram",
         (frames[0].start_ns as i64 - first as i64) / 1_000_000
     );
@@ -288,10 +294,10 @@ fn frame_log_rows_match_the_decoded_line() {
             row["seq"].as_u64().is_some() && row["recv_mono_ns"].as_u64().unwrap() < f.start_ns
         );
     }
-    // The log has only the frames the line had: the decoder cannot read the
-    // first one (no sync before it) nor close the last.
+    // The log has only the frames the line had: the decoder reads the first
+    // one (after the lead-in pulse) but cannot close the last.
     assert!(
-        frames.len() <= decoded.len() + 2,
+        frames.len() <= decoded.len() + 1,
         "{} rows, {} decoded",
         frames.len(),
         decoded.len()

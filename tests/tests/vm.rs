@@ -171,19 +171,29 @@ fn independent_decode(sets: &[(u64, u8)]) -> Vec<Vec<u64>> {
     frames
 }
 
-/// Every frame carries `want` within 3 us per channel, and at least
+/// Every frame carries `want` within 20 us per channel (a wrong value is
+/// off by hundreds), at least 90% of them within 1 us, and at least
 /// `exact_share` of them exactly. The trace stamps a value when the kernel
-/// sets it, after ppmd's write entered the kernel: an interrupt in the guest
-/// while ppmd spins or in between (the guest's clock counts instructions)
-/// now and then moves one edge by 1-2 us.
+/// sets it, after ppmd's write entered the kernel, and the guest's clock
+/// counts instructions: an interrupt while ppmd spins or in the kernel's path
+/// now and then moves one edge by 1-8 us (ppmd's own statistics show it too).
 fn assert_frames(frames: &[Vec<u64>], want: &[u64], what: &str, exact_share: f64) {
+    let within = |f: &Vec<u64>, us: u64| {
+        f.len() == want.len() && f.iter().zip(want).all(|(g, w)| g.abs_diff(*w) <= us)
+    };
     for (k, f) in frames.iter().enumerate() {
-        let close = f.len() == want.len() && f.iter().zip(want).all(|(g, w)| g.abs_diff(*w) <= 3);
-        assert!(close, "frame {k} of {what}: {f:?}, want {want:?}");
+        assert!(within(f, 20), "frame {k} of {what}: {f:?}, want {want:?}");
     }
+    let share = |n: usize| n as f64 / frames.len() as f64;
+    let close = frames.iter().filter(|f| within(f, 1)).count();
+    assert!(
+        share(close) >= 0.9,
+        "only {close} of {} frames of {what} within 1 us",
+        frames.len()
+    );
     let exact = frames.iter().filter(|f| f[..] == want[..]).count();
     assert!(
-        exact as f64 >= frames.len() as f64 * exact_share,
+        share(exact) >= exact_share,
         "only {exact} of {} frames of {what} exact",
         frames.len()
     );
