@@ -51,6 +51,9 @@ pub fn bin(name: &str) -> PathBuf {
     bin_dir().join(name)
 }
 
+/// How long a program may take to start (debug builds on a busy machine).
+const STARTUP: Duration = Duration::from_secs(30);
+
 /// A fresh directory for one test, removed when the test passes.
 pub struct Sandbox {
     /// The directory.
@@ -110,6 +113,26 @@ impl Sandbox {
     /// The ingress's address.
     pub fn addr(&self) -> SocketAddr {
         SocketAddr::from(([127, 0, 0, 1], self.port))
+    }
+
+    /// Starts ppmd with the configuration `cfg` on the simulated line
+    /// `<dir>/<trace>` (log `ppmd`) and waits until it takes commands.
+    pub fn start_ppmd(&self, cfg: &Path, trace: &str) -> Proc {
+        let output = format!("sim:{}", self.dir.join(trace).display());
+        let cfg = cfg.to_str().expect("a UTF-8 path");
+        let p = self.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
+        p.wait_for_log("commands from", STARTUP);
+        p
+    }
+
+    /// Starts udp-ingress with the configuration `cfg` and `args` (log
+    /// `ingress`) and waits until it listens.
+    pub fn start_ingress(&self, cfg: &Path, args: &[&str]) -> Proc {
+        let mut all = vec!["--config", cfg.to_str().expect("a UTF-8 path")];
+        all.extend_from_slice(args);
+        let p = self.spawn("udp-ingress", &all, "ingress");
+        p.wait_for_log("listening on", STARTUP);
+        p
     }
 
     /// Starts a binary with arguments; its stderr goes to `<dir>/<log>.log`.

@@ -71,13 +71,9 @@ fn readme_python_sender_flies_the_line() {
     let sb = Sandbox::new("python");
     let code = code.replace("5005", &sb.port.to_string());
     let cfg = sb.config("");
-    let cfg = cfg.to_str().unwrap();
     let trace = sb.dir.join("line.trace");
-    let output = format!("sim:{}", trace.display());
-    let mut ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
-    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
-    ppmd.wait_for_log("commands from", Duration::from_secs(30));
-    ingress.wait_for_log("listening on", Duration::from_secs(30));
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let _ingress = sb.start_ingress(&cfg, &[]);
     let status = std::process::Command::new("python3")
         .arg("-c")
         .arg(&code)

@@ -12,13 +12,10 @@ const SECOND: Duration = Duration::from_secs(1);
 
 fn start(sb: &Sandbox, failsafe: &str) -> (Proc, Proc) {
     let cfg = sb.config(&format!("[failsafe]\n{failsafe}"));
-    let cfg = cfg.to_str().unwrap();
-    let output = format!("sim:{}", sb.dir.join("line.trace").display());
-    let ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
-    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
-    ppmd.wait_for_log("commands from", 30 * SECOND);
-    ingress.wait_for_log("listening on", 30 * SECOND);
-    (ppmd, ingress)
+    (
+        sb.start_ppmd(&cfg, "line.trace"),
+        sb.start_ingress(&cfg, &[]),
+    )
 }
 
 /// Sends `cmd` at 50 Hz for `n` datagrams; returns the time of the last send.

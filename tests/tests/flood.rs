@@ -17,21 +17,9 @@ const FRAME_NS: u64 = 22_500_000;
 fn a_flood_leaves_only_the_newest_command() {
     let sb = Sandbox::new("flood");
     let cfg = sb.config("");
-    let cfg = cfg.to_str().unwrap();
     let trace = sb.dir.join("line.trace");
-    let mut ppmd = sb.spawn(
-        "ppmd",
-        &[
-            "--config",
-            cfg,
-            "--output",
-            &format!("sim:{}", trace.display()),
-        ],
-        "ppmd",
-    );
-    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
-    ppmd.wait_for_log("commands from", Duration::from_secs(30));
-    ingress.wait_for_log("listening on", Duration::from_secs(30));
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let ingress = sb.start_ingress(&cfg, &[]);
     let calm = Sender::new(sb.addr());
     for _ in 0..50 {
         calm.send(b"[1100]");

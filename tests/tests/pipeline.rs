@@ -18,13 +18,7 @@ fn start_pipeline(
     trace: &str,
 ) -> (ppm_tests::Proc, ppm_tests::Proc) {
     let cfg = sb.config(extra_config);
-    let cfg = cfg.to_str().unwrap();
-    let output = format!("sim:{}", sb.dir.join(trace).display());
-    let ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
-    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
-    ppmd.wait_for_log("commands from", 30 * SECOND);
-    ingress.wait_for_log("listening on", 30 * SECOND);
-    (ppmd, ingress)
+    (sb.start_ppmd(&cfg, trace), sb.start_ingress(&cfg, &[]))
 }
 
 /// Sends `send(i)` for i = 0.. at 50 Hz until `n` datagram slots have passed.

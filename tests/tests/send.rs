@@ -27,17 +27,8 @@ impl Vehicle {
     fn start(label: &str, with_ppmd: bool, ingress_args: &[&str]) -> Vehicle {
         let sb = Sandbox::new(label);
         let cfg = sb.config(GENTLE_RT);
-        let cfg = cfg.to_str().unwrap();
-        let output = format!("sim:{}", sb.dir.join("line.trace").display());
-        let ppmd =
-            with_ppmd.then(|| sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd"));
-        let mut args = vec!["--config", cfg];
-        args.extend_from_slice(ingress_args);
-        let ingress = sb.spawn("udp-ingress", &args, "ingress");
-        if let Some(p) = &ppmd {
-            p.wait_for_log("commands from", 30 * SECOND);
-        }
-        ingress.wait_for_log("listening on", 30 * SECOND);
+        let ppmd = with_ppmd.then(|| sb.start_ppmd(&cfg, "line.trace"));
+        let ingress = sb.start_ingress(&cfg, ingress_args);
         Vehicle {
             sb,
             ppmd,

@@ -76,15 +76,8 @@ fn shape(v: &Value) -> Value {
 
 fn start(sb: &Sandbox, with_ppmd: bool) -> (Option<Proc>, Proc) {
     let cfg = sb.config("");
-    let cfg = cfg.to_str().unwrap();
-    let output = format!("sim:{}", sb.dir.join("line.trace").display());
-    let ppmd = with_ppmd.then(|| sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd"));
-    let ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
-    if let Some(p) = &ppmd {
-        p.wait_for_log("commands from", 30 * SECOND);
-    }
-    ingress.wait_for_log("listening on", 30 * SECOND);
-    (ppmd, ingress)
+    let ppmd = with_ppmd.then(|| sb.start_ppmd(&cfg, "line.trace"));
+    (ppmd, sb.start_ingress(&cfg, &[]))
 }
 
 /// Malformed datagrams, one of each reason and two malformed queries.

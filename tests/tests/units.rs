@@ -52,7 +52,6 @@ fn send_50hz(sender: &Sender, template: &str, first: u64, n: u64) {
 fn units_and_norm_land_exactly_on_the_mapping() {
     let sb = Sandbox::new("units");
     let cfg_path = sb.config(CHANNELS);
-    let cfg = cfg_path.to_str().unwrap();
     let model = Config::load(&cfg_path).unwrap().validate().unwrap();
 
     // What the mapping defines, worked out by hand (us), and the model agrees.
@@ -73,11 +72,8 @@ fn units_and_norm_land_exactly_on_the_mapping() {
     assert_eq!(model.norm_to_ns(4, -0.5), (1_250_000, false));
     assert_eq!(model.norm_to_ns(5, 7.0), (2_000_000, true));
 
-    let output = format!("sim:{}", sb.dir.join("line.trace").display());
-    let mut ppmd = sb.spawn("ppmd", &["--config", cfg, "--output", &output], "ppmd");
-    let mut ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
-    ppmd.wait_for_log("commands from", 30 * SECOND);
-    ingress.wait_for_log("listening on", 30 * SECOND);
+    let mut ppmd = sb.start_ppmd(&cfg_path, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg_path, &[]);
 
     let sender = Sender::new(sb.addr());
     send_50hz(&sender, UNITS, 1, 40);
