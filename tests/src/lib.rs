@@ -288,3 +288,17 @@ pub fn read_trace(path: &Path) -> ppm_shared::trace::Trace {
     let f = File::open(path).unwrap_or_else(|e| panic!("opening {}: {e}", path.display()));
     ppm_shared::trace::Trace::read(std::io::BufReader::new(f)).expect("reading the trace")
 }
+
+/// Calls `send(i)` for i = 0..n, one call every 20 ms (50 Hz) from now, on
+/// a fixed schedule (a slow call does not shift the later ones).
+pub fn at_50hz(n: u64, mut send: impl FnMut(u64)) {
+    let start = ppm_shared::time::now_ns();
+    for i in 0..n {
+        send(i);
+        let next = start + (i + 1) * 20_000_000;
+        let now = ppm_shared::time::now_ns();
+        if next > now {
+            std::thread::sleep(Duration::from_nanos(next - now));
+        }
+    }
+}

@@ -6,8 +6,7 @@
 //! timing, which its ingress's status reply shows.
 
 use nix::sys::signal::Signal;
-use ppm_shared::time::now_ns;
-use ppm_tests::{bin, free_udp_port, read_trace, Sandbox, Sender};
+use ppm_tests::{at_50hz, bin, free_udp_port, read_trace, Sandbox, Sender};
 use serde_json::Value;
 use std::net::{SocketAddr, UdpSocket};
 use std::path::Path;
@@ -112,21 +111,15 @@ fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
 
     let (to_a, to_b) = (sb.addr(), SocketAddr::from(([127, 0, 0, 1], port_b)));
     let (send_a, send_b) = (Sender::new(to_a), Sender::new(to_b));
-    let start = now_ns();
     let mut statuses = Vec::new();
-    for i in 0..100u64 {
+    at_50hz(100, |i| {
         send_a.send(b"[1100, 1200, 1300, 1400]");
         // b is TAER (throttle first), its values normalised on 1000..2000 us.
         send_b.send(br#"{"norm": {"thr": 0.8, "ail": 0.5, "ele": -0.4, "rud": 0.2, "aux1": -1}}"#);
         if i == 80 {
             statuses = vec![status(to_a), status(to_b)];
         }
-        let next = start + (i + 1) * 20_000_000;
-        let now = now_ns();
-        if next > now {
-            std::thread::sleep(Duration::from_nanos(next - now));
-        }
-    }
+    });
     assert!(
         ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
         "{}",

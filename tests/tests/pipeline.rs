@@ -4,7 +4,7 @@
 
 use nix::sys::signal::Signal;
 use ppm_shared::time::now_ns;
-use ppm_tests::{read_trace, Sandbox, Sender};
+use ppm_tests::{at_50hz, read_trace, Sandbox, Sender};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -19,19 +19,6 @@ fn start_pipeline(
 ) -> (ppm_tests::Proc, ppm_tests::Proc) {
     let cfg = sb.config(extra_config);
     (sb.start_ppmd(&cfg, trace), sb.start_ingress(&cfg, &[]))
-}
-
-/// Sends `send(i)` for i = 0.. at 50 Hz until `n` datagram slots have passed.
-fn at_50hz(n: u64, mut send: impl FnMut(u64)) {
-    let start = now_ns();
-    for i in 0..n {
-        send(i);
-        let next = start + (i + 1) * 20_000_000;
-        let now = now_ns();
-        if next > now {
-            std::thread::sleep(Duration::from_nanos(next - now));
-        }
-    }
 }
 
 #[test]

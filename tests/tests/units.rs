@@ -6,8 +6,7 @@
 
 use nix::sys::signal::Signal;
 use ppm_shared::config::Config;
-use ppm_shared::time::now_ns;
-use ppm_tests::{read_trace, Sandbox, Sender};
+use ppm_tests::{at_50hz, read_trace, Sandbox, Sender};
 use std::time::Duration;
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -36,16 +35,10 @@ const NORM: &str = r#"{"norm": {"ail": 0.2, "ele": 1, "thr": -0.9, "rud": 0.25, 
 
 /// Sends `n` datagrams at 50 Hz, `seq` numbered from `first`.
 fn send_50hz(sender: &Sender, template: &str, first: u64, n: u64) {
-    let start = now_ns();
-    for i in 0..n {
+    at_50hz(n, |i| {
         let text = template.replace("SEQ", &(first + i).to_string());
         sender.send(text.as_bytes());
-        let next = start + (i + 1) * 20_000_000;
-        let now = now_ns();
-        if next > now {
-            std::thread::sleep(Duration::from_nanos(next - now));
-        }
-    }
+    });
 }
 
 #[test]

@@ -1,11 +1,12 @@
 //! `timing-bench`: ppmd's emission loop against a plain absolute-sleep loop,
 //! in the same run and on the same frame schedule.
 //!
-//! Both run `ppmd::emitter::run` on the sim backend with a constant command,
-//! on one real-time thread, in alternating blocks; the only difference is the
-//! spin margin (ppmd's `auto` versus 0, which makes the wait a plain
-//! `clock_nanosleep(TIMER_ABSTIME)`). Prints p50, p99, p99.9 and max edge
-//! error of both, their ratio, and the CPU share each costs.
+//! Both run ppmd's emission loop (`ppmd::emitter::run_lanes`) on the sim
+//! backend with a constant command, on one real-time thread, in alternating
+//! blocks; the only difference is the spin margin (ppmd's `auto` versus 0,
+//! which makes the wait a plain `clock_nanosleep(TIMER_ABSTIME)`). A third
+//! kind of block drives a second output beside the first. Prints p50, p99,
+//! p99.9 and max edge error of each, the ratios, and the CPU share each costs.
 
 use anyhow::{Context, Result};
 use clap::Parser;
@@ -80,110 +81,63 @@ fn thread_cpu_ns() -> u64 {
     t.tv_sec() as u64 * 1_000_000_000 + t.tv_nsec() as u64
 }
 
+/// One block: the loop drives one output per `(model, sample)` (the same
+/// command, freshly stamped, every frame) until the first has emitted
+/// `frames` frames. Every output's edge errors are counted.
 fn run_block(
-    model: &FrameModel,
-    sample: CommandSample,
+    outputs: &[(&FrameModel, CommandSample)],
     margin: Margin,
     frames: u64,
     totals: &mut Totals,
 ) -> Result<()> {
     let stop = Arc::new(AtomicBool::new(false));
-    let mut source = RepeatSource {
-        sample,
-        frames,
-        stop: stop.clone(),
-    };
-    let mut out = SimOutput::create(std::path::Path::new("/dev/null"), &[])?;
+    let mut sources: Vec<RepeatSource> = outputs
+        .iter()
+        .enumerate()
+        .map(|(i, (_, sample))| RepeatSource {
+            sample: *sample,
+            // The first output's count ends the block.
+            frames: if i == 0 { frames } else { u64::MAX },
+            stop: stop.clone(),
+        })
+        .collect();
+    let mut outs = outputs
+        .iter()
+        .map(|_| SimOutput::create(std::path::Path::new("/dev/null"), &[]))
+        .collect::<std::io::Result<Vec<_>>>()?;
     let cfg = EmitterConfig {
         margin,
         failsafe_after_ns: 1_000_000_000,
         failsafe_action: FailsafeAction::Silence,
         startup: FailsafeAction::Silence,
     };
-    let stats = Stats::default();
-    let (mut meter, _reader) = ppmd::meter::meter(u64::MAX);
+    let stats: Vec<Stats> = outputs.iter().map(|_| Stats::default()).collect();
+    let mut meters: Vec<_> = outputs
+        .iter()
+        .map(|_| ppmd::meter::meter(u64::MAX))
+        .collect();
     let (cpu0, wall0) = (thread_cpu_ns(), clock::now_ns());
-    emitter::run(
-        model,
-        &cfg,
-        &mut source,
-        &mut out,
-        &stop,
-        &stats,
-        &mut meter,
-        None,
-    );
+    {
+        let mut lanes: Vec<Lane> = outputs
+            .iter()
+            .zip(sources.iter_mut())
+            .zip(outs.iter_mut())
+            .zip(stats.iter().zip(meters.iter_mut()))
+            .map(|((((model, _), source), out), (stats, (meter, _)))| Lane {
+                model,
+                cfg,
+                source,
+                sink: Sink::Line(out),
+                stats,
+                meter,
+                log: None,
+            })
+            .collect();
+        emitter::run_lanes(&mut lanes, &mut [], &stop);
+    }
     totals.cpu_ns += thread_cpu_ns() - cpu0;
     totals.wall_ns += clock::now_ns() - wall0;
-    totals.spin_ns += stats.spin_ns.load(Relaxed);
-    totals.late_frames += stats.late_frames.load(Relaxed);
-    totals.overruns += stats.overruns.load(Relaxed);
-    totals
-        .error
-        .add(&meter.current().edge_error)
-        .context("merging histograms")?;
-    Ok(())
-}
-
-/// Two outputs from one loop: `model` with `sample` as in [`run_block`], and
-/// a second output with another frame length and channel count, so the two
-/// lines' edges interleave irregularly. Both lines' edge errors are counted.
-fn run_block_two(
-    model: &FrameModel,
-    sample: CommandSample,
-    other: &FrameModel,
-    other_sample: CommandSample,
-    margin: Margin,
-    frames: u64,
-    totals: &mut Totals,
-) -> Result<()> {
-    let stop = Arc::new(AtomicBool::new(false));
-    let mut source = RepeatSource {
-        sample,
-        frames,
-        stop: stop.clone(),
-    };
-    let mut other_source = RepeatSource {
-        sample: other_sample,
-        frames: u64::MAX,
-        stop: stop.clone(),
-    };
-    let null = std::path::Path::new("/dev/null");
-    let (mut out, mut other_out) = (SimOutput::create(null, &[])?, SimOutput::create(null, &[])?);
-    let cfg = EmitterConfig {
-        margin,
-        failsafe_after_ns: 1_000_000_000,
-        failsafe_action: FailsafeAction::Silence,
-        startup: FailsafeAction::Silence,
-    };
-    let (stats, other_stats) = (Stats::default(), Stats::default());
-    let (mut meter, _r) = ppmd::meter::meter(u64::MAX);
-    let (mut other_meter, _r2) = ppmd::meter::meter(u64::MAX);
-    let (cpu0, wall0) = (thread_cpu_ns(), clock::now_ns());
-    let mut lanes = [
-        Lane {
-            model,
-            cfg,
-            source: &mut source,
-            sink: Sink::Line(&mut out),
-            stats: &stats,
-            meter: &mut meter,
-            log: None,
-        },
-        Lane {
-            model: other,
-            cfg,
-            source: &mut other_source,
-            sink: Sink::Line(&mut other_out),
-            stats: &other_stats,
-            meter: &mut other_meter,
-            log: None,
-        },
-    ];
-    emitter::run_lanes(&mut lanes, &mut [], &stop);
-    totals.cpu_ns += thread_cpu_ns() - cpu0;
-    totals.wall_ns += clock::now_ns() - wall0;
-    for (s, m) in [(&stats, &meter), (&other_stats, &other_meter)] {
+    for (s, (m, _)) in stats.iter().zip(&meters) {
         totals.spin_ns += s.spin_ns.load(Relaxed);
         totals.late_frames += s.late_frames.load(Relaxed);
         totals.overruns += s.overruns.load(Relaxed);
@@ -232,18 +186,12 @@ fn main() -> Result<()> {
             }
             let (mut spin, mut sleep, mut two) = (Totals::new(), Totals::new(), Totals::new());
             for b in 0..blocks {
+                let one = [(&m2, sample)];
+                let both = [(&m2, sample), (&other2, other_sample)];
                 match b % 3 {
-                    0 => run_block(&m2, sample, auto, block_frames, &mut spin)?,
-                    1 => run_block(&m2, sample, Margin::Fixed(0), block_frames, &mut sleep)?,
-                    _ => run_block_two(
-                        &m2,
-                        sample,
-                        &other2,
-                        other_sample,
-                        auto,
-                        block_frames,
-                        &mut two,
-                    )?,
+                    0 => run_block(&one, auto, block_frames, &mut spin)?,
+                    1 => run_block(&one, Margin::Fixed(0), block_frames, &mut sleep)?,
+                    _ => run_block(&both, auto, block_frames, &mut two)?,
                 }
             }
             Ok((summary, spin, sleep, two))
