@@ -123,9 +123,9 @@ pub const MAX_LANES: usize = ppm_shared::config::MAX_OUTPUTS;
 
 /// Time kept free for one decision (take the command, encode the frame), at
 /// least; the loop widens it to a decaying peak of the decision times it
-/// measures plus a quarter of this. A decision is made only when no edge is
-/// due within that time plus the spin margin; when its time falls on an edge,
-/// it is made early, before the edge.
+/// measures plus a quarter of this. A decision is made only when it can end
+/// before the next edge of any lane; when its time falls on an edge, it is
+/// made early, before the edge.
 pub const DECIDE_SLOT_NS: u64 = 50_000;
 
 /// Where a lane's edges go.
@@ -293,9 +293,9 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
         lane.meter.start(now);
     }
     let mut decide_peak_ns = 0u64;
+    let lead = DECIDE_NS + DECIDE_SLOT_NS * (n as u64 - 1);
     loop {
         let stopping = stop.load(Relaxed);
-        let lead = DECIDE_NS + DECIDE_SLOT_NS * (n as u64 - 1);
         let edge_due = prog[..n]
             .iter()
             .filter_map(|p| p.frame.map(|f| f.due()))
@@ -433,25 +433,20 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     let edges = schedule.edges();
     let last_pulse = edges[edges.len() - 2].at_ns;
     let sync_ns = frame_ns - last_pulse;
-    // After silence, a lone pulse LEAD_IN_NS before the frame gives it the
-    // sync before it that a transmitter needs to read it.
-    let lead_in_ns = if p.next_start.is_none() {
-        LEAD_IN_NS
-    } else {
-        0
-    };
-    // The frame's place on the grid; a late frame moves off it, the next
-    // one returns to it.
-    let grid_start = match p.next_start {
-        Some(s) => s,
+    // The frame's place on the grid (a late frame moves off it, the next one
+    // returns to it). After silence, a lone pulse LEAD_IN_NS before the frame
+    // gives it the sync before it that a transmitter needs to read it.
+    let (grid_start, lead_in_ns) = match p.next_start {
+        Some(s) => (s, 0),
         None => {
             p.prev_sync_ns = 0;
             // Joining a running grid costs up to one frame, once; a grid
             // point is taken while it is still twice READY_NS away.
-            match anchor {
+            let start = match anchor {
                 Some(_) => align(now + LEAD_IN_NS + 2 * READY_NS, anchor, frame_ns),
                 None => now + lead + LEAD_IN_NS,
-            }
+            };
+            (start, LEAD_IN_NS)
         }
     };
     let mut start = grid_start;
@@ -508,15 +503,21 @@ fn emit_due(
     timer: &mut EdgeTimer,
 ) {
     let w = timer.wait(due);
-    let mut first = None;
+    // The lanes with an edge due now (bit i: lane i).
+    let mut now_due = 0u32;
+    for (i, p) in prog.iter().enumerate() {
+        if p.frame.is_some_and(|f| f.due() == due) {
+            now_due |= 1 << i;
+        }
+    }
+    let is_due = |i: usize| now_due & (1 << i) != 0;
     let mut bank_mask = [0u64; MAX_LANES];
     let mut bank_levels = [0u64; MAX_LANES];
     let mut before = w.now_ns;
-    for (i, (lane, p)) in lanes.iter_mut().zip(prog.iter_mut()).enumerate() {
-        let Some(f) = p.frame.as_mut().filter(|f| f.due() == due) else {
+    for (i, (lane, p)) in lanes.iter_mut().zip(prog.iter()).enumerate() {
+        let Some(f) = p.frame.filter(|_| is_due(i)) else {
             continue;
         };
-        first.get_or_insert(i);
         let level = f.edge().1;
         match &mut lane.sink {
             Sink::Line(out) => {
@@ -544,11 +545,11 @@ fn emit_due(
         }
         let failed = bank.write(due, bank_mask[b], bank_levels[b]).is_err();
         let written = clock::now_ns();
-        for (lane, p) in lanes.iter_mut().zip(prog.iter_mut()) {
+        for (i, lane) in lanes.iter_mut().enumerate() {
             let Sink::Bank { bank, .. } = lane.sink else {
                 continue;
             };
-            if bank != b || p.frame.is_none_or(|f| f.due() != due) {
+            if bank != b || !is_due(i) {
                 continue;
             }
             if failed {
@@ -558,16 +559,16 @@ fn emit_due(
         }
         before = written;
     }
-    if let Some(i) = first {
-        if let Some(late) = w.woke_late_ns {
-            lanes[i].meter.wake(late);
-        }
-        if let Some(f) = prog[i].frame.as_mut() {
-            f.spun += w.spun_ns;
-        }
+    // One wait served them all: its figures go to the first lane.
+    let first = now_due.trailing_zeros() as usize;
+    if let Some(late) = w.woke_late_ns {
+        lanes[first].meter.wake(late);
     }
-    for (lane, p) in lanes.iter_mut().zip(prog.iter_mut()) {
-        let Some(f) = p.frame.as_mut().filter(|f| f.due() == due) else {
+    if let Some(f) = prog[first].frame.as_mut() {
+        f.spun += w.spun_ns;
+    }
+    for (i, (lane, p)) in lanes.iter_mut().zip(prog.iter_mut()).enumerate() {
+        let Some(f) = p.frame.as_mut().filter(|_| is_due(i)) else {
             continue;
         };
         f.next += 1;

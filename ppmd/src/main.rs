@@ -84,13 +84,19 @@ struct Setup {
     log_writer: Option<ppmd::framelog::Writer>,
 }
 
-/// The lines, as the timing thread owns them: lines of their own and banks
-/// (several lines of one GPIO chip), and which one each output uses.
+/// One output's line, as the timing thread owns it.
+enum Line {
+    /// A line of its own (sim, or the only one of ours on its GPIO chip).
+    Own(Box<dyn Output>),
+    /// Line `bit` of bank `bank` of [`Lines::banks`].
+    Banked { bank: usize, bit: u32 },
+}
+
+/// Every output's line, and the banks (several lines of one GPIO chip in
+/// one request) some of them are in.
 struct Lines {
-    own: Vec<Option<Box<dyn Output>>>,
+    each: Vec<Line>,
     banks: Vec<ppmd::output::gpio::GpioBank>,
-    /// Per output: `Some((bank, bit))` when the output's line is in a bank.
-    banked: Vec<Option<(usize, u32)>>,
 }
 
 fn run(cli: Cli) -> Result<()> {
@@ -208,22 +214,21 @@ fn run(cli: Cli) -> Result<()> {
                 };
                 let _ = ready_tx.send(Some(Obtained::from(&obtained)));
                 {
-                    let Lines { own, banks, banked } = &mut lines;
+                    let Lines { each, banks } = &mut lines;
                     let mut lanes: Vec<Lane> = parts
                         .iter_mut()
                         .zip(sources.iter_mut())
-                        .zip(own.iter_mut().zip(banked.iter()))
-                        .map(|((p, source), (own, banked))| Lane {
+                        .zip(each.iter_mut())
+                        .map(|((p, source), line)| Lane {
                             model: &p.1,
                             cfg: p.2,
                             source,
-                            sink: match (own, banked) {
-                                (Some(out), _) => Sink::Line(out.as_mut()),
-                                (None, Some((bank, bit))) => Sink::Bank {
+                            sink: match line {
+                                Line::Own(out) => Sink::Line(out.as_mut()),
+                                Line::Banked { bank, bit } => Sink::Bank {
                                     bank: *bank,
                                     bit: *bit,
                                 },
-                                (None, None) => unreachable!("every output has a line"),
                             },
                             stats: &p.3,
                             meter: &mut p.4,
@@ -365,18 +370,16 @@ fn tag(several: bool, name: &str) -> String {
 /// named) share one request, a bank, so their simultaneous edges are written
 /// in one call; a chip with one of our lines gets a request of its own.
 fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
-    let mut own: Vec<Option<Box<dyn Output>>> = Vec::new();
-    let mut banked = vec![None; outputs.len()];
+    let mut each: Vec<Option<Line>> = outputs.iter().map(|_| None).collect();
     /// A chip's path, its CHIP as first given, and its outputs (index, LINE).
     type Chip = (PathBuf, String, Vec<(usize, String)>);
     let mut chips: Vec<Chip> = Vec::new();
     for (i, (cfg, model)) in outputs.iter().enumerate() {
         match cfg.output()? {
             OutputSpec::Sim { path } => {
-                own.push(Some(open_sim(cfg, model, path)?));
+                each[i] = Some(Line::Own(open_sim(cfg, model, path)?));
             }
             OutputSpec::Gpio { chip, line } => {
-                own.push(None);
                 let (_, summary, _) = ppmd::output::gpio::resolve_line(&chip, &line)
                     .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
                 match chips.iter_mut().find(|c| c.0 == summary.path) {
@@ -393,7 +396,7 @@ fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
             let out = ppmd::output::gpio::open(&chip, line, model.idle_level())
                 .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
             log::info!("output `{}`: gpio {}", cfg.name, out.description());
-            own[*i] = Some(Box::new(out));
+            each[*i] = Some(Line::Own(Box::new(out)));
             continue;
         }
         let lines: Vec<(String, Level)> = members
@@ -412,11 +415,18 @@ fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
                 outputs[*i].0.name,
                 names.join(", ")
             );
-            banked[*i] = Some((banks.len(), bit as u32));
+            each[*i] = Some(Line::Banked {
+                bank: banks.len(),
+                bit: bit as u32,
+            });
         }
         banks.push(bank);
     }
-    Ok(Lines { own, banks, banked })
+    let each = each
+        .into_iter()
+        .map(|l| l.expect("every output got a line above"))
+        .collect();
+    Ok(Lines { each, banks })
 }
 
 fn open_sim(cfg: &Config, model: &FrameModel, path: Option<PathBuf>) -> Result<Box<dyn Output>> {

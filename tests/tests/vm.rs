@@ -105,18 +105,7 @@ fn read(dir: &Path, file: &str) -> String {
 /// ID`) has the same events in the same order with nanosecond times. The
 /// two are paired line by line, and each pair must agree to the microsecond.
 fn sets(text: &str, raw: &str, gpio: u32) -> Vec<(u64, u8)> {
-    let events = |s: &str| -> Vec<String> {
-        s.lines()
-            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-            .map(str::to_string)
-            .collect()
-    };
-    let (text, raw) = (events(text), events(raw));
-    assert_eq!(
-        text.len(),
-        raw.len(),
-        "the text and raw traces list different events"
-    );
+    let (text, raw) = paired_events(text, raw);
     let needle = format!("gpio_value: {gpio} set ");
     text.iter()
         .zip(&raw)
@@ -134,6 +123,23 @@ fn sets(text: &str, raw: &str, gpio: u32) -> Vec<(u64, u8)> {
             Some((ns, value.trim().parse().ok()?))
         })
         .collect()
+}
+
+/// The event lines of a trace's text and raw renderings, which list the
+/// same events in the same order.
+fn paired_events<'a>(text: &'a str, raw: &'a str) -> (Vec<&'a str>, Vec<&'a str>) {
+    let events = |s: &'a str| -> Vec<&'a str> {
+        s.lines()
+            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+            .collect()
+    };
+    let (text, raw) = (events(text), events(raw));
+    assert_eq!(
+        text.len(),
+        raw.len(),
+        "the text and raw traces list different events"
+    );
+    (text, raw)
 }
 
 /// An independent PPM reader: rising-edge periods; 4..19 ms is a sync,
@@ -340,18 +346,7 @@ fn check_two_outputs(out: &Path, base: u32, flavor: &str) {
     // call's time (ns, from the raw trace): gpio-sim sets a call's lines one
     // after the other, so a line's own event time would depend on its place
     // in the call.
-    let lines = |s: &str| -> Vec<String> {
-        s.lines()
-            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-            .map(str::to_string)
-            .collect()
-    };
-    let (text, raw) = (lines(&text), lines(&raw));
-    assert_eq!(
-        text.len(),
-        raw.len(),
-        "the text and raw traces list different events"
-    );
+    let (text, raw) = paired_events(&text, &raw);
     let mut calls: Vec<(u64, Vec<(u32, u8)>)> = Vec::new();
     for (t, r) in text.iter().zip(&raw) {
         if t.contains("gpiod_set_array_value_complex") {

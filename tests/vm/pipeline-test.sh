@@ -8,9 +8,25 @@
 #   - one ppmd with two outputs on GPIO19 and GPIO20 (one request), fed by
 #     two udp-ingress, traced with the calls that set the values.
 # Results in /out: gpio_trace.txt, *.log, chip.txt, ppmd_exit.txt,
-# debug_gpio_after.txt, frames.jsonl, two_trace.txt.
+# debug_gpio_after.txt, frames.jsonl, two_trace.txt, two_ppmd_exit.txt.
 set -eu
 . /lib/vmtest.sh
+
+# stop_ppmd PID EXIT TRACE: SIGTERM to ppmd, its exit status in /out/EXIT.txt,
+# and the trace in /out/TRACE.txt plus the same events with nanosecond
+# timestamps in /out/TRACE_raw.txt (the text has microseconds; the raw
+# format keeps the time but not the fields, and lists the events in the same
+# order, so the host pairs the two line by line).
+stop_ppmd() {
+    kill -TERM "$1"
+    _status=0
+    wait "$1" || _status=$?
+    echo "$_status" > "/out/$2.txt"
+    stop_gpio_trace "/out/$3.txt"
+    echo 1 > $VMTEST_TRACEFS/options/raw
+    cat $VMTEST_TRACEFS/trace > "/out/$3_raw.txt"
+    echo 0 > $VMTEST_TRACEFS/options/raw
+}
 
 chip=$(make_sim_chip ppm 4 GPIO17 GPIO18 GPIO19 GPIO20)
 base=$(sim_chip_base "$chip")
@@ -44,17 +60,7 @@ if ppmd --config /tmp/ppm.toml --name other --output "gpio:$chip:GPIO18" 2> /out
 fi
 ppm-send --to 127.0.0.1:5005 --rate 50 --count 50 '[1000, 1200, 1700, 2000]'
 sleep 0.5
-kill -TERM "$ppmd"
-status=0
-wait "$ppmd" || status=$?
-echo "$status" > /out/ppmd_exit.txt
-stop_gpio_trace /out/gpio_trace.txt
-# The same events with nanosecond timestamps (the text above has
-# microseconds): the raw format keeps the time but not the fields, and lists
-# the events in the same order, so the host pairs the two line by line.
-echo 1 > $VMTEST_TRACEFS/options/raw
-cat $VMTEST_TRACEFS/trace > /out/gpio_trace_raw.txt
-echo 0 > $VMTEST_TRACEFS/options/raw
+stop_ppmd "$ppmd" ppmd_exit gpio_trace
 cat /sys/kernel/debug/gpio > /out/debug_gpio_after.txt
 kill -TERM "$ingress"
 wait "$ingress" || true
@@ -93,14 +99,7 @@ send_a=$!
 ppm-send --to 127.0.0.1:5007 --rate 50 --count 50 '[2000, 1100, 1600, 1300]'
 wait "$send_a"
 sleep 0.5
-kill -TERM "$ppmd2"
-status=0
-wait "$ppmd2" || status=$?
-echo "$status" > /out/two_ppmd_exit.txt
-stop_gpio_trace /out/two_trace.txt
-echo 1 > $VMTEST_TRACEFS/options/raw
-cat $VMTEST_TRACEFS/trace > /out/two_trace_raw.txt
-echo 0 > $VMTEST_TRACEFS/options/raw
+stop_ppmd "$ppmd2" two_ppmd_exit two_trace
 echo nop > $VMTEST_TRACEFS/current_tracer
 kill -TERM "$ing_a" "$ing_b"
 wait "$ing_a" "$ing_b" || true

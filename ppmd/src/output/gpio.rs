@@ -574,23 +574,7 @@ pub fn open(chip: &str, line: &str, idle: Level) -> Result<GpioOutput, GpioError
         .as_active_high()
         .as_output(value_of(idle))
         .request()
-        .map_err(|e| match errno_of(&e) {
-            Some(Errno::EBUSY) => GpioError::Busy {
-                chip: summary.name.clone(),
-                line: title.clone(),
-                consumer: handle
-                    .line_info(offset)
-                    .map(|i| i.consumer)
-                    .unwrap_or_default(),
-            },
-            Some(Errno::EACCES | Errno::EPERM | Errno::ENOTTY) => chip_error(&summary, "", &e),
-            _ => GpioError::Failed {
-                chip: summary.name.clone(),
-                line: Some(title.clone()),
-                op: "requesting the line as an output",
-                detail: e.to_string(),
-            },
-        })?;
+        .map_err(|e| request_error(&handle, &summary, std::slice::from_ref(&info), &e))?;
     Ok(GpioOutput {
         request,
         idle,
@@ -675,11 +659,7 @@ pub fn fill_values(values: &mut Values, offsets: &[Offset], mask: u64, levels: u
 /// (an offset or a name) and idle level. Line `i` of the bank is `lines[i]`.
 pub fn open_bank(chip: &str, lines: &[(String, Level)]) -> Result<GpioBank, GpioError> {
     assert!((1..=64).contains(&lines.len()), "1..=64 lines");
-    let (handle, summary) = open_chip(chip)?;
-    let infos = handle
-        .line_info_iter()
-        .and_then(|it| it.collect::<Result<Vec<_>, _>>())
-        .map_err(|e| chip_error(&summary, "reading line info", &e))?;
+    let (handle, summary, infos) = chip_lines(chip)?;
     let mut found: Vec<LineInfo> = Vec::new();
     for (line, _) in lines {
         let info = find_line(&summary, line, &infos)?.clone();
@@ -704,28 +684,9 @@ pub fn open_bank(chip: &str, lines: &[(String, Level)]) -> Result<GpioBank, Gpio
             .as_active_high()
             .as_output(value_of(*idle));
     }
-    let titles = || found.iter().map(line_title).collect::<Vec<_>>().join(", ");
-    let request = builder.request().map_err(|e| match errno_of(&e) {
-        Some(Errno::EBUSY) => {
-            let held = found.iter().find_map(|i| {
-                let now = handle.line_info(i.offset).ok()?;
-                now.used.then(|| (line_title(i), now.consumer))
-            });
-            let (line, consumer) = held.unwrap_or_else(|| (titles(), String::new()));
-            GpioError::Busy {
-                chip: summary.name.clone(),
-                line,
-                consumer,
-            }
-        }
-        Some(Errno::EACCES | Errno::EPERM | Errno::ENOTTY) => chip_error(&summary, "", &e),
-        _ => GpioError::Failed {
-            chip: summary.name.clone(),
-            line: Some(titles()),
-            op: "requesting the lines as outputs",
-            detail: e.to_string(),
-        },
-    })?;
+    let request = builder
+        .request()
+        .map_err(|e| request_error(&handle, &summary, &found, &e))?;
     let offsets: Vec<Offset> = found.iter().map(|i| i.offset).collect();
     let mut values = Values::from_offsets(&offsets);
     for o in &offsets {
@@ -747,13 +708,56 @@ pub fn open_bank(chip: &str, lines: &[(String, Level)]) -> Result<GpioBank, Gpio
 /// request the line themselves; returns the open chip, its summary and the
 /// line's info.
 pub fn resolve_line(chip: &str, line: &str) -> Result<(Chip, ChipSummary, LineInfo), GpioError> {
+    let (handle, summary, lines) = chip_lines(chip)?;
+    let info = find_line(&summary, line, &lines)?.clone();
+    Ok((handle, summary, info))
+}
+
+/// Opens the chip CHIP names and reads the info of every line.
+fn chip_lines(chip: &str) -> Result<(Chip, ChipSummary, Vec<LineInfo>), GpioError> {
     let (handle, summary) = open_chip(chip)?;
     let lines = handle
         .line_info_iter()
         .and_then(|it| it.collect::<Result<Vec<_>, _>>())
         .map_err(|e| chip_error(&summary, "reading line info", &e))?;
-    let info = find_line(&summary, line, &lines)?.clone();
-    Ok((handle, summary, info))
+    Ok((handle, summary, lines))
+}
+
+/// The error for a failed request of `lines` (as outputs) on `chip`: busy
+/// names the line held and its holder; permission and missing-uAPI errors
+/// get their own variants.
+fn request_error(
+    handle: &Chip,
+    summary: &ChipSummary,
+    lines: &[LineInfo],
+    e: &gpiocdev::Error,
+) -> GpioError {
+    let titles = || lines.iter().map(line_title).collect::<Vec<_>>().join(", ");
+    match errno_of(e) {
+        Some(Errno::EBUSY) => {
+            let held = lines.iter().find_map(|i| {
+                let now = handle.line_info(i.offset).ok()?;
+                now.used.then(|| (line_title(i), now.consumer))
+            });
+            let (line, consumer) = held.unwrap_or_else(|| (titles(), String::new()));
+            GpioError::Busy {
+                chip: summary.name.clone(),
+                line,
+                consumer,
+            }
+        }
+        Some(Errno::EACCES | Errno::EPERM | Errno::ENOTTY) => chip_error(summary, "", e),
+        _ => GpioError::Failed {
+            chip: summary.name.clone(),
+            line: Some(titles()),
+            op: if lines.len() == 1 {
+                "requesting the line as an output"
+            } else {
+                "requesting the lines as outputs"
+            },
+            detail: e.to_string(),
+        },
+    }
 }
 
 /// `NAME (offset N)` or `offset N` for messages.
