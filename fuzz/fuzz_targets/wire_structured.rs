@@ -131,15 +131,10 @@ impl Num {
                 )
             }
             Num::Float(f) => {
-                // serde_json's default float parsing may be one ulp off: keep
-                // away from the 500/2500 us bounds unless exactly on them.
-                let f = if (f - 500.0).abs() < 1e-6 {
-                    500.0
-                } else if (f - 2500.0).abs() < 1e-6 {
-                    2500.0
-                } else {
-                    f
-                };
+                // Rust prints the shortest text that reads back as `f`, and
+                // serde_json (with float_roundtrip, as the workspace builds
+                // it) reads it back exactly, even next to the 500/2500 us
+                // bounds and at the largest finite doubles.
                 let text = format!("{f}");
                 if !f.is_finite() {
                     return (text, Class::BadJson);

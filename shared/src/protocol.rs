@@ -571,6 +571,25 @@ mod tests {
     }
 
     #[test]
+    fn numbers_near_the_float_limit_are_valid_json() {
+        // JSON sets no range on numbers. The largest finite doubles, spelled
+        // out in full, are numbers out of range for a channel, not bad JSON
+        // (serde_json's default float parser overflowed on them; found by
+        // the wire_structured fuzz target).
+        use RejectReason::*;
+        let m = model();
+        for v in [f64::MAX, -f64::MAX, 1.7e308, -9.9e307] {
+            for text in [format!("[{v}]"), format!("[{v:e}]"), format!("[{v}.5]")] {
+                let got = parse(text.as_bytes(), &m).map_err(|r| r.reason);
+                assert_eq!(got.err(), Some(OutOfRange), "{text}");
+            }
+        }
+        let nine = format!("[{}]", vec![f64::MAX.to_string(); 9].join(","));
+        let got = parse(nine.as_bytes(), &m).map_err(|r| r.reason);
+        assert_eq!(got.err(), Some(TooManyValues));
+    }
+
+    #[test]
     fn named_channels_follow_the_order() {
         let c = Config::parse("[ppm]\norder = 'TAER'\nchannels = 4").unwrap();
         let m = c.validate().unwrap();
