@@ -10,7 +10,8 @@
 //! edge never shifts later ones. When a frame's start has already passed, the
 //! frame is moved later as a whole if the sync gaps on both sides stay within
 //! what transmitters accept (counted as a late frame: its channel values stay
-//! exact); otherwise it is skipped (counted as an overrun). Nothing inside the
+//! exact); otherwise it is skipped (counted as an overrun), and the frame
+//! after it gets the lead-in pulse a frame after silence gets. Nothing inside the
 //! loop allocates, logs or takes a lock; it updates atomic counters in
 //! [`Stats`] and histograms in a [`Meter`].
 
@@ -243,7 +244,8 @@ struct Progress {
     newest: Option<(CommandSample, Channels)>,
     /// Grid start of the next frame, while frames are running.
     next_start: Option<u64>,
-    /// Sync gap after the previous frame's last pulse, when frames are running.
+    /// Gap from the previous frame's last pulse to `next_start`; 0 when the
+    /// frame there follows silence or skipped frames (it gets a lead-in).
     prev_sync_ns: u64,
     state: LineState,
     frame_no: u64,
@@ -259,8 +261,22 @@ impl Progress {
     fn decide_at(&self, lead: u64) -> Option<(u64, bool)> {
         match (self.frame, self.next_start) {
             (Some(_), _) => None,
-            (None, Some(s)) => Some((s.saturating_sub(lead), true)),
+            (None, Some(s)) => Some((s.saturating_sub(lead + self.lead_in_ns()), true)),
             (None, None) => Some((self.poll_at, false)),
+        }
+    }
+
+    /// The lead-in the frame at `next_start` needs. A transmitter reads a
+    /// frame only after a sync period (4..19 ms), so after silence or skipped
+    /// frames (a gap of a sync plus at least a frame before it) a lone pulse
+    /// LEAD_IN_NS before the frame provides one. The gap before that pulse is
+    /// over 3.8 ms (a sync plus a 4.8 ms frame, the shortest valid, less
+    /// LEAD_IN_NS): never read as a channel.
+    fn lead_in_ns(&self) -> u64 {
+        if self.prev_sync_ns == 0 {
+            LEAD_IN_NS
+        } else {
+            0
         }
     }
 }
@@ -437,7 +453,7 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     // returns to it). After silence, a lone pulse LEAD_IN_NS before the frame
     // gives it the sync before it that a transmitter needs to read it.
     let (grid_start, lead_in_ns) = match p.next_start {
-        Some(s) => (s, 0),
+        Some(s) => (s, p.lead_in_ns()),
         None => {
             p.prev_sync_ns = 0;
             // Joining a running grid costs up to one frame, once; a grid
@@ -457,12 +473,14 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
         // pulse moves with its frame).
         let late = ready - (start - lead_in_ns);
         let fits_after = sync_ns >= sync_min_ns + late;
-        let fits_before = p.prev_sync_ns == 0 || p.prev_sync_ns + late <= sync_max_ns;
+        let fits_before = lead_in_ns > 0 || p.prev_sync_ns + late <= sync_max_ns;
         if fits_after && fits_before {
             add(&stats.late_frames, 1);
             start += late;
         } else {
-            let missed = late / frame_ns + 1;
+            // Skip to the first frame whose lead-in can still be decided in
+            // time (the gap it follows is too long to be a sync).
+            let missed = (ready + lead + LEAD_IN_NS - start).div_ceil(frame_ns);
             add(&stats.overruns, missed);
             p.next_start = Some(start + missed * frame_ns);
             p.prev_sync_ns = 0;
@@ -732,6 +750,86 @@ mod tests {
         );
         for e in &edges {
             assert!(e.actual_ns >= e.scheduled_ns, "never early");
+        }
+    }
+
+    /// Records edges, and stalls the loop once, in the `stall_after`th write.
+    struct Stalling {
+        rec: Recorder,
+        stall_after: usize,
+        stall: std::time::Duration,
+    }
+
+    impl Output for Stalling {
+        fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError> {
+            self.rec.write(edge)?;
+            if self.rec.0.len() == self.stall_after {
+                std::thread::sleep(self.stall);
+            }
+            Ok(())
+        }
+        fn park(&mut self, _: Level) -> Result<(), OutputError> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn the_frame_after_skipped_ones_is_read_too() {
+        let model = Config::default().validate().unwrap();
+        let cmd = parse(b"[1100, 1200, 1300, 1400]", &model).unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut src = Script {
+            cmd: Some(CommandSample::new(&cmd, 1, 0, 0)),
+            polls_left: 8,
+            stop: stop.clone(),
+        };
+        let cfg = EmitterConfig {
+            margin: Margin::Fixed(100_000),
+            failsafe_after_ns: 10_000_000_000,
+            failsafe_action: FailsafeAction::Silence,
+            startup: FailsafeAction::Silence,
+        };
+        // The third frame's last edge (after the first lead-in pulse) stalls
+        // the loop for 50 ms: the next frame's start passes, by more than its
+        // sync can absorb, and frames are skipped.
+        let stall_after = 2 + 3 * 18;
+        let mut out = Stalling {
+            rec: Recorder::default(),
+            stall_after,
+            stall: std::time::Duration::from_millis(50),
+        };
+        let stats = Stats::default();
+        let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
+        run(
+            &model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter, None,
+        );
+        let edges = out.rec.0;
+        // 50 ms after a frame's last pulse (11.3 ms in) is at least 38.8 ms
+        // past the next start; the frame after must also fit its lead-in.
+        assert!(stats.overruns.load(Relaxed) >= 2, "{stats:?}");
+        let gap = edges[stall_after].scheduled_ns - edges[stall_after - 1].scheduled_ns;
+        assert!(gap > 40_000_000, "the stall left a {gap} ns gap");
+        // A lone pulse 5 ms before the next frame, as after silence...
+        let lead_in = &edges[stall_after..stall_after + 3];
+        assert_eq!(
+            lead_in[2].scheduled_ns - lead_in[0].scheduled_ns,
+            LEAD_IN_NS
+        );
+        // ...so a transmitter reads every frame sent, that one included.
+        let frames = decode(
+            edges.iter().map(|e| (e.scheduled_ns, e.level)),
+            Level::High,
+            DecoderLimits::default(),
+        );
+        let n = stats.frames.load(Relaxed);
+        assert_eq!(edges.len() as u64, n * 18 + 4);
+        assert_eq!(frames.len() as u64, n, "{frames:?}");
+        assert!(frames.iter().any(|f| f.start_ns == lead_in[2].scheduled_ns));
+        for f in &frames {
+            assert_eq!(
+                f.channels_us(),
+                [1100, 1200, 1300, 1400, 1500, 1500, 1500, 1500]
+            );
         }
     }
 
