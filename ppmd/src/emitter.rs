@@ -307,6 +307,8 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
     }; MAX_LANES];
     for lane in lanes.iter_mut() {
         lane.meter.start(now);
+        // Shown while the line is still silent; updated after every frame.
+        lane.stats.margin_ns.store(timer.margin_ns(), Relaxed);
     }
     let mut decide_peak_ns = 0u64;
     let lead = DECIDE_NS + DECIDE_SLOT_NS * (n as u64 - 1);
@@ -729,6 +731,7 @@ mod tests {
         let n = stats.frames.load(Relaxed);
         assert!((4..=6).contains(&n), "{n} frames");
         assert_eq!(stats.failsafe_entries.load(Relaxed), 1);
+        assert_eq!(stats.margin_ns.load(Relaxed), 100_000, "the fixed margin");
         // Every frame's 18 edges, and the lead-in pulse before the first.
         assert_eq!(edges.len() as u64, n * 18 + 2);
         assert_eq!(edges[2].scheduled_ns - edges[0].scheduled_ns, LEAD_IN_NS);
@@ -751,6 +754,32 @@ mod tests {
         for e in &edges {
             assert!(e.actual_ns >= e.scheduled_ns, "never early");
         }
+    }
+
+    #[test]
+    fn a_silent_line_reports_its_margin() {
+        let model = Config::default().validate().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut src = Script {
+            cmd: None,
+            polls_left: 3,
+            stop: stop.clone(),
+        };
+        let cfg = EmitterConfig {
+            margin: Margin::Fixed(70_000),
+            failsafe_after_ns: 100_000_000,
+            failsafe_action: FailsafeAction::Silence,
+            startup: FailsafeAction::Silence,
+        };
+        let mut out = Recorder::default();
+        let stats = Stats::default();
+        let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
+        run(
+            &model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter, None,
+        );
+        assert!(out.0.is_empty());
+        assert_eq!(stats.frames.load(Relaxed), 0);
+        assert_eq!(stats.margin_ns.load(Relaxed), 70_000);
     }
 
     /// Records edges, and stalls the loop once, in the `stall_after`th write.
