@@ -53,6 +53,12 @@ fn busy_poll_ingress_delivers_commands_and_answers_status() {
     };
     let first = status(&client);
     assert_eq!(first["datagrams"]["received"], 0, "{first}");
+    assert_eq!(first["receiver"]["wait"], "busy_poll", "{first}");
+    assert_eq!(
+        first["receiver"]["cpu"],
+        serde_json::json!(spare_cpu()),
+        "{first}"
+    );
     assert_eq!(first["status_requests"], 1, "{first}");
 
     let send_for = |value: u32, n: u32| {
@@ -173,6 +179,13 @@ fn a_cpu_that_cannot_be_had_stops_the_ingress_unless_degraded_allowed() {
     client.set_read_timeout(Some(5 * SECOND)).unwrap();
     client.send_to(br#"{"get":"status"}"#, sb.addr()).unwrap();
     let mut buf = [0u8; 65_536];
-    client.recv_from(&mut buf).expect("a status reply");
+    let (n, _) = client.recv_from(&mut buf).expect("a status reply");
+    let reply: serde_json::Value = serde_json::from_slice(&buf[..n]).unwrap();
+    // The status says what the receive thread did not get.
+    assert_eq!(
+        reply["receiver"],
+        serde_json::json!({"wait": "epoll", "policy": "other", "priority": 0, "cpu": null, "degraded": true}),
+        "{reply}"
+    );
     assert!(p.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
 }

@@ -92,6 +92,26 @@ pub fn readable(r: &Value) -> Result<String> {
         r["name"].as_str().unwrap_or("?"),
         uptime(r["uptime_s"].as_f64().unwrap_or(0.0))
     );
+    // Replies from before the receive thread's settings were reported lack it.
+    let t = &r["receiver"];
+    if t.is_object() {
+        out += &format!(
+            "receive thread: {}, {}, {}{}\n",
+            t["wait"].as_str().unwrap_or("?"),
+            match t["priority"].as_u64() {
+                Some(p) if p > 0 => format!("SCHED_FIFO {p}"),
+                _ => "SCHED_OTHER".to_string(),
+            },
+            t["cpu"]
+                .as_u64()
+                .map_or("any CPU".to_string(), |c| format!("CPU {c}")),
+            if t["degraded"].as_bool() == Some(true) {
+                " (DEGRADED RUN)"
+            } else {
+                ""
+            },
+        );
+    }
     out += &format!(
         "datagrams: received {}, applied {}, superseded {}, stale {}, clamped {} ({} values)\n",
         count("received")?,
@@ -192,7 +212,9 @@ mod tests {
     #[test]
     fn readable_reply() {
         let r: Value = serde_json::from_str(
-            r#"{"name":"ppm","uptime_s":3725.5,"datagrams":{"received":12,"applied":9,
+            r#"{"name":"ppm","uptime_s":3725.5,
+            "receiver":{"wait":"epoll","policy":"fifo","priority":70,"cpu":null,"degraded":true},
+            "datagrams":{"received":12,"applied":9,
             "rejected":{"invalid_utf8":0,"invalid_json":2,"not_a_number":0,"out_of_range":0,
             "too_many_values":0,"unknown_channel":0,"bad_shape":1},"clamped":1,"clamped_values":2,
             "stale":0,"superseded":0},"status_requests":4,"status_dropped":0,
@@ -205,6 +227,7 @@ mod tests {
         assert_eq!(
             readable(&r).unwrap(),
             "udp-ingress `ppm`, up 1h 02m 05s\n\
+             receive thread: epoll, SCHED_FIFO 70, any CPU (DEGRADED RUN)\n\
              datagrams: received 12, applied 9, superseded 0, stale 0, clamped 1 (2 values)\n\
              rejected: 3 (invalid_json 2, bad_shape 1)\n\
              newest command: 12.3 ms ago, seq 41\n\
@@ -215,7 +238,15 @@ mod tests {
         r["ppmd"] = Value::Null;
         r["ppmd_stale"] = Value::Bool(true);
         r["newest_command_age_ms"] = Value::Null;
+        r["receiver"]["wait"] = "busy_poll".into();
+        r["receiver"]["priority"] = 0.into();
+        r["receiver"]["cpu"] = 1.into();
+        r["receiver"]["degraded"] = false.into();
         let text = readable(&r).unwrap();
+        assert!(
+            text.contains("receive thread: busy_poll, SCHED_OTHER, CPU 1\n"),
+            "{text}"
+        );
         assert!(text.contains("newest command: none yet"), "{text}");
         assert!(text.contains("more than 3 s"), "{text}");
         r["datagrams"] = Value::Null;

@@ -392,7 +392,8 @@ impl Intake {
     }
 
     /// The reply to a status query: one JSON object (see the README's
-    /// "Status queries"). `uptime` is the ingress's, `now_mono_ns` the
+    /// "Status queries"). `uptime` is the ingress's, `receiver` how its
+    /// receive thread runs, `now_mono_ns` the
     /// CLOCK_MONOTONIC time of the reply, `ppmd` the newest timing snapshot
     /// received from ppmd, if any; one older than [`PPMD_STALE_AFTER_NS`]
     /// gives `"ppmd": null` and `"ppmd_stale": true`.
@@ -400,6 +401,7 @@ impl Intake {
         &self,
         name: &str,
         uptime: Duration,
+        receiver: &ReceiveThread,
         now_mono_ns: u64,
         ppmd: Option<&TimingSnapshot>,
     ) -> Value {
@@ -413,6 +415,7 @@ impl Intake {
         json!({
             "name": name,
             "uptime_s": round3(uptime.as_secs_f64()),
+            "receiver": receiver.status(),
             "datagrams": {
                 "received": c.received,
                 "applied": c.published,
@@ -434,6 +437,32 @@ impl Intake {
             },
             "ppmd": fresh.map(|s| ppmd_status(s, age_ns(s.mono_ns))),
             "ppmd_stale": ppmd.is_some() && fresh.is_none(),
+        })
+    }
+}
+
+/// How the receive thread runs, as obtained at start: the `receiver` member
+/// of a status reply.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReceiveThread {
+    /// Spins on the socket (`ingress.busy_poll`) instead of sleeping in epoll.
+    pub busy_poll: bool,
+    /// SCHED_FIFO priority obtained; 0 under the normal scheduler.
+    pub priority: u8,
+    /// The CPU it is pinned to, if any.
+    pub cpu: Option<usize>,
+    /// A setting asked for could not be had (a degraded run).
+    pub degraded: bool,
+}
+
+impl ReceiveThread {
+    fn status(&self) -> Value {
+        json!({
+            "wait": if self.busy_poll { "busy_poll" } else { "epoll" },
+            "policy": if self.priority > 0 { "fifo" } else { "other" },
+            "priority": self.priority,
+            "cpu": self.cpu,
+            "degraded": self.degraded,
         })
     }
 }
@@ -663,7 +692,12 @@ mod tests {
         let mut i = intake();
         let t = Instant::now();
         let at = |ms: u64| 10_000_000_000 + ms * 1_000_000;
-        let empty = i.status("pi", Duration::from_millis(1500), at(10), None);
+        let plain = ReceiveThread::default();
+        let empty = i.status("pi", Duration::from_millis(1500), &plain, at(10), None);
+        assert_eq!(
+            empty["receiver"],
+            json!({"wait": "epoll", "policy": "other", "priority": 0, "cpu": null, "degraded": false})
+        );
         assert_eq!(empty["newest_command_age_ms"], Value::Null);
         assert_eq!(empty["newest_seq"], Value::Null);
         assert_eq!(
@@ -682,9 +716,16 @@ mod tests {
         i.take();
         i.status_dropped();
         let now = at(110) + 400;
+        let rt = ReceiveThread {
+            busy_poll: true,
+            priority: 70,
+            cpu: Some(1),
+            degraded: true,
+        };
         let reply = i.status(
             "pi",
             Duration::from_millis(2_345_678),
+            &rt,
             now,
             Some(&snapshot(now - 250_000_000)),
         );
@@ -693,6 +734,7 @@ mod tests {
             json!({
                 "name": "pi",
                 "uptime_s": 2345.678,
+                "receiver": {"wait": "busy_poll", "policy": "fifo", "priority": 70, "cpu": 1, "degraded": true},
                 "datagrams": {
                     "received": 6,
                     "applied": 2,
@@ -736,13 +778,13 @@ mod tests {
         assert!(reply.to_string().len() < 1_000, "one small datagram");
 
         let old = snapshot(now - PPMD_STALE_AFTER_NS - 1);
-        let reply = i.status("pi", Duration::ZERO, now, Some(&old));
+        let reply = i.status("pi", Duration::ZERO, &plain, now, Some(&old));
         assert_eq!(
             (&reply["ppmd"], &reply["ppmd_stale"]),
             (&Value::Null, &json!(true))
         );
         let at_limit = snapshot(now - PPMD_STALE_AFTER_NS);
-        let reply = i.status("pi", Duration::ZERO, now, Some(&at_limit));
+        let reply = i.status("pi", Duration::ZERO, &plain, now, Some(&at_limit));
         assert_eq!(reply["ppmd"]["snapshot_age_ms"], json!(3000.0));
     }
 

@@ -25,7 +25,7 @@ use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use udp_ingress::seqfile::SeqFile;
-use udp_ingress::{Intake, Outcome};
+use udp_ingress::{Intake, Outcome, ReceiveThread};
 
 /// UDP command receiver: keeps the newest valid command and hands it to ppmd
 /// through shared memory.
@@ -213,9 +213,23 @@ fn run(cli: Cli) -> Result<()> {
     };
     // This thread receives: its priority and CPU are set here, after the
     // start-up work.
+    let thread = schedule_receive_thread(&cfg.ingress, cfg.rt.allow_degraded)?;
     log::info!(
-        "receive thread: {}",
-        schedule_receive_thread(&cfg.ingress, cfg.rt.allow_degraded)?
+        "receive thread: policy {} priority {}; {}; {}",
+        if thread.priority > 0 {
+            "SCHED_FIFO"
+        } else {
+            "SCHED_OTHER"
+        },
+        thread.priority,
+        thread
+            .cpu
+            .map_or("any CPU".to_string(), |c| format!("CPU {c}")),
+        if thread.busy_poll {
+            "busy_poll: spins on the socket, never sleeps (takes a whole CPU)"
+        } else {
+            "sleeps until datagrams arrive (mio)"
+        }
     );
     log::info!(
         "listening on {} (receive buffer {} bytes), {} channels ({}); publishing to `{}` (ipc root {})",
@@ -263,6 +277,7 @@ fn run(cli: Cli) -> Result<()> {
         seq_file,
         seq_save_failed: false,
         started: Instant::now(),
+        thread,
         buf: vec![0u8; MAX_DATAGRAM],
         cmsg: nix::cmsg_space!(nix::sys::time::TimeSpec),
         status_to: Vec::with_capacity(MAX_STATUS_PER_WAKE),
@@ -309,9 +324,12 @@ fn run(cli: Cli) -> Result<()> {
 
 /// Pins the calling thread (the receive thread) and gives it SCHED_FIFO as
 /// `[ingress]` asks. A setting that cannot be had stops the program, unless
-/// a degraded run is allowed: then each is logged as DEGRADED RUN. Returns a
-/// summary for the start-up log.
-fn schedule_receive_thread(ingress: &IngressSection, allow_degraded: bool) -> Result<String> {
+/// a degraded run is allowed: then each is logged as DEGRADED RUN. Returns
+/// what was obtained.
+fn schedule_receive_thread(
+    ingress: &IngressSection,
+    allow_degraded: bool,
+) -> Result<ReceiveThread> {
     let mut shortfalls = Vec::new();
     let mut obtained = |key: &str, r: Result<(), sched::Shortfall>| -> Result<bool> {
         match r {
@@ -341,7 +359,6 @@ fn schedule_receive_thread(ingress: &IngressSection, allow_degraded: bool) -> Re
     for s in &shortfalls {
         log::warn!("DEGRADED RUN: receive thread: {s}");
     }
-    let on = cpu.map_or("any CPU".to_string(), |c| format!("CPU {c}"));
     if ingress.busy_poll {
         if cpu.is_none() {
             log::warn!(
@@ -355,19 +372,12 @@ fn schedule_receive_thread(ingress: &IngressSection, allow_degraded: bool) -> Re
             );
         }
     }
-    Ok(format!(
-        "policy {} priority {priority}; {on}; {}",
-        if priority > 0 {
-            "SCHED_FIFO"
-        } else {
-            "SCHED_OTHER"
-        },
-        if ingress.busy_poll {
-            "busy_poll: spins on the socket, never sleeps (takes a whole CPU)"
-        } else {
-            "sleeps until datagrams arrive (mio)"
-        }
-    ))
+    Ok(ReceiveThread {
+        busy_poll: ingress.busy_poll,
+        priority,
+        cpu,
+        degraded: !shortfalls.is_empty(),
+    })
 }
 
 /// The receive loop's state: the socket, the intake and the publisher.
@@ -380,6 +390,7 @@ struct Receiver {
     seq_file: Option<SeqFile>,
     seq_save_failed: bool,
     started: Instant,
+    thread: ReceiveThread,
     buf: Vec<u8>,
     cmsg: Vec<u8>,
     status_to: Vec<SocketAddr>,
@@ -467,6 +478,7 @@ impl Receiver {
                 .status(
                     &self.name,
                     self.started.elapsed(),
+                    &self.thread,
                     now_ns(),
                     self.ppmd_snapshot.as_ref(),
                 )
