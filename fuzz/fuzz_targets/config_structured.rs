@@ -133,6 +133,7 @@ struct Input {
     action: u8,
     startup: u8,
     frame_log_max_mb: Option<u64>,
+    trace_max_mb: Option<u64>,
 }
 
 const ORDERS: &[&str] = &[
@@ -257,6 +258,9 @@ fuzz_target!(|input: Input| {
     c.failsafe.startup = action(input.startup);
     if let Some(v) = input.frame_log_max_mb {
         c.ppmd.frame_log_max_mb = v;
+    }
+    if let Some(v) = input.trace_max_mb {
+        c.ppmd.trace_max_mb = v;
     }
 
     match c.validate() {

@@ -439,7 +439,7 @@ fn open_sim(cfg: &Config, model: &FrameModel, path: Option<PathBuf>) -> Result<B
         format!("frame_ns {}", model.frame_ns()),
         format!("pulse_ns {}", model.pulse_ns()),
     ];
-    let sim = SimOutput::create(&path, &header)
+    let sim = SimOutput::create(&path, &header, cfg.ppmd.trace_max_mb << 20)
         .with_context(|| format!("creating sim trace {}", path.display()))?;
     log::info!("output `{}`: sim, trace in {}", cfg.name, path.display());
     Ok(Box::new(sim))

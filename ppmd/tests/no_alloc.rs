@@ -135,7 +135,7 @@ fn the_timing_loop_does_not_allocate_after_start() {
                 frames: 60,
                 stop: stop.clone(),
             };
-            let mut out = SimOutput::create(&trace, &["idle_level 0".into()]).unwrap();
+            let mut out = SimOutput::create(&trace, &["idle_level 0".into()], u64::MAX).unwrap();
             let cfg = EmitterConfig {
                 margin: Margin::Auto {
                     min_ns: 20_000,

@@ -248,6 +248,9 @@ pub struct PpmdSection {
     /// Size at which the frame log is rotated (FILE.1, FILE.2, FILE.3 are
     /// kept), in MiB, 1..=65536. Default 64.
     pub frame_log_max_mb: u64,
+    /// Size at which a sim trace is rotated (FILE.1 is kept), in MiB,
+    /// 1..=65536. Default 256 (about 2.5 h of 8 channels at 50 Hz).
+    pub trace_max_mb: u64,
 }
 
 impl Default for PpmdSection {
@@ -256,6 +259,7 @@ impl Default for PpmdSection {
             output: "sim".into(),
             frame_log: None,
             frame_log_max_mb: 64,
+            trace_max_mb: 256,
         }
     }
 }
@@ -573,7 +577,7 @@ impl Config {
                     }
                     _ => {
                         return Err(parse_error(format!(
-                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log and the sections [outputs.ppm], [outputs.ingress] and [outputs.failsafe] (rt, ipc and frame_log_max_mb are shared: set them at the top level)"
+                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log and the sections [outputs.ppm], [outputs.ingress] and [outputs.failsafe] (rt, ipc, frame_log_max_mb and trace_max_mb are shared: set them at the top level)"
                         )))
                     }
                 }
@@ -625,11 +629,16 @@ impl Config {
             _ => None,
         })?;
         self.output()?;
-        if !(1..=65_536).contains(&self.ppmd.frame_log_max_mb) {
-            return Err(ConfigError::invalid(
-                "ppmd.frame_log_max_mb",
-                format!("{} MiB is outside 1..=65536", self.ppmd.frame_log_max_mb),
-            ));
+        for (key, mb) in [
+            ("ppmd.frame_log_max_mb", self.ppmd.frame_log_max_mb),
+            ("ppmd.trace_max_mb", self.ppmd.trace_max_mb),
+        ] {
+            if !(1..=65_536).contains(&mb) {
+                return Err(ConfigError::invalid(
+                    key,
+                    format!("{mb} MiB is outside 1..=65536"),
+                ));
+            }
         }
         let rt = &self.rt;
         if rt.priority > 99 {
@@ -1415,6 +1424,8 @@ mod tests {
             ("[ppmd]\noutput = 'pwm'", "ppmd.output"),
             ("[rt]\npriority = 100", "rt.priority"),
             ("[ppmd]\nframe_log_max_mb = 0", "ppmd.frame_log_max_mb"),
+            ("[ppmd]\ntrace_max_mb = 0", "ppmd.trace_max_mb"),
+            ("[ppmd]\ntrace_max_mb = 65537", "ppmd.trace_max_mb"),
             ("[rt]\nspin_margin_max_us = 6000", "rt.spin_margin_max_us"),
             (
                 "[rt]\nspin_margin_min_us = 600\nspin_margin_max_us = 500",

@@ -55,6 +55,8 @@ const SIM_FLUSH_EVERY: Duration = Duration::from_millis(50);
 
 /// The simulated line: every edge goes through a lock-free ring buffer to a
 /// writer thread that appends it to a trace file (see `ppm_shared::trace`).
+/// At a size cap the writer renames the file to `FILE.1` (replacing the one
+/// before) and starts `FILE` again, header included.
 pub struct SimOutput {
     producer: rtrb::Producer<TraceEdge>,
     stop: Arc<AtomicBool>,
@@ -65,13 +67,16 @@ pub struct SimOutput {
 
 impl SimOutput {
     /// Creates (truncates) the trace file, writes `header` as `#` comment
-    /// lines and starts the writer thread.
-    pub fn create(path: &Path, header: &[String]) -> std::io::Result<SimOutput> {
-        let mut file = BufWriter::new(File::create(path)?);
-        for h in header {
-            writeln!(file, "# {h}")?;
-        }
-        file.flush()?;
+    /// lines and starts the writer thread, which rotates the file once it
+    /// would grow beyond `max_bytes`. Only a regular file is rotated (never
+    /// `/dev/null` or a pipe).
+    pub fn create(path: &Path, header: &[String], max_bytes: u64) -> std::io::Result<SimOutput> {
+        let (mut file, header_bytes) = start_trace(path, header)?;
+        let regular = file.get_ref().metadata()?.is_file();
+        let max_bytes = if regular { max_bytes } else { u64::MAX };
+        let header = header.to_vec();
+        let rotated = PathBuf::from(format!("{}.1", path.display()));
+        let owned_path = path.to_owned();
         let (producer, mut consumer) = rtrb::RingBuffer::<TraceEdge>::new(SIM_BUFFER_EDGES);
         let stop = Arc::new(AtomicBool::new(false));
         let written = Arc::new(AtomicU64::new(0));
@@ -79,17 +84,30 @@ impl SimOutput {
         let writer = std::thread::Builder::new()
             .name("ppmd-sim-writer".into())
             .spawn(move || -> std::io::Result<()> {
+                let mut size = header_bytes;
+                let mut line = String::with_capacity(64);
                 loop {
                     let stopping = stop2.load(Ordering::Acquire);
                     let mut n = 0;
                     while let Ok(e) = consumer.pop() {
-                        writeln!(file, "{e}")?;
+                        line.clear();
+                        use std::fmt::Write as _;
+                        let _ = writeln!(line, "{e}");
+                        if size > header_bytes && size + line.len() as u64 > max_bytes {
+                            file.flush()?;
+                            std::fs::rename(&owned_path, &rotated)?;
+                            (file, size) = start_trace(&owned_path, &header)?;
+                        }
+                        file.write_all(line.as_bytes())?;
+                        size += line.len() as u64;
                         n += 1;
                     }
                     file.flush()?;
                     written2.fetch_add(n, Ordering::Relaxed);
                     if stopping {
-                        return file.into_inner().map_err(|e| e.into_error())?.sync_data();
+                        let file = file.into_inner().map_err(|e| e.into_error())?;
+                        // /dev/null cannot be synced (EINVAL).
+                        return if regular { file.sync_data() } else { Ok(()) };
                     }
                     std::thread::sleep(SIM_FLUSH_EVERY);
                 }
@@ -125,6 +143,19 @@ impl SimOutput {
     }
 }
 
+/// Creates (truncates) a trace file and writes `header` as `#` lines;
+/// returns it with its size.
+fn start_trace(path: &Path, header: &[String]) -> std::io::Result<(BufWriter<File>, u64)> {
+    let mut file = BufWriter::new(File::create(path)?);
+    let mut size = 0;
+    for h in header {
+        writeln!(file, "# {h}")?;
+        size += h.len() as u64 + 3;
+    }
+    file.flush()?;
+    Ok((file, size))
+}
+
 impl Drop for SimOutput {
     fn drop(&mut self) {
         let _ = self.finish();
@@ -154,7 +185,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("ppmd-sim-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("t.trace");
-        let mut out = SimOutput::create(&path, &["idle_level 1".into()]).unwrap();
+        let mut out = SimOutput::create(&path, &["idle_level 1".into()], u64::MAX).unwrap();
         for i in 0..1000u64 {
             let level = Level::from_bit(i % 2 == 1);
             out.write(&TraceEdge {
@@ -170,6 +201,76 @@ mod tests {
         assert_eq!(t.idle_level, Some(Level::High));
         assert_eq!(t.edges.len(), 1000);
         assert_eq!(t.edges[999].actual_ns, 9991);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    fn edge(i: u64) -> TraceEdge {
+        TraceEdge {
+            scheduled_ns: 1_000_000_000 + i * 1_000,
+            actual_ns: 1_000_000_000 + i * 1_000 + 7,
+            level: Level::from_bit(i % 2 == 1),
+        }
+    }
+
+    #[test]
+    fn sim_rotates_at_the_cap_keeping_one_file_with_the_header() {
+        let dir = std::env::temp_dir().join(format!("ppmd-simrot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("t.trace");
+        let header = ["idle_level 1".to_string(), "frame_ns 22500000".to_string()];
+        let mut out = SimOutput::create(&path, &header, 4_000).unwrap();
+        // About 26 bytes an edge: several rotations.
+        for i in 0..1000 {
+            out.write(&edge(i)).unwrap();
+            if i % 100 == 99 {
+                // Let the writer drain in several rounds, as it does live.
+                std::thread::sleep(SIM_FLUSH_EVERY * 2);
+            }
+        }
+        out.finish().unwrap();
+        assert_eq!(out.written(), 1000);
+        let old = dir.join("t.trace.1");
+        assert!(!dir.join("t.trace.2").exists(), "one file kept");
+        let mut edges = vec![];
+        for p in [&old, &path] {
+            let size = std::fs::metadata(p).unwrap().len();
+            assert!(size <= 4_000, "{} is {size} bytes", p.display());
+            let t = Trace::read(std::io::BufReader::new(File::open(p).unwrap())).unwrap();
+            assert_eq!(
+                t.idle_level,
+                Some(Level::High),
+                "{} has the header",
+                p.display()
+            );
+            assert!(!t.edges.is_empty());
+            edges.extend(t.edges);
+        }
+        // The two files hold the newest edges, in order, none lost between them.
+        let first = (edges[0].scheduled_ns - 1_000_000_000) / 1_000;
+        assert!(first > 0, "older edges rotated away");
+        for (k, e) in edges.iter().enumerate() {
+            assert_eq!(*e, edge(first + k as u64));
+        }
+        assert_eq!(first + edges.len() as u64, 1000);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn sim_never_rotates_what_is_not_a_regular_file() {
+        // A symbolic link to /dev/null: were it rotated, only the link
+        // would move.
+        let dir = std::env::temp_dir().join(format!("ppmd-simnull-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let link = dir.join("null.trace");
+        std::os::unix::fs::symlink("/dev/null", &link).unwrap();
+        let mut out = SimOutput::create(&link, &["idle_level 1".into()], 100).unwrap();
+        for i in 0..1000 {
+            out.write(&edge(i)).unwrap();
+        }
+        out.finish().unwrap();
+        assert_eq!(out.written(), 1000);
+        assert!(std::fs::symlink_metadata(&link).unwrap().is_symlink());
+        assert!(!dir.join("null.trace.1").exists());
         std::fs::remove_dir_all(dir).unwrap();
     }
 }

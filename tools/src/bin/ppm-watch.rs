@@ -9,7 +9,8 @@ use ppm_shared::trace::{parse_line, Trace};
 use ppm_tools::parse_duration;
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
-use std::path::PathBuf;
+use std::os::unix::fs::MetadataExt;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 /// Decode a ppmd sim trace with transmitter semantics and print the channels.
@@ -88,7 +89,8 @@ impl Header {
 }
 
 /// Follows the file as ppmd writes it (like `tail -f`), starting over when
-/// ppmd restarts and truncates it.
+/// ppmd restarts and truncates it, and going on in the new file when ppmd
+/// rotates it (renames it to FILE.1 and starts FILE again).
 fn follow(cli: &Cli) -> Result<()> {
     let mut file = loop {
         match File::open(&cli.trace) {
@@ -115,6 +117,15 @@ fn follow(cli: &Cli) -> Result<()> {
         }
         buf.clear();
         offset += file.read_to_end(&mut buf)? as u64;
+        if buf.is_empty() && replaced(&cli.trace, &file) {
+            // The old file is read to its end: go on in the new one. The
+            // edges run on, so the decoder keeps its place.
+            if let Ok(f) = File::open(&cli.trace) {
+                (file, offset) = (f, 0);
+                pending.clear();
+                continue;
+            }
+        }
         pending.push_str(&String::from_utf8_lossy(&buf));
         while let Some(nl) = pending.find('\n') {
             let line: String = pending.drain(..=nl).collect();
@@ -147,5 +158,14 @@ fn follow(cli: &Cli) -> Result<()> {
             silent = true;
         }
         std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Whether `path` now names another file than the one open (it was rotated
+/// or recreated); false while nothing is there.
+fn replaced(path: &Path, open: &File) -> bool {
+    match (std::fs::metadata(path), open.metadata()) {
+        (Ok(now), Ok(was)) => (now.dev(), now.ino()) != (was.dev(), was.ino()),
+        _ => false,
     }
 }

@@ -103,7 +103,7 @@ fn run_block(
         .collect();
     let mut outs = outputs
         .iter()
-        .map(|_| SimOutput::create(std::path::Path::new("/dev/null"), &[]))
+        .map(|_| SimOutput::create(std::path::Path::new("/dev/null"), &[], u64::MAX))
         .collect::<std::io::Result<Vec<_>>>()?;
     let cfg = EmitterConfig {
         margin,

@@ -1,0 +1,90 @@
+//! ppm-watch follows a sim trace as it is written: across a rotation (ppmd
+//! renames the file to FILE.1 at `ppmd.trace_max_mb` and starts FILE again)
+//! and across a restart (ppmd truncates the file).
+
+use ppm_shared::config::Config;
+use ppm_shared::frame::FrameModel;
+use ppm_shared::protocol::parse;
+use ppm_shared::trace::TraceEdge;
+use ppm_tests::Sandbox;
+use std::io::Write;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+/// Appends `n` frames carrying `cmd` from `*t` on (after a trace header when
+/// the file is empty), moving `*t` past them.
+fn append_frames(path: &Path, model: &FrameModel, cmd: &[u8], n: u32, t: &mut u64) {
+    let new = std::fs::metadata(path).map_or(true, |m| m.len() == 0);
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .unwrap();
+    if new {
+        writeln!(f, "# idle_level {}", model.idle_level().as_u8()).unwrap();
+        writeln!(f, "# channels {}", model.names().join(",")).unwrap();
+    }
+    let channels = parse(cmd, model).unwrap().channels;
+    for _ in 0..n {
+        for e in model.encode(&channels).edges() {
+            let edge = TraceEdge {
+                scheduled_ns: *t + e.at_ns,
+                actual_ns: *t + e.at_ns,
+                level: e.level,
+            };
+            writeln!(f, "{edge}").unwrap();
+        }
+        *t += model.frame_ns();
+    }
+}
+
+/// Waits until ppm-watch's output has a line with `text`.
+fn wait_for_output(out: &Path, text: &str) {
+    let start = Instant::now();
+    loop {
+        let seen = std::fs::read_to_string(out).unwrap_or_default();
+        if seen.lines().any(|l| l.contains(text)) {
+            return;
+        }
+        assert!(
+            start.elapsed() < 20 * SECOND,
+            "no line with {text:?} in ppm-watch's output:\n{seen}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn watch_follows_a_rotated_and_a_restarted_trace() {
+    let sb = Sandbox::new("watch");
+    let model = Config::default().validate().unwrap();
+    let trace = sb.dir.join("line.trace");
+    let mut t = 1_000_000_000u64;
+    append_frames(&trace, &model, b"[1100]", 20, &mut t);
+    let mut watch = sb.spawn(
+        "ppm-watch",
+        &[trace.to_str().unwrap(), "--every", "0ms"],
+        "watch",
+    );
+    let out = sb.dir.join("watch.out");
+    wait_for_output(&out, "ail  1100.0");
+
+    // Rotated: the last frames of the old file, then the new file.
+    append_frames(&trace, &model, b"[1200]", 5, &mut t);
+    std::fs::rename(&trace, sb.dir.join("line.trace.1")).unwrap();
+    append_frames(&trace, &model, b"[1700]", 20, &mut t);
+    wait_for_output(&out, "ail  1700.0");
+    let seen = std::fs::read_to_string(&out).unwrap();
+    assert!(seen.contains("ail  1200.0"), "the old file's end:\n{seen}");
+
+    // Restarted: ppmd truncates the file and writes its header; frames
+    // follow at their pace (ppm-watch sees the file shrink meanwhile).
+    std::fs::File::create(&trace).unwrap();
+    append_frames(&trace, &model, b"[1900]", 0, &mut t);
+    std::thread::sleep(Duration::from_millis(300));
+    append_frames(&trace, &model, b"[1900]", 20, &mut t);
+    wait_for_output(&out, "ail  1900.0");
+    watch.kill();
+}
