@@ -851,7 +851,9 @@ mod tests {
             DecoderLimits::default(),
         );
         let n = stats.frames.load(Relaxed);
-        assert_eq!(edges.len() as u64, n * 18 + 4);
+        // Two lead-in pulses at least: the first frame's and this one's (a
+        // further stall on a loaded machine may add more).
+        assert!(edges.len() as u64 >= n * 18 + 4, "{} edges", edges.len());
         assert_eq!(frames.len() as u64, n, "{frames:?}");
         assert!(frames.iter().any(|f| f.start_ns == lead_in[2].scheduled_ns));
         for f in &frames {
