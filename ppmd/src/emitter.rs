@@ -688,26 +688,45 @@ mod tests {
         }
     }
 
-    fn run_script(action: FailsafeAction, after_ms: u64, polls: u32) -> (Vec<TraceEdge>, Stats) {
+    /// Runs the loop on the default model into `out`: `cmd` (if any) is
+    /// handed out on the first of `polls` decisions, then the loop stops.
+    fn run_on(
+        cmd: Option<&[u8]>,
+        polls: u32,
+        margin_ns: u64,
+        failsafe_after_ns: u64,
+        failsafe_action: FailsafeAction,
+        out: &mut dyn Output,
+    ) -> Stats {
         let model = Config::default().validate().unwrap();
-        let cmd = parse(b"[1100, 1200, 1300, 1400]", &model).unwrap();
         let stop = Arc::new(AtomicBool::new(false));
         let mut src = Script {
-            cmd: Some(CommandSample::new(&cmd, 1, 0, 0)),
+            cmd: cmd.map(|c| CommandSample::new(&parse(c, &model).unwrap(), 1, 0, 0)),
             polls_left: polls,
             stop: stop.clone(),
         };
         let cfg = EmitterConfig {
-            margin: Margin::Fixed(100_000),
-            failsafe_after_ns: after_ms * 1_000_000,
-            failsafe_action: action,
+            margin: Margin::Fixed(margin_ns),
+            failsafe_after_ns,
+            failsafe_action,
             startup: FailsafeAction::Silence,
         };
-        let mut out = Recorder::default();
         let stats = Stats::default();
         let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
-        run(
-            &model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter, None,
+        run(&model, &cfg, &mut src, out, &stop, &stats, &mut meter, None);
+        stats
+    }
+
+    fn run_script(action: FailsafeAction, after_ms: u64, polls: u32) -> (Vec<TraceEdge>, Stats) {
+        let mut out = Recorder::default();
+        let cmd = b"[1100, 1200, 1300, 1400]";
+        let stats = run_on(
+            Some(cmd),
+            polls,
+            100_000,
+            after_ms * 1_000_000,
+            action,
+            &mut out,
         );
         (out.0, stats)
     }
@@ -758,24 +777,14 @@ mod tests {
 
     #[test]
     fn a_silent_line_reports_its_margin() {
-        let model = Config::default().validate().unwrap();
-        let stop = Arc::new(AtomicBool::new(false));
-        let mut src = Script {
-            cmd: None,
-            polls_left: 3,
-            stop: stop.clone(),
-        };
-        let cfg = EmitterConfig {
-            margin: Margin::Fixed(70_000),
-            failsafe_after_ns: 100_000_000,
-            failsafe_action: FailsafeAction::Silence,
-            startup: FailsafeAction::Silence,
-        };
         let mut out = Recorder::default();
-        let stats = Stats::default();
-        let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
-        run(
-            &model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter, None,
+        let stats = run_on(
+            None,
+            3,
+            70_000,
+            100_000_000,
+            FailsafeAction::Silence,
+            &mut out,
         );
         assert!(out.0.is_empty());
         assert_eq!(stats.frames.load(Relaxed), 0);
@@ -804,20 +813,6 @@ mod tests {
 
     #[test]
     fn the_frame_after_skipped_ones_is_read_too() {
-        let model = Config::default().validate().unwrap();
-        let cmd = parse(b"[1100, 1200, 1300, 1400]", &model).unwrap();
-        let stop = Arc::new(AtomicBool::new(false));
-        let mut src = Script {
-            cmd: Some(CommandSample::new(&cmd, 1, 0, 0)),
-            polls_left: 8,
-            stop: stop.clone(),
-        };
-        let cfg = EmitterConfig {
-            margin: Margin::Fixed(100_000),
-            failsafe_after_ns: 10_000_000_000,
-            failsafe_action: FailsafeAction::Silence,
-            startup: FailsafeAction::Silence,
-        };
         // The third frame's last edge (after the first lead-in pulse) stalls
         // the loop for 50 ms: the next frame's start passes, by more than its
         // sync can absorb, and frames are skipped.
@@ -827,10 +822,14 @@ mod tests {
             stall_after,
             stall: std::time::Duration::from_millis(50),
         };
-        let stats = Stats::default();
-        let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
-        run(
-            &model, &cfg, &mut src, &mut out, &stop, &stats, &mut meter, None,
+        let cmd = b"[1100, 1200, 1300, 1400]";
+        let stats = run_on(
+            Some(cmd),
+            8,
+            100_000,
+            10_000_000_000,
+            FailsafeAction::Silence,
+            &mut out,
         );
         let edges = out.rec.0;
         // 50 ms after a frame's last pulse (11.3 ms in) is at least 38.8 ms
