@@ -73,7 +73,7 @@ impl SimOutput {
     pub fn create(path: &Path, header: &[String], max_bytes: u64) -> std::io::Result<SimOutput> {
         let (mut file, header_bytes) = start_trace(path, header)?;
         let regular = file.get_ref().metadata()?.is_file();
-        let max_bytes = if regular { max_bytes } else { u64::MAX };
+        let mut max_bytes = if regular { max_bytes } else { u64::MAX };
         let header = header.to_vec();
         let rotated = PathBuf::from(format!("{}.1", path.display()));
         let owned_path = path.to_owned();
@@ -95,8 +95,18 @@ impl SimOutput {
                         let _ = writeln!(line, "{e}");
                         if size > header_bytes && size + line.len() as u64 > max_bytes {
                             file.flush()?;
-                            std::fs::rename(&owned_path, &rotated)?;
-                            (file, size) = start_trace(&owned_path, &header)?;
+                            match std::fs::rename(&owned_path, &rotated) {
+                                Ok(()) => (file, size) = start_trace(&owned_path, &header)?,
+                                Err(e) => {
+                                    // The trace goes on growing rather than stop.
+                                    log::warn!(
+                                        "sim trace {}: cannot rotate it to {} ({e}); it grows on",
+                                        owned_path.display(),
+                                        rotated.display()
+                                    );
+                                    max_bytes = u64::MAX;
+                                }
+                            }
                         }
                         file.write_all(line.as_bytes())?;
                         size += line.len() as u64;
@@ -252,6 +262,24 @@ mod tests {
             assert_eq!(*e, edge(first + k as u64));
         }
         assert_eq!(first + edges.len() as u64, 1000);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn sim_keeps_writing_when_it_cannot_rotate() {
+        // FILE.1 is a directory with something in it: the rename fails.
+        let dir = std::env::temp_dir().join(format!("ppmd-simnorot-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("t.trace.1")).unwrap();
+        std::fs::write(dir.join("t.trace.1/keep"), "x").unwrap();
+        let path = dir.join("t.trace");
+        let mut out = SimOutput::create(&path, &["idle_level 1".into()], 2_000).unwrap();
+        for i in 0..1000 {
+            out.write(&edge(i)).unwrap();
+        }
+        out.finish().unwrap();
+        let t = Trace::read(std::io::BufReader::new(File::open(&path).unwrap())).unwrap();
+        assert_eq!(t.edges.len(), 1000, "every edge, in the one file");
+        assert!(dir.join("t.trace.1/keep").exists());
         std::fs::remove_dir_all(dir).unwrap();
     }
 
