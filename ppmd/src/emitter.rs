@@ -452,8 +452,9 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     let last_pulse = edges[edges.len() - 2].at_ns;
     let sync_ns = frame_ns - last_pulse;
     // The frame's place on the grid (a late frame moves off it, the next one
-    // returns to it). After silence, a lone pulse LEAD_IN_NS before the frame
-    // gives it the sync before it that a transmitter needs to read it.
+    // returns to it). After silence or skipped frames, a lone pulse
+    // LEAD_IN_NS before the frame gives it the sync before it that a
+    // transmitter needs to read it (see `Progress::lead_in_ns`).
     let (grid_start, lead_in_ns) = match p.next_start {
         Some(s) => (s, p.lead_in_ns()),
         None => {

@@ -455,6 +455,27 @@ pub struct ReceiveThread {
     pub degraded: bool,
 }
 
+impl std::fmt::Display for ReceiveThread {
+    /// The start-up log's summary.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let policy = if self.priority > 0 {
+            "SCHED_FIFO"
+        } else {
+            "SCHED_OTHER"
+        };
+        write!(f, "policy {policy} priority {}; ", self.priority)?;
+        match self.cpu {
+            Some(c) => write!(f, "CPU {c}; ")?,
+            None => write!(f, "any CPU; ")?,
+        }
+        f.write_str(if self.busy_poll {
+            "busy_poll: spins on the socket, never sleeps (takes a whole CPU)"
+        } else {
+            "sleeps until datagrams arrive (mio)"
+        })
+    }
+}
+
 impl ReceiveThread {
     fn status(&self) -> Value {
         json!({

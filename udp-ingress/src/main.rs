@@ -214,23 +214,7 @@ fn run(cli: Cli) -> Result<()> {
     // This thread receives: its priority and CPU are set here, after the
     // start-up work.
     let thread = schedule_receive_thread(&cfg.ingress, cfg.rt.allow_degraded)?;
-    log::info!(
-        "receive thread: policy {} priority {}; {}; {}",
-        if thread.priority > 0 {
-            "SCHED_FIFO"
-        } else {
-            "SCHED_OTHER"
-        },
-        thread.priority,
-        thread
-            .cpu
-            .map_or("any CPU".to_string(), |c| format!("CPU {c}")),
-        if thread.busy_poll {
-            "busy_poll: spins on the socket, never sleeps (takes a whole CPU)"
-        } else {
-            "sleeps until datagrams arrive (mio)"
-        }
-    );
+    log::info!("receive thread: {thread}");
     log::info!(
         "listening on {} (receive buffer {} bytes), {} channels ({}); publishing to `{}` (ipc root {})",
         socket.local_addr()?,

@@ -399,13 +399,20 @@ fn ingress_latency(cli: &Cli, variants: &[Variant]) -> Result<()> {
     Ok(())
 }
 
-/// Ages (ns) of the command at each frame start, from a frame log.
-fn frame_ages(log: &Path, from_ns: u64, to_ns: u64) -> Vec<f64> {
+/// The frame records of a frame log, in order.
+fn frame_records(log: &Path) -> impl Iterator<Item = Value> {
     std::fs::read_to_string(log)
         .unwrap_or_default()
         .lines()
         .filter_map(|l| serde_json::from_str::<Value>(l).ok())
         .filter(|r| r["type"] == "frame")
+        .collect::<Vec<_>>()
+        .into_iter()
+}
+
+/// Ages (ns) of the command at each frame start, from a frame log.
+fn frame_ages(log: &Path, from_ns: u64, to_ns: u64) -> Vec<f64> {
+    frame_records(log)
         .filter_map(|r| Some((r["mono_ns"].as_u64()?, r["recv_mono_ns"].as_u64()?)))
         .filter(|(t, _)| (from_ns..=to_ns).contains(t))
         .map(|(t, recv)| t.saturating_sub(recv) as f64)
@@ -415,11 +422,7 @@ fn frame_ages(log: &Path, from_ns: u64, to_ns: u64) -> Vec<f64> {
 /// Start of the first frame in the frame log at or after `from_ns` whose
 /// first channels are `want` (us).
 fn first_frame_with(log: &Path, from_ns: u64, want: &[f64]) -> Option<u64> {
-    std::fs::read_to_string(log)
-        .unwrap_or_default()
-        .lines()
-        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
-        .filter(|r| r["type"] == "frame")
+    frame_records(log)
         .filter(|r| {
             let ch = r["ch_us"].as_array();
             ch.is_some_and(|ch| {
