@@ -3,6 +3,10 @@
 use nix::sys::time::TimeSpec;
 use nix::time::{clock_nanosleep, ClockId, ClockNanosleepFlags};
 pub use ppm_shared::time::{now_ns, realtime_ns};
+use std::os::fd::RawFd;
+
+/// Most file descriptors one wait watches.
+pub const MAX_WATCHED: usize = 8;
 
 /// Sleeps until CLOCK_MONOTONIC reaches `deadline_ns` (an absolute deadline,
 /// so a late wake-up never shifts later deadlines). Resumes after signals.
@@ -21,6 +25,79 @@ pub fn sleep_until(deadline_ns: u64) {
         if now_ns() >= deadline_ns {
             return;
         }
+    }
+}
+
+/// Sleeps until CLOCK_MONOTONIC reaches `deadline_ns`, or until one of `fds`
+/// (at most [`MAX_WATCHED`]) is readable or in error. Returns those as a
+/// [`Readable`] (all zero when the deadline came). Without fds it is
+/// [`sleep_until`]. Never allocates.
+pub fn sleep_until_or_readable(deadline_ns: u64, fds: &[RawFd]) -> Readable {
+    let none = Readable {
+        readable: 0,
+        broken: 0,
+    };
+    if fds.is_empty() {
+        sleep_until(deadline_ns);
+        return none;
+    }
+    let n = fds.len().min(MAX_WATCHED);
+    let mut polled = [nix::libc::pollfd {
+        fd: -1,
+        events: nix::libc::POLLIN,
+        revents: 0,
+    }; MAX_WATCHED];
+    for (p, &fd) in polled.iter_mut().zip(&fds[..n]) {
+        p.fd = fd;
+    }
+    loop {
+        let now = now_ns();
+        if now >= deadline_ns {
+            return none;
+        }
+        let left = deadline_ns - now;
+        let ts = nix::libc::timespec {
+            tv_sec: (left / 1_000_000_000) as _,
+            tv_nsec: (left % 1_000_000_000) as _,
+        };
+        // SAFETY: `polled` holds `n` initialised pollfd entries and outlives
+        // the call; the timeout is a valid timespec; no signal mask is given.
+        let r = unsafe {
+            nix::libc::ppoll(
+                polled.as_mut_ptr(),
+                n as nix::libc::nfds_t,
+                &ts,
+                std::ptr::null(),
+            )
+        };
+        if r > 0 {
+            let mut got = none;
+            for (i, p) in polled[..n].iter().enumerate() {
+                if p.revents & nix::libc::POLLIN != 0 {
+                    got.readable |= 1 << i;
+                } else if p.revents != 0 {
+                    got.broken |= 1 << i;
+                }
+            }
+            return got;
+        }
+        // 0: the timeout (checked against the clock above); -1: EINTR.
+    }
+}
+
+/// Which watched fds ended a sleep (bit `i`: `fds[i]`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Readable {
+    /// Readable ones.
+    pub readable: u32,
+    /// Ones in error (closed, hung up): they would end every sleep at once,
+    /// so the caller stops watching them.
+    pub broken: u32,
+}
+
+impl Readable {
+    fn any(&self) -> bool {
+        self.readable | self.broken != 0
     }
 }
 
@@ -98,6 +175,16 @@ pub struct Waited {
     pub spun_ns: u64,
 }
 
+/// How a wait with watched file descriptors ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Wake {
+    /// The deadline was reached.
+    Due(Waited),
+    /// Some watched fds became readable (or broke) before the sleep ended;
+    /// the wait did not spin.
+    Readable(Readable),
+}
+
 /// Sleep-then-spin waits: an absolute sleep until a margin before the
 /// deadline, then a spin on CLOCK_MONOTONIC. The sleep's wake-up lateness is
 /// what the margin has to cover; with [`Margin::Auto`] the margin covers the
@@ -138,11 +225,24 @@ impl EdgeTimer {
 
     /// Waits until `deadline_ns`. Never returns early.
     pub fn wait(&mut self, deadline_ns: u64) -> Waited {
+        match self.wait_or_readable(deadline_ns, &[]) {
+            Wake::Due(w) => w,
+            Wake::Readable(_) => unreachable!("no fds watched"),
+        }
+    }
+
+    /// Waits until `deadline_ns` as [`EdgeTimer::wait`] does, but returns
+    /// early, before spinning, when one of `fds` becomes readable during the
+    /// sleep. The spin itself is not interrupted: it is at most the margin.
+    pub fn wait_or_readable(&mut self, deadline_ns: u64, fds: &[RawFd]) -> Wake {
         let wake = deadline_ns.saturating_sub(self.margin_ns);
         let mut woke_late_ns = None;
         let mut spin_start = now_ns();
         if spin_start < wake {
-            sleep_until(wake);
+            let readable = sleep_until_or_readable(wake, fds);
+            if readable.any() {
+                return Wake::Readable(readable);
+            }
             spin_start = now_ns();
             let late = spin_start - wake;
             woke_late_ns = Some(late);
@@ -159,11 +259,11 @@ impl EdgeTimer {
         loop {
             let now = now_ns();
             if now >= deadline_ns {
-                return Waited {
+                return Wake::Due(Waited {
                     now_ns: now,
                     woke_late_ns,
                     spun_ns: now.saturating_sub(spin_start),
-                };
+                });
             }
             std::hint::spin_loop();
         }

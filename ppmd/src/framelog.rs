@@ -8,6 +8,7 @@
 //! `FILE.1` becomes `FILE.2`, and so on, keeping [`KEEP`] old files.
 
 use crate::emitter::LineState;
+use ppm_shared::config::Timing;
 use ppm_shared::frame::MAX_CHANNELS;
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -37,6 +38,8 @@ pub enum Record {
         start_real_ns: u64,
         /// The line state the frame was emitted in (active or failsafe).
         state: LineState,
+        /// The timing that placed the frame (grid or follow).
+        timing: Timing,
         /// The command the frame carries, if any (none for failsafe defaults).
         command: Option<CommandInfo>,
         /// Number of channels in `values_ns`.
@@ -87,6 +90,7 @@ impl Record {
                 start_mono_ns,
                 start_real_ns,
                 state,
+                timing,
                 command,
                 channels,
                 values_ns,
@@ -102,6 +106,7 @@ impl Record {
                     "mono_ns": start_mono_ns,
                     "real_ns": start_real_ns,
                     "state": state_name(*state),
+                    "timing": timing.name(),
                     "seq": c.and_then(|c| c.seq),
                     "ingress_seq": c.map(|c| c.ingress_seq),
                     "recv_mono_ns": c.map(|c| c.recv_mono_ns),
@@ -284,6 +289,11 @@ mod tests {
             start_mono_ns: 1_000 + n,
             start_real_ns: 2_000 + n,
             state: LineState::Active,
+            timing: if n.is_multiple_of(2) {
+                Timing::Grid
+            } else {
+                Timing::Follow
+            },
             command: Some(CommandInfo {
                 seq: Some(7),
                 ingress_seq: 3,
@@ -300,6 +310,9 @@ mod tests {
         let v: serde_json::Value = serde_json::from_str(&frame(1).to_json()).unwrap();
         assert_eq!(v["ch_us"], serde_json::json!([1500.25, 1000.0]));
         assert_eq!((v["seq"].as_u64(), v["frame"].as_u64()), (Some(7), Some(1)));
+        assert_eq!(v["timing"], "follow");
+        let v: serde_json::Value = serde_json::from_str(&frame(2).to_json()).unwrap();
+        assert_eq!(v["timing"], "grid");
         let t = Record::Transition {
             mono_ns: 1,
             real_ns: 2,

@@ -7,7 +7,7 @@
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Parser;
-use ppm_shared::config::{Config, OutputSpec, SpinMargin};
+use ppm_shared::config::{Config, OutputSpec, SpinMargin, Timing};
 use ppm_shared::frame::{FrameModel, Level};
 use ppm_shared::ipc::{self, Summary, TimingSnapshot};
 use ppmd::clock::{self, Margin};
@@ -48,6 +48,11 @@ struct Cli {
     /// Overrides `ppmd.frame_log`.
     #[arg(long, value_name = "FILE")]
     frame_log: Option<PathBuf>,
+    /// When frames start: `grid` (one every `ppm.frame_us`) or `follow` (a
+    /// fresh command starts its frame as soon as the sync allows). Overrides
+    /// `ppm.timing`, for every output.
+    #[arg(long, value_name = "grid|follow")]
+    timing: Option<Timing>,
     /// Append an HdrHistogram interval log of edge error and write duration
     /// (nanoseconds, one interval a second) to FILE.
     #[arg(long, value_name = "FILE")]
@@ -107,8 +112,14 @@ fn run(cli: Cli) -> Result<()> {
     }
     cfg.apply_cli_outputs(&cli.output)?;
     cfg.rt.allow_degraded |= cli.allow_degraded;
+    if let Some(t) = cli.timing {
+        cfg.ppm.timing = t;
+    }
     for out in cfg.outputs.iter_mut() {
         out.rt.allow_degraded = cfg.rt.allow_degraded;
+        if let Some(t) = cli.timing {
+            out.ppm.timing = t;
+        }
     }
     if let Some(path) = cli.frame_log {
         if !cfg.outputs.is_empty() {
@@ -201,7 +212,7 @@ fn run(cli: Cli) -> Result<()> {
             .spawn(move || -> Result<Vec<u64>> {
                 let started = parts
                     .iter()
-                    .map(|p| IpcSource::open(&root, &p.0))
+                    .map(|p| IpcSource::open(&root, &p.0, p.1.timing() == Timing::Follow))
                     .collect::<Result<Vec<_>, _>>()
                     .map_err(anyhow::Error::from)
                     .and_then(|sources| Ok((sources, setup.apply()?)));
@@ -257,12 +268,22 @@ fn run(cli: Cli) -> Result<()> {
     }
     for s in &setups {
         let (c, model) = (&s.cfg, &s.model);
+        let timing = match model.timing() {
+            Timing::Grid => format!("grid timing, frame {} us", model.frame_ns() as f64 / 1e3),
+            Timing::Follow => {
+                let (min, max) = model.follow_sync_ns();
+                format!(
+                    "follow timing, sync {}..{} us",
+                    min as f64 / 1e3,
+                    max as f64 / 1e3
+                )
+            }
+        };
         log::info!(
-            "{}{} channels ({}), frame {} us, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
+            "{}{} channels ({}), {timing}, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
             tag(several, &c.name),
             model.channels(),
             model.names().join(" "),
-            model.frame_ns() as f64 / 1e3,
             model.pulse_ns() as f64 / 1e3,
             model.idle_level(),
             ipc::command_service_name(&c.name),
@@ -336,10 +357,15 @@ fn run(cli: Cli) -> Result<()> {
         }
         let t = &monitor.snapshot;
         log::info!(
-            "{}stopped{}: {} frames, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} late frames, {} overruns, {} write errors, {} mismatched samples, {} receive errors",
+            "{}stopped{}: {} frames{}, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} late frames, {} overruns, {} write errors, {} mismatched samples, {} receive errors",
             tag(several, &s.cfg.name),
             if t.degraded != 0 { " (DEGRADED RUN)" } else { "" },
             t.frames,
+            if t.timing == 1 {
+                format!(" ({} repeats)", t.repeats)
+            } else {
+                String::new()
+            },
             t.commands,
             t.total.p50 as f64 / 1e3,
             t.total.p99 as f64 / 1e3,
@@ -478,6 +504,7 @@ struct Monitor {
     next_log_ns: u64,
     state: LineState,
     mismatched: u64,
+    wake_errors: u64,
     /// `NAME.` before the HdrHistogram log's tags, with several outputs.
     tag_prefix: String,
 }
@@ -498,6 +525,7 @@ impl Monitor {
             total_write: meter::histogram(),
             snapshot: TimingSnapshot {
                 frame_ns: model.frame_ns(),
+                timing: (model.timing() == Timing::Follow) as u32,
                 pid: std::process::id(),
                 priority: obtained.priority as u32,
                 cpu: obtained.cpu.map_or(-1, |c| c as i32),
@@ -509,6 +537,7 @@ impl Monitor {
             next_log_ns: start_ns + LOG_EVERY_NS,
             state: LineState::Silent,
             mismatched: 0,
+            wake_errors: 0,
             tag_prefix,
         }
     }
@@ -561,6 +590,7 @@ impl Monitor {
         snap.late_edges = s.late_edges.load(Relaxed);
         snap.write_errors = s.write_errors.load(Relaxed);
         snap.failsafe_entries = s.failsafe_entries.load(Relaxed);
+        snap.repeats = s.repeats.load(Relaxed);
         snap.spin_share_ppm = s.spin_ns.load(Relaxed) * 1_000_000 / snap.uptime_ns.max(1);
         snap.state = s.state() as u32;
         if let Some(l) = last {
@@ -601,6 +631,14 @@ impl Monitor {
                 }
             }
             self.state = now;
+        }
+        let w = self.stats.wake_errors.load(Relaxed);
+        if w != self.wake_errors {
+            log::warn!(
+                "{who}the command wake-up failed: looking for commands every {} us instead",
+                emitter::FOLLOW_POLL_NS / 1_000
+            );
+            self.wake_errors = w;
         }
         let m = self.stats.mismatched.load(Relaxed);
         if m != self.mismatched {

@@ -1,6 +1,7 @@
 //! Where ppmd's commands come from.
 
 use ppm_shared::ipc::{self, CommandSample, CommandService, IpcError, Node};
+use std::os::fd::RawFd;
 use std::path::Path;
 
 /// A source of commands, polled once per frame by the timing loop.
@@ -13,6 +14,19 @@ pub trait CommandSource {
     fn errors(&self) -> u64 {
         0
     }
+
+    /// A file descriptor that becomes readable when a command is published,
+    /// so that `follow` timing can sleep until one comes; `None` when the
+    /// source has none (the loop then looks for commands every
+    /// [`crate::emitter::FOLLOW_POLL_NS`] while it waits for one).
+    fn wake_fd(&self) -> Option<RawFd> {
+        None
+    }
+
+    /// Clears the wake-ups received so far (called before [`Self::newest`],
+    /// so a command published after it wakes the loop again). Must not block
+    /// or allocate.
+    fn clear_wake(&mut self) {}
 }
 
 /// The same command, freshly stamped, every frame; asks the loop to stop
@@ -40,18 +54,23 @@ impl CommandSource for RepeatSource {
 type Subscriber =
     iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, CommandSample, ()>;
 
-/// Commands from udp-ingress through the iceoryx2 command service.
+type Listener = iceoryx2::port::listener::Listener<iceoryx2::service::ipc::Service>;
+
+/// Commands from udp-ingress through the iceoryx2 command service, and with
+/// `wake`, the wake-ups udp-ingress sends after each one.
 pub struct IpcSource {
     subscriber: Subscriber,
+    listener: Option<(Listener, RawFd)>,
     errors: u64,
-    _service: CommandService,
+    _services: (CommandService, Option<ipc::WakeService>),
     _node: Node,
 }
 
 impl IpcSource {
     /// Subscribes to output `name`'s command service (creating it if ingress
-    /// has not started yet).
-    pub fn open(root: &Path, name: &str) -> Result<IpcSource, IpcError> {
+    /// has not started yet); with `wake`, also listens to its wake-up event
+    /// service (for `follow` timing).
+    pub fn open(root: &Path, name: &str, wake: bool) -> Result<IpcSource, IpcError> {
         let node = ipc::create_node(root, &format!("ppmd-{name}"))?;
         let service = ipc::open_command_service(&node, name)?;
         let subscriber = service
@@ -62,10 +81,25 @@ impl IpcSource {
                 what: format!("subscribing to `{}`", ipc::command_service_name(name)),
                 detail: format!("{e:?}"),
             })?;
+        let (wake_service, listener) = if wake {
+            use iceoryx2::prelude::FileDescriptorBased;
+            let events = ipc::open_wake_service(&node, name)?;
+            let listener = events.listener_builder().create().map_err(|e| IpcError {
+                what: format!("listening to `{}`", ipc::wake_service_name(name)),
+                detail: format!("{e:?}"),
+            })?;
+            // SAFETY: only the number is read; the fd lives as long as the
+            // listener, which this source owns, and is only polled.
+            let fd = unsafe { listener.file_descriptor().native_handle() };
+            (Some(events), Some((listener, fd)))
+        } else {
+            (None, None)
+        };
         Ok(IpcSource {
             subscriber,
+            listener,
             errors: 0,
-            _service: service,
+            _services: (service, wake_service),
             _node: node,
         })
     }
@@ -88,5 +122,17 @@ impl CommandSource for IpcSource {
 
     fn errors(&self) -> u64 {
         self.errors
+    }
+
+    fn wake_fd(&self) -> Option<RawFd> {
+        self.listener.as_ref().map(|(_, fd)| *fd)
+    }
+
+    fn clear_wake(&mut self) {
+        if let Some((listener, _)) = &self.listener {
+            if listener.try_wait(|_| {}).is_err() {
+                self.errors += 1;
+            }
+        }
     }
 }

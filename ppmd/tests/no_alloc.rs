@@ -4,7 +4,7 @@
 //! that counts every allocation made on the loop's thread once the first
 //! frames are out.
 
-use ppm_shared::config::{Config, FailsafeAction};
+use ppm_shared::config::{Config, FailsafeAction, Timing};
 use ppm_shared::ipc::{self, CommandSample};
 use ppm_shared::protocol::parse;
 use ppmd::clock::{self, Margin};
@@ -65,6 +65,12 @@ struct Counted {
 }
 
 impl CommandSource for Counted {
+    fn wake_fd(&self) -> Option<std::os::fd::RawFd> {
+        self.inner.wake_fd()
+    }
+    fn clear_wake(&mut self) {
+        self.inner.clear_wake()
+    }
     fn newest(&mut self) -> Option<CommandSample> {
         let emitted = self.stats.frames.load(Relaxed);
         if emitted >= self.warmup {
@@ -79,13 +85,28 @@ impl CommandSource for Counted {
 
 #[test]
 fn the_timing_loop_does_not_allocate_after_start() {
-    let dir = std::env::temp_dir().join(format!("ppmd-noalloc-{}", std::process::id()));
+    // Grid: commands faster than frames. Follow: slower, so the loop sleeps
+    // on the wake-up between frames and is woken by each command.
+    run_without_allocating(Timing::Grid, 5);
+    run_without_allocating(Timing::Follow, 25);
+}
+
+fn run_without_allocating(timing: Timing, every_ms: u64) {
+    ALLOCATIONS.store(0, Relaxed);
+    let dir = std::env::temp_dir().join(format!(
+        "ppmd-noalloc-{}-{}",
+        std::process::id(),
+        timing.name()
+    ));
     std::fs::create_dir_all(&dir).unwrap();
     let root = dir.join("ipc");
-    let name = format!("noalloc{}", std::process::id());
-    let model = Config::default().validate().unwrap();
+    let name = format!("noalloc{}{}", std::process::id(), timing.name());
+    let mut cfg = Config::default();
+    cfg.ppm.timing = timing;
+    let model = cfg.validate().unwrap();
 
-    // The publisher: a fresh command every 5 ms until told to stop.
+    // The publisher: a fresh command every `every_ms` until told to stop,
+    // each followed by a wake-up, as udp-ingress sends them.
     let done = Arc::new(AtomicBool::new(false));
     let publisher = {
         let (done, root, name, model) = (done.clone(), root.clone(), name.clone(), model.clone());
@@ -93,13 +114,16 @@ fn the_timing_loop_does_not_allocate_after_start() {
             let node = ipc::create_node(&root, "noalloc-pub").unwrap();
             let service = ipc::open_command_service(&node, &name).unwrap();
             let p = service.publisher_builder().create().unwrap();
+            let wake = ipc::open_wake_service(&node, &name).unwrap();
+            let notifier = wake.notifier_builder().create().unwrap();
             let mut k = 0u64;
             while !done.load(Relaxed) {
                 k += 1;
                 let cmd = parse(format!("[{}]", 1000 + k % 1000).as_bytes(), &model).unwrap();
                 let s = CommandSample::new(&cmd, k, clock::now_ns(), 0);
                 p.loan_uninit().unwrap().write_payload(s).send().unwrap();
-                std::thread::sleep(Duration::from_millis(5));
+                notifier.notify().unwrap();
+                std::thread::sleep(Duration::from_millis(every_ms));
             }
         })
     };
@@ -120,7 +144,7 @@ fn the_timing_loop_does_not_allocate_after_start() {
             }
         })
     };
-    let timing = {
+    let looper = {
         let (stop, stats, model, trace) = (
             stop.clone(),
             stats.clone(),
@@ -129,7 +153,7 @@ fn the_timing_loop_does_not_allocate_after_start() {
         );
         std::thread::spawn(move || {
             let mut source = Counted {
-                inner: IpcSource::open(&root, &name).unwrap(),
+                inner: IpcSource::open(&root, &name, timing == Timing::Follow).unwrap(),
                 stats: stats.clone(),
                 warmup: 10,
                 frames: 60,
@@ -158,7 +182,7 @@ fn the_timing_loop_does_not_allocate_after_start() {
             COUNTING.with(|c| c.set(false));
         })
     };
-    timing.join().unwrap();
+    looper.join().unwrap();
     done.store(true, Relaxed);
     reader_stop.store(true, Relaxed);
     publisher.join().unwrap();
@@ -174,7 +198,8 @@ fn the_timing_loop_does_not_allocate_after_start() {
     assert_eq!(
         ALLOCATIONS.load(Relaxed),
         0,
-        "the timing loop allocated after its first frames"
+        "the timing loop allocated after its first frames ({} timing)",
+        timing.name()
     );
     let _ = std::fs::remove_dir_all(dir);
 }

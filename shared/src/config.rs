@@ -20,6 +20,18 @@ pub const SYNC_MAX_US: f64 = 19_000.0;
 pub const CHANNEL_MIN_US: f64 = 800.0;
 /// Largest channel period a transmitter accepts.
 pub const CHANNEL_MAX_US: f64 = 2_200.0;
+/// Margin kept inside the receivers' sync window (strictly between
+/// [`SYNC_MIN_US`] and [`SYNC_MAX_US`]) by `follow` timing: it covers the
+/// lateness of one edge on a loaded real-time board (a tuned PREEMPT_RT
+/// Raspberry Pi wakes at most 100-190 us late, and ppmd spins the last part
+/// of every wait) plus the receivers' capture resolution, 0.5..1 us.
+pub const FOLLOW_SYNC_MARGIN_US: f64 = 500.0;
+/// Shortest `ppm.follow_sync_min_us`: EdgeTX's 4 ms plus the margin.
+pub const FOLLOW_SYNC_FLOOR_US: f64 = SYNC_MIN_US + FOLLOW_SYNC_MARGIN_US;
+/// Longest `ppm.follow_sync_max_us`: EdgeTX's 19 ms less the margin. A
+/// `follow` frame that comes late is moved later only while its sync stays
+/// under this.
+pub const FOLLOW_SYNC_CEILING_US: f64 = SYNC_MAX_US - FOLLOW_SYNC_MARGIN_US;
 
 /// Why a configuration was refused. Every variant names the file or the key.
 #[derive(Debug, thiserror::Error)]
@@ -131,6 +143,53 @@ pub struct PpmSection {
     pub max_us: f64,
     /// Per-channel overrides, keyed by channel name: `[ppm.channel.thr]`.
     pub channel: BTreeMap<String, ChannelOverride>,
+    /// When frames start: `"grid"` (default: every `frame_us`, whenever
+    /// commands come) or `"follow"` (a fresh command starts its frame as soon
+    /// as the previous frame's sync allows; see [`Timing`]).
+    pub timing: Timing,
+    /// `follow`: the shortest sync gap left before a frame, in microseconds,
+    /// at least 4500 (EdgeTX's 4000 us plus a margin). Default 5000.
+    pub follow_sync_min_us: f64,
+    /// `follow`: the longest sync gap; when no fresh command has come by
+    /// then, the last frame is repeated (or the failsafe acts). At most
+    /// 18500 (EdgeTX's 19000 us less a margin), and not below
+    /// `follow_sync_min_us`. Default 18000.
+    pub follow_sync_max_us: f64,
+}
+
+/// When ppmd starts a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Timing {
+    /// On a fixed grid, one frame every `ppm.frame_us`; a command waits for
+    /// the next grid start.
+    Grid,
+    /// Frames follow the commands: a fresh command starts its frame as soon
+    /// as the previous frame's last pulse is `ppm.follow_sync_min_us` old;
+    /// without one, the last frame repeats when it is
+    /// `ppm.follow_sync_max_us` old. `ppm.frame_us` is not used.
+    Follow,
+}
+
+impl Timing {
+    /// `"grid"` or `"follow"`, as in the configuration.
+    pub fn name(self) -> &'static str {
+        match self {
+            Timing::Grid => "grid",
+            Timing::Follow => "follow",
+        }
+    }
+}
+
+impl std::str::FromStr for Timing {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "grid" => Ok(Timing::Grid),
+            "follow" => Ok(Timing::Follow),
+            _ => Err(format!("`{s}` is not a timing: use grid or follow")),
+        }
+    }
 }
 
 impl Default for PpmSection {
@@ -145,6 +204,9 @@ impl Default for PpmSection {
             min_us: 1_000.0,
             max_us: 2_000.0,
             channel: BTreeMap::new(),
+            timing: Timing::Grid,
+            follow_sync_min_us: 5_000.0,
+            follow_sync_max_us: 18_000.0,
         }
     }
 }

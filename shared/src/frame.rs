@@ -7,7 +7,10 @@
 //! at its idle level until the next frame starts; that gap is the sync period
 //! `frame - sum(values)`.
 
-use crate::config::{self, ConfigError, PpmSection, SYNC_MAX_US, SYNC_MIN_US};
+use crate::config::{
+    self, ConfigError, PpmSection, Timing, FOLLOW_SYNC_CEILING_US, FOLLOW_SYNC_FLOOR_US,
+    SYNC_MAX_US, SYNC_MIN_US,
+};
 use serde::Deserialize;
 
 /// Most channels one frame carries (the transmitters' limit).
@@ -129,6 +132,8 @@ pub struct FrameModel {
     frame_ns: u64,
     pulse_ns: u64,
     idle: Level,
+    timing: Timing,
+    follow_sync_ns: (u64, u64),
 }
 
 impl FrameModel {
@@ -145,6 +150,8 @@ impl FrameModel {
             frame_ns: 0,
             pulse_ns: 0,
             idle: ppm.idle_level,
+            timing: ppm.timing,
+            follow_sync_ns: (0, 0),
         };
         for (i, l) in limits.iter().enumerate() {
             m.default_ns[i] = us_to_ns(l.default_us) as u32;
@@ -174,6 +181,13 @@ impl FrameModel {
             ));
         }
         let frame_ns = us_to_ns(ppm.frame_us);
+        m.follow_sync_ns = follow_sync(ppm)?;
+        m.frame_ns = frame_ns;
+        if ppm.timing == Timing::Follow {
+            // Frames follow the commands: the sync gaps are the follow
+            // limits, whatever the channel values; frame_us is not used.
+            return Ok(m);
+        }
         let sum_max: u64 = m.max_ns[..m.channels].iter().map(|&v| v as u64).sum();
         let sum_min: u64 = m.min_ns[..m.channels].iter().map(|&v| v as u64).sum();
         let sync_min_ns = us_to_ns(SYNC_MIN_US);
@@ -204,8 +218,17 @@ impl FrameModel {
                 ),
             ));
         }
-        m.frame_ns = frame_ns;
         Ok(m)
+    }
+
+    /// When frames start.
+    pub fn timing(&self) -> Timing {
+        self.timing
+    }
+
+    /// `follow` timing's shortest and longest sync gap, ns.
+    pub fn follow_sync_ns(&self) -> (u64, u64) {
+        self.follow_sync_ns
     }
 
     /// Number of channels.
@@ -407,6 +430,36 @@ impl FrameModel {
         let c = ns.clamp(self.min_ns[i] as f64, self.max_ns[i] as f64);
         (c as u32, c != ns)
     }
+}
+
+/// `ppm.follow_sync_min_us` and `ppm.follow_sync_max_us` in ns, checked
+/// against the sync window every supported receiver accepts (checked in
+/// either timing, so a file stays valid when its timing is switched).
+fn follow_sync(ppm: &PpmSection) -> Result<(u64, u64), ConfigError> {
+    let (min, max) = (ppm.follow_sync_min_us, ppm.follow_sync_max_us);
+    if !min.is_finite() || min < FOLLOW_SYNC_FLOOR_US {
+        return Err(invalid(
+            "ppm.follow_sync_min_us",
+            format!(
+                "{min} us is below {FOLLOW_SYNC_FLOOR_US} us: EdgeTX and OpenTX read a sync gap only above {SYNC_MIN_US} us, and a late edge must not take it under that"
+            ),
+        ));
+    }
+    if !max.is_finite() || max > FOLLOW_SYNC_CEILING_US {
+        return Err(invalid(
+            "ppm.follow_sync_max_us",
+            format!(
+                "{max} us is above {FOLLOW_SYNC_CEILING_US} us: EdgeTX and OpenTX read a sync gap only below {SYNC_MAX_US} us, and a late frame must not take it over that"
+            ),
+        ));
+    }
+    if max < min {
+        return Err(invalid(
+            "ppm.follow_sync_max_us",
+            format!("{max} us is below ppm.follow_sync_min_us = {min} us"),
+        ));
+    }
+    Ok((us_to_ns(min), us_to_ns(max)))
 }
 
 fn invalid(key: &str, message: String) -> ConfigError {

@@ -19,6 +19,11 @@ pub type CommandService = iceoryx2::service::port_factory::publish_subscribe::Po
     (),
 >;
 
+/// The wake-up event service udp-ingress notifies after each command it
+/// publishes; ppmd listens to it for `follow` timing.
+pub type WakeService =
+    iceoryx2::service::port_factory::event::PortFactory<iceoryx2::service::ipc::Service>;
+
 /// Prefix of every shared-memory file of ppm (in /dev/shm and the root).
 const PREFIX: &[u8] = b"ppm_";
 
@@ -85,6 +90,11 @@ pub fn command_service_name(name: &str) -> String {
     format!("ppm/{name}/command")
 }
 
+/// The iceoryx2 event service that signals a new command of output `name`.
+pub fn wake_service_name(name: &str) -> String {
+    format!("ppm/{name}/command-wake")
+}
+
 /// The iceoryx2 service carrying ppmd's timing snapshots of output `name`.
 pub fn stats_service_name(name: &str) -> String {
     format!("ppm/{name}/stats")
@@ -146,6 +156,9 @@ pub struct TimingSnapshot {
     pub write_errors: u64,
     /// Entries into the failsafe action.
     pub failsafe_entries: u64,
+    /// Follow timing: frames that repeated the last frame's command because
+    /// no fresh one came before the longest sync.
+    pub repeats: u64,
     /// Time spent spinning as a share of wall time, parts per million.
     pub spin_share_ppm: u64,
     /// Edge error (actual minus scheduled) over the last interval.
@@ -170,6 +183,8 @@ pub struct TimingSnapshot {
     pub preempt_rt: u32,
     /// Line state: 0 silent, 1 active, 2 failsafe.
     pub state: u32,
+    /// Frame timing: 0 grid, 1 follow.
+    pub timing: u32,
 }
 
 impl Default for TimingSnapshot {
@@ -188,6 +203,7 @@ impl Default for TimingSnapshot {
             late_edges: 0,
             write_errors: 0,
             failsafe_entries: 0,
+            repeats: 0,
             spin_share_ppm: 0,
             last: Summary::default(),
             total: Summary::default(),
@@ -200,6 +216,7 @@ impl Default for TimingSnapshot {
             degraded: 0,
             preempt_rt: 0,
             state: 0,
+            timing: 0,
         }
     }
 }
@@ -251,6 +268,22 @@ pub fn create_node(root: &std::path::Path, node_name: &str) -> Result<Node, IpcE
 /// Opens (or creates) the newest-only command service of output `name`.
 pub fn open_command_service(node: &Node, name: &str) -> Result<CommandService, IpcError> {
     open_newest_only(node, &command_service_name(name))
+}
+
+/// Opens (or creates) output `name`'s wake-up event service: udp-ingress
+/// notifies it after each command it publishes, so a ppmd in `follow`
+/// timing can sleep until a command comes instead of polling. Every process
+/// opens it with these settings.
+pub fn open_wake_service(node: &Node, name: &str) -> Result<WakeService, IpcError> {
+    let service = wake_service_name(name);
+    let sn =
+        ServiceName::new(&service).map_err(|e| ipc_err(format!("service name `{service}`"))(&e))?;
+    node.service_builder(&sn)
+        .event()
+        .max_notifiers(2)
+        .max_listeners(2)
+        .open_or_create()
+        .map_err(|e| ipc_err(format!("opening service `{service}`"))(&e))
 }
 
 /// The timing snapshot service.

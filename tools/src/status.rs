@@ -153,7 +153,7 @@ pub fn readable(r: &Value) -> Result<String> {
         let e = &p["edge_error_us"];
         let us = |k: &str| e[k].as_f64().unwrap_or(f64::NAN);
         format!(
-            "ppmd: {}{}, {} frames; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} overruns, {} late frames, {} failsafe entries (snapshot {} old)\n",
+            "ppmd: {}{}, {} frames{}; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} overruns, {} late frames, {} failsafe entries (snapshot {} old)\n",
             p["state"].as_str().unwrap_or("?"),
             if p["degraded"].as_bool() == Some(true) {
                 " (DEGRADED RUN)"
@@ -161,6 +161,13 @@ pub fn readable(r: &Value) -> Result<String> {
                 ""
             },
             num(&p["frames"], "frames")?,
+            match p["timing"].as_str() {
+                Some("follow") => format!(
+                    " (follow timing, {} repeats)",
+                    p["repeats"].as_u64().unwrap_or(0)
+                ),
+                _ => String::new(),
+            },
             us("p50"),
             us("p99"),
             us("max"),

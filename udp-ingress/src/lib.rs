@@ -499,7 +499,9 @@ fn ppmd_status(s: &TimingSnapshot, age_ns: u64) -> Value {
             2 => "failsafe",
             _ => "unknown",
         },
+        "timing": if s.timing == 1 { "follow" } else { "grid" },
         "frames": s.frames,
+        "repeats": s.repeats,
         "edge_error_us": {
             "p50": us(s.total.p50),
             "p99": us(s.total.p99),

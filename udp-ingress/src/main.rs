@@ -119,6 +119,7 @@ impl ReplyBudget {
 
 type Publisher =
     iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, CommandSample, ()>;
+type Notifier = iceoryx2::port::notifier::Notifier<iceoryx2::service::ipc::Service>;
 type StatsSubscriber =
     iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, TimingSnapshot, ()>;
 
@@ -195,6 +196,16 @@ fn run(cli: Cli) -> Result<()> {
         )
     })?;
 
+    // After each command, a wake-up for a ppmd in follow timing (which
+    // sleeps until one comes); nothing listens to it in grid timing.
+    let wake = ipc::open_wake_service(&node, &cfg.name)?;
+    let notifier: Notifier = wake.notifier_builder().create().map_err(|e| {
+        anyhow::anyhow!(
+            "creating notifier on `{}`: {e:?}",
+            ipc::wake_service_name(&cfg.name)
+        )
+    })?;
+
     let stats = subscribe_stats(&node, &cfg.name);
 
     let stop = Arc::new(AtomicBool::new(false));
@@ -256,6 +267,8 @@ fn run(cli: Cli) -> Result<()> {
         name: cfg.name.clone(),
         socket,
         publisher,
+        notifier,
+        _wake: wake,
         stats,
         intake,
         seq_file,
@@ -369,6 +382,8 @@ struct Receiver {
     name: String,
     socket: UdpSocket,
     publisher: Publisher,
+    notifier: Notifier,
+    _wake: ipc::WakeService,
     stats: Option<StatsSubscriber>,
     intake: Intake,
     seq_file: Option<SeqFile>,
@@ -399,7 +414,7 @@ impl Receiver {
             if drain_started.elapsed() >= DRAIN_PUBLISH_EVERY {
                 publish(
                     &mut self.intake,
-                    &self.publisher,
+                    (&self.publisher, &self.notifier),
                     &mut self.ingress_seq,
                     &mut self.publish_errors,
                 );
@@ -444,7 +459,7 @@ impl Receiver {
     fn settle(&mut self) {
         if !publish(
             &mut self.intake,
-            &self.publisher,
+            (&self.publisher, &self.notifier),
             &mut self.ingress_seq,
             &mut self.publish_errors,
         ) {
@@ -558,10 +573,11 @@ fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
     }
 }
 
-/// Publishes the newest command taken in, if any; false when there was none.
+/// Publishes the newest command taken in, if any, and wakes a ppmd in
+/// follow timing; false when there was none.
 fn publish(
     intake: &mut Intake,
-    publisher: &Publisher,
+    (publisher, notifier): (&Publisher, &Notifier),
     ingress_seq: &mut u64,
     errors: &mut u64,
 ) -> bool {
@@ -575,6 +591,7 @@ fn publish(
         .map(|s| s.write_payload(sample))
         .map_err(|e| format!("{e:?}"))
         .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
+    let sent = sent.and_then(|_| notifier.notify().map_err(|e| format!("waking ppmd: {e:?}")));
     match sent {
         Ok(_) => intake.published_after(realtime_ns().saturating_sub(r.real_ns)),
         Err(e) => {
