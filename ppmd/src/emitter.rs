@@ -109,6 +109,8 @@ pub struct Stats {
     /// Follow: frames that repeated the last command (or the failsafe
     /// action's) because no fresh command came before the longest sync.
     pub repeats: AtomicU64,
+    /// Follow: times a command's wake-up woke the loop.
+    pub wakes: AtomicU64,
     /// Follow: wake fds that broke (the lane then polls for commands).
     pub wake_errors: AtomicU64,
     /// Current spin margin, ns.
@@ -512,7 +514,13 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     let follow = model.timing() == Timing::Follow;
     let now = clock::now_ns();
     lane.meter.maybe_hand_over(now);
+    // Follow: a look at the earliest start (not a wake-up, not a poll while
+    // waiting) should have found the line free for a command it finds.
+    let at_earliest = follow && !p.woken && !p.armed;
     if follow {
+        if p.woken {
+            add(&stats.wakes, 1);
+        }
         // Before looking: a command published from now on wakes the loop.
         p.woken = false;
         lane.source.clear_wake();
@@ -582,7 +590,7 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     let edges = schedule.edges();
     let last_pulse = edges[edges.len() - 2].at_ns;
     let placed = if follow {
-        place_follow(p, model, stats, fresh_arrived)
+        place_follow(p, model, stats, fresh_arrived, at_earliest)
     } else {
         place_grid(p, model, stats, lead, anchor, frame_ns - last_pulse)
     };
@@ -677,14 +685,16 @@ fn place_grid(
 /// soon as the loop can write it, but not before the shortest sync after the
 /// previous frame's last pulse; a repeat starts at the longest sync. A frame
 /// decided too late for that moves later while the sync before it stays
-/// under [`FOLLOW_SYNC_CEILING_US`] (a repeat so moved counts as a late
-/// frame); past that, it gets the lead-in pulse a frame after silence gets
+/// under [`FOLLOW_SYNC_CEILING_US`] (counted as a late frame when it was
+/// decided at its planned time, the earliest start or the longest sync, but
+/// late); past that, it gets the lead-in pulse a frame after silence gets
 /// (counted as an overrun).
 fn place_follow(
     p: &Progress,
     model: &FrameModel,
     stats: &Stats,
     fresh_arrived: bool,
+    at_earliest: bool,
 ) -> Option<(u64, u64)> {
     let (sync_min_ns, sync_max_ns) = model.follow_sync_ns();
     let ready = clock::now_ns() + READY_NS;
@@ -704,7 +714,7 @@ fn place_follow(
         return Some((want, 0));
     }
     if ready - last < us_to_ns(FOLLOW_SYNC_CEILING_US) {
-        if !fresh_arrived {
+        if !fresh_arrived || at_earliest {
             add(&stats.late_frames, 1);
         }
         return Some((ready, 0));
@@ -858,6 +868,7 @@ mod tests {
     use ppm_shared::decode::{decode, DecoderLimits};
     use ppm_shared::frame::Level;
     use ppm_shared::protocol::parse;
+    use ppm_shared::receiver::{decode_as, Receiver};
     use std::sync::Arc;
 
     /// Records edges in memory (allocation in a test backend is fine).
@@ -1394,24 +1405,14 @@ mod tests {
             .unwrap()
     }
 
-    /// EdgeTX's trainer input: sync strictly between 4 and 19 ms, channels
-    /// strictly between 800 and 2200 us (the limits are inclusive, so 1 ns in).
-    fn edgetx_strict() -> DecoderLimits {
-        DecoderLimits {
-            channel_min_ns: 800_001,
-            channel_max_ns: 2_199_999,
-            sync_min_ns: 4_000_001,
-            sync_max_ns: 18_999_999,
-            max_channels: 16,
-        }
-    }
-
     /// Commands made available at set times, each followed by a wake-up on a
     /// socket (as udp-ingress's notification); records when each was there.
     struct Paced {
         slot: Arc<std::sync::Mutex<Option<CommandSample>>>,
         rx: std::os::unix::net::UnixDatagram,
         with_fd: bool,
+        /// Hands out this fd number instead of its socket's.
+        fake_fd: Option<std::os::fd::RawFd>,
         /// (time it was available, first value in us) per command.
         made: Arc<std::sync::Mutex<Vec<(u64, u32)>>>,
         feeder: Option<std::thread::JoinHandle<()>>,
@@ -1452,6 +1453,7 @@ mod tests {
                 slot,
                 rx,
                 with_fd: true,
+                fake_fd: None,
                 made,
                 feeder: Some(feeder),
                 stop,
@@ -1472,7 +1474,8 @@ mod tests {
         }
         fn wake_fd(&self) -> Option<std::os::fd::RawFd> {
             use std::os::fd::AsRawFd;
-            self.with_fd.then(|| self.rx.as_raw_fd())
+            self.with_fd
+                .then(|| self.fake_fd.unwrap_or(self.rx.as_raw_fd()))
         }
         fn clear_wake(&mut self) {
             let mut b = [0u8; 16];
@@ -1541,8 +1544,42 @@ mod tests {
         frames
     }
 
+    /// Checks that every receiver hands on every frame sent (but those it
+    /// reads while it locks on), with its values to the microsecond.
+    fn assert_read_by_every_receiver(edges: &[TraceEdge], frames: &[Sent]) {
+        for r in Receiver::ALL {
+            let (read, _) = decode_as(
+                r,
+                edges.iter().map(|e| (e.scheduled_ns, e.level)),
+                Level::High,
+            );
+            // A trainer input uses channels as they come: the last frame
+            // too, which no sync closes. The others hand a frame on at the
+            // sync after it: not the last one.
+            let trainer = matches!(r, Receiver::EdgeTx | Receiver::OpenTx);
+            let read: Vec<_> = read.iter().filter(|f| f.complete || trainer).collect();
+            let closed = frames.len() - !trainer as usize;
+            let want = closed.saturating_sub(r.warmup_frames());
+            assert_eq!(
+                read.len(),
+                want,
+                "{r:?} read {} of {} frames",
+                read.len(),
+                frames.len()
+            );
+            for f in read {
+                let sent = frames
+                    .iter()
+                    .find(|s| s.start == f.start_ns)
+                    .expect("a frame sent");
+                assert_eq!(f.channels_us()[0], sent.first_us as u64, "{r:?}");
+                assert_eq!(f.channels_us()[1], 1_900, "{r:?}");
+            }
+        }
+    }
+
     /// Checks what follow timing promises about a single lane's frames, on
-    /// the scheduled edges: every frame is read under EdgeTX's strict rules;
+    /// the scheduled edges: every receiver reads every frame;
     /// the sync before a frame is within the follow limits (or the frame had
     /// a lead-in); a frame that repeats its predecessor's command comes at the
     /// longest sync unless counted late; and each frame carries the newest
@@ -1555,26 +1592,29 @@ mod tests {
         made: &[(u64, u32)],
         stats: &Stats,
     ) -> Vec<Sent> {
-        let decoded = decode(
-            edges.iter().map(|e| (e.scheduled_ns, e.level)),
-            Level::High,
-            edgetx_strict(),
-        );
         let frames = sent_frames(edges, model.channels());
-        assert_eq!(decoded.len(), frames.len(), "every frame is read");
         assert_eq!(frames.len() as u64, stats.frames.load(Relaxed));
+        assert_read_by_every_receiver(edges, &frames);
         let (min, max) = model.follow_sync_ns();
         let mut late = 0;
         for (i, f) in frames.iter().enumerate() {
             let prev = i.checked_sub(1).map(|j| &frames[j]);
             let sync = prev.map(|p| f.start - p.last_pulse);
             let lead_in = sync.is_none_or(|s| s >= us_to_ns(FOLLOW_SYNC_CEILING_US));
-            if let Some(s) = sync.filter(|_| !lead_in) {
+            if let (Some(s), Some(p)) = (sync.filter(|_| !lead_in), prev) {
                 assert!(s >= min, "frame {i}: sync {s} ns");
-                if prev.is_some_and(|p| p.first_us == f.first_us) {
+                if p.first_us == f.first_us {
                     // A repeat: at the longest sync, or late (counted).
                     late += (s != max) as u64;
                     assert!(s >= max, "frame {i}: repeat after {s} ns");
+                } else {
+                    // A command there before the look at the earliest start
+                    // starts its frame then, or late (counted).
+                    let waiting = made
+                        .iter()
+                        .find(|m| m.1 == f.first_us)
+                        .is_some_and(|m| m.0 < p.last_pulse + min - DECIDE_NS);
+                    late += (waiting && s != min) as u64;
                 }
             }
             // Commands by index: the carried one was there at the decision,
@@ -1647,6 +1687,127 @@ mod tests {
             );
             assert_eq!(stats.failsafe_entries.load(Relaxed), 1);
             assert_eq!(stats.wake_errors.load(Relaxed), 0);
+            // The commands woke the loop (found the lane waiting), or it
+            // looked for them every FOLLOW_POLL_NS.
+            let wakes = stats.wakes.load(Relaxed);
+            if with_fd {
+                assert!(wakes >= 1, "{stats:?}");
+            } else {
+                assert_eq!(wakes, 0);
+            }
         }
+    }
+
+    #[test]
+    fn follow_repeats_at_the_longest_sync_then_acts_as_failsafe() {
+        let model = follow_model("");
+        for action in [FailsafeAction::Hold, FailsafeAction::Silence] {
+            // 60 ms apart: a frame and its longest sync (28.5 ms) come and go
+            // before the next command, and the next one, and so on.
+            let mut src = Paced::start(&model, 5, 60, 250);
+            let (edges, stats, made) = run_follow(&model, &mut src, action);
+            let frames = check_follow(&edges, &model, &made, &stats);
+            let repeats = frames
+                .windows(2)
+                .filter(|w| w[0].first_us == w[1].first_us)
+                .count() as u64;
+            assert!(repeats >= 5, "{action:?}: {repeats} repeats");
+            assert_eq!(stats.repeats.load(Relaxed), repeats, "{action:?}");
+            assert_eq!(stats.failsafe_entries.load(Relaxed), 1, "{action:?}");
+            let last = frames.last().unwrap();
+            assert_eq!(last.first_us, made.last().unwrap().1, "{action:?}");
+            // Hold repeats the last command until the end (250 ms after it:
+            // about 8 frames); silence stops 100 ms after it.
+            let after: Vec<&Sent> = frames.iter().filter(|f| f.start > made[4].0).collect();
+            match action {
+                FailsafeAction::Hold => assert!(after.len() >= 6, "{after:?}"),
+                _ => assert!((2..=5).contains(&after.len()), "{after:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn a_broken_wake_fd_is_counted_and_the_lane_polls() {
+        let model = follow_model("");
+        let mut src = Paced::start(&model, 8, 25, 40);
+        // No such file descriptor: every wait would end at once.
+        src.fake_fd = Some(999_999);
+        let (edges, stats, made) = run_follow(&model, &mut src, FailsafeAction::Silence);
+        check_follow(&edges, &model, &made, &stats);
+        assert_eq!(stats.wake_errors.load(Relaxed), 1);
+        assert_eq!(stats.commands.load(Relaxed), 8);
+    }
+
+    #[test]
+    fn a_follow_lane_and_a_grid_lane_share_the_loop() {
+        let grid = Config::default().validate().unwrap();
+        let follow = follow_model("channels = 6\norder = 'TAER'");
+        let mut src_f = Paced::start(&follow, 20, 23, 60);
+        let stop = src_f.stop.clone();
+        let mut src_g = repeat(b"[1100, 1200, 1300, 1400]", &grid, u64::MAX, &stop);
+        let (mut out_g, mut out_f) = (Recorder::default(), Recorder::default());
+        let (stats_g, stats_f) = (Stats::default(), Stats::default());
+        let (mut meter_g, _rg) = crate::meter::meter(1_000_000_000);
+        let (mut meter_f, _rf) = crate::meter::meter(1_000_000_000);
+        {
+            let mut lanes = [
+                Lane {
+                    model: &grid,
+                    cfg: lane_cfg(),
+                    source: &mut src_g,
+                    sink: Sink::Line(&mut out_g),
+                    stats: &stats_g,
+                    meter: &mut meter_g,
+                    log: None,
+                },
+                follow_lane(
+                    &follow,
+                    &mut src_f,
+                    &mut out_f,
+                    &stats_f,
+                    &mut meter_f,
+                    FailsafeAction::Silence,
+                ),
+            ];
+            run_lanes(&mut lanes, &mut [], &stop);
+        }
+        let made = src_f.made();
+        let frames = check_follow(&out_f.0, &follow, &made, &stats_f);
+        assert!(frames.len() >= 10, "{} follow frames", frames.len());
+        // The grid lane keeps its grid.
+        let edges: Vec<(u64, Level)> = out_g.0.iter().map(|e| (e.scheduled_ns, e.level)).collect();
+        let g = channels_of(&edges);
+        assert!(g.len() >= 15, "{} grid frames", g.len());
+        assert!(g
+            .iter()
+            .all(|f| f[..] == [1100, 1200, 1300, 1400, 1500, 1500, 1500, 1500]));
+        let starts = starts_of(&edges);
+        let off_grid = starts
+            .iter()
+            .filter(|&&s| !(s - starts[0]).is_multiple_of(22_500_000))
+            .count() as u64;
+        assert!(off_grid <= stats_g.late_frames.load(Relaxed) + stats_g.overruns.load(Relaxed) * 3);
+        assert_eq!(
+            stats_g.repeats.load(Relaxed),
+            0,
+            "grid frames are not repeats"
+        );
+    }
+
+    #[test]
+    fn commands_faster_than_frames_take_the_newest_at_the_shortest_sync() {
+        let model = follow_model("");
+        // 7 ms apart: every frame (10.9..11.1 ms of channels, and 5 ms of
+        // sync) finds a newer command waiting at its earliest start.
+        let mut src = Paced::start(&model, 60, 7, 40);
+        let (edges, stats, made) = run_follow(&model, &mut src, FailsafeAction::Silence);
+        let frames = check_follow(&edges, &model, &made, &stats);
+        let (min, _) = model.follow_sync_ns();
+        let back_to_back = frames
+            .windows(2)
+            .filter(|w| w[1].start - w[0].last_pulse == min)
+            .count();
+        assert!(back_to_back >= 1, "{stats:?}");
+        assert!(frames.len() >= 20, "{} frames", frames.len());
     }
 }

@@ -5,6 +5,8 @@
 //! - [`frame`]: the PPM frame model built from that configuration, and the
 //!   encoder that turns channel values into one frame's edge schedule.
 //! - [`decode`]: a decoder with transmitter semantics that reads any waveform back.
+//! - [`receiver`]: PPM input as EdgeTX, OpenTX, Betaflight and ArduPilot
+//!   decode it, each modelled on its firmware.
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
@@ -19,6 +21,7 @@ pub mod decode;
 pub mod frame;
 pub mod ipc;
 pub mod protocol;
+pub mod receiver;
 pub mod sched;
 pub mod time;
 pub mod trace;
