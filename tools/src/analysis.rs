@@ -13,6 +13,8 @@ pub struct Percentiles {
     pub min: f64,
     /// Median.
     pub p50: f64,
+    /// 90th percentile.
+    pub p90: f64,
     /// 99th percentile.
     pub p99: f64,
     /// 99.9th percentile.
@@ -34,6 +36,7 @@ impl Percentiles {
             count: n,
             min: values[0],
             p50: rank(0.5),
+            p90: rank(0.9),
             p99: rank(0.99),
             p999: rank(0.999),
             max: values[n - 1],
@@ -49,6 +52,7 @@ impl Percentiles {
             count: h.len() as usize,
             min: h.min() as f64,
             p50: h.value_at_quantile(0.5) as f64,
+            p90: h.value_at_quantile(0.9) as f64,
             p99: h.value_at_quantile(0.99) as f64,
             p999: h.value_at_quantile(0.999) as f64,
             max: h.max() as f64,

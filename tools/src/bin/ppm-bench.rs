@@ -537,100 +537,172 @@ fn flood_run(cli: &Cli, v: &Variant) -> Result<()> {
     Ok(())
 }
 
-fn e2e(cli: &Cli) -> Result<()> {
-    println!(
-        "== 3. end to end: send to the first frame carrying the command ({} commands at 50 Hz)",
-        cli.e2e_count
-    );
-    let setup = Setup::new("e2e", "")?;
+/// One end-to-end run: what the line carried of the commands sent.
+struct E2e {
+    /// Send to the first edge of the first frame carrying each command, ns.
+    latency: Percentiles,
+    sent: usize,
+    /// Commands no frame carried (replaced by a newer one first).
+    missed: usize,
+    /// Of those, replaced in udp-ingress (two in one wake-up).
+    ingress_superseded: u64,
+    /// Frames sent, and those that carried an older command than the newest
+    /// one sent at least 1 ms before the frame started.
+    frames: usize,
+    stale_frames: usize,
+}
+
+/// Sends `count` commands at `hz` to udp-ingress and a ppmd in `timing`,
+/// and reads the line's trace back.
+fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
+    let setup = Setup::new(&format!("e2e-{timing}-{hz}"), "")?;
     let trace = setup.dir.join("line.trace");
-    let ppmd = setup.spawn("ppmd", &["--output", &format!("sim:{}", trace.display())])?;
+    let ppmd = setup.spawn(
+        "ppmd",
+        &[
+            "--output",
+            &format!("sim:{}", trace.display()),
+            "--timing",
+            timing,
+        ],
+    )?;
     let ingress = setup.spawn("udp-ingress", &[])?;
     let code = |i: u32| [1000 + i % 1000, 1000 + (i / 1000) % 1000];
-    let sent = paced(setup.port, cli.e2e_count, 50.0, |i| {
+    let sent = paced(setup.port, count, hz, |i| {
         let [a, b] = code(i);
         format!("[{a}, {b}]").into_bytes()
     })?;
     std::thread::sleep(Duration::from_millis(100));
+    let status = setup.status()?;
     ingress.stop();
     ppmd.stop();
     let f = std::fs::File::open(&trace)?;
     let t = ppm_shared::trace::Trace::read(BufReader::new(f))?;
-    // Every emitted frame: start and which command it carries.
+    // Every emitted frame: when its first edge was written, and which
+    // command it carries (decoded from the scheduled edges, which are exact).
+    let written: std::collections::HashMap<u64, u64> = t
+        .edges
+        .iter()
+        .map(|e| (e.scheduled_ns, e.actual_ns))
+        .collect();
     let frames: Vec<(u64, u32)> = t
         .decode(false)
         .iter()
         .map(|f| {
             let c = f.channels_us();
-            (f.start_ns, ((c[1] - 1000) * 1000 + (c[0] - 1000)) as u32)
+            let start = written.get(&f.start_ns).copied().unwrap_or(f.start_ns);
+            (start, ((c[1] - 1000) * 1000 + (c[0] - 1000)) as u32)
         })
         .collect();
     let mut latency = Vec::new();
-    let mut over_ideal = Vec::new();
-    let (mut eligible, mut in_frame) = (0, 0);
     for (i, &s) in sent.iter().enumerate() {
-        let i = i as u32;
-        if let Some(&(start, _)) = frames.iter().find(|&&(_, c)| c == i) {
-            latency.push((start - s) as f64);
-            if let Some(&(ideal, _)) = frames.iter().find(|&&(st, _)| st >= s) {
-                over_ideal.push(start.saturating_sub(ideal) as f64);
-            }
-        }
-        // A command sent 1 ms or more before a frame starts must be in that
-        // frame, or a newer one must.
-        if let Some(&(_, carried)) = frames.iter().find(|&&(st, _)| st >= s + 1_000_000) {
-            eligible += 1;
-            if carried >= i {
-                in_frame += 1;
-            }
+        if let Some(&(start, _)) = frames.iter().find(|&&(_, c)| c == i as u32) {
+            latency.push(start.saturating_sub(s) as f64);
         }
     }
-    let l = Percentiles::of(&mut latency);
-    let o = Percentiles::of(&mut over_ideal);
+    let stale_frames = frames
+        .iter()
+        .filter(|&&(start, carried)| {
+            sent.iter()
+                .rposition(|&s| s + 1_000_000 <= start)
+                .is_some_and(|newest| (carried as usize) < newest)
+        })
+        .count();
+    Ok(E2e {
+        ingress_superseded: status["datagrams"]["superseded"].as_u64().unwrap_or(0),
+        missed: sent.len() - latency.len(),
+        latency: Percentiles::of(&mut latency),
+        sent: sent.len(),
+        frames: frames.len(),
+        stale_frames,
+    })
+}
+
+fn e2e(cli: &Cli) -> Result<()> {
     println!(
-        "send to first frame carrying it, ms: {} ({} commands on the line)",
-        l.line(1e6),
-        l.count
+        "== 3. end to end: send to the first edge of the first frame carrying each command, grid and follow timing ({} commands at 50 Hz, {} at 100 Hz)",
+        cli.e2e_count,
+        cli.e2e_count * 2
     );
     println!(
-        "beyond the ideal (the next frame start after sending), ms: {}",
-        o.line(1e6)
+        "{:<8} {:>5} {:>6} {:>8} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "timing",
+        "Hz",
+        "sent",
+        "on line",
+        "missed",
+        "p50 ms",
+        "p90 ms",
+        "p99 ms",
+        "max ms",
+        "stale"
     );
+    for hz in [50.0, 100.0] {
+        let count = cli.e2e_count * (hz / 50.0) as u32;
+        let mut rows = Vec::new();
+        for timing in ["grid", "follow"] {
+            let r = e2e_run(timing, hz, count)?;
+            let l = &r.latency;
+            println!(
+                "{timing:<8} {hz:>5} {:>6} {:>8} {:>10} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8}",
+                r.sent,
+                l.count,
+                format!("{} ({})", r.missed, r.ingress_superseded),
+                l.p50 / 1e6,
+                l.p90 / 1e6,
+                l.p99 / 1e6,
+                l.max / 1e6,
+                format!("{}/{}", r.stale_frames, r.frames),
+            );
+            rows.push(r);
+        }
+        let (g, f) = (&rows[0].latency, &rows[1].latency);
+        println!(
+            "  at {hz} Hz, grid / follow: p50 {:.1}x, p90 {:.1}x, p99 {:.1}x, max {:.1}x; on the line {:.1}% (grid) and {:.1}% (follow) of the commands",
+            g.p50 / f.p50.max(1.0),
+            g.p90 / f.p90.max(1.0),
+            g.p99 / f.p99.max(1.0),
+            g.max / f.max.max(1.0),
+            g.count as f64 * 100.0 / rows[0].sent.max(1) as f64,
+            f.count as f64 * 100.0 / rows[1].sent.max(1) as f64,
+        );
+    }
     println!(
-        "commands sent >= 1 ms before a frame start that are in it (or newer): {in_frame} of {eligible} ({:.2}%)",
-        in_frame as f64 * 100.0 / eligible.max(1) as f64
+        "(missed: replaced by a newer command before any frame carried it, in brackets those replaced in udp-ingress; stale: frames carrying an older command than the newest one sent at least 1 ms before the frame started, of all frames)"
     );
     Ok(())
 }
 
 fn resources() -> Result<()> {
-    println!("== 4. memory and CPU (3 s idle, then 3 s at 50 Hz)");
-    let setup = Setup::new("res", "")?;
-    let ppmd = setup.spawn("ppmd", &["--output", "sim:/dev/null"])?;
-    let ingress = setup.spawn("udp-ingress", &[])?;
-    let measure = |label: &str, traffic: bool| -> Result<()> {
-        let (c0p, c0i, t0) = (ppmd.cpu_s(), ingress.cpu_s(), Instant::now());
-        if traffic {
-            paced(setup.port, 150, 50.0, |i| {
-                format!("[{}]", 1000 + i).into_bytes()
-            })?;
-        } else {
-            std::thread::sleep(Duration::from_secs(3));
-        }
-        let wall = t0.elapsed().as_secs_f64();
-        println!(
-            "{label:<8} ppmd: {:5.1}% CPU, {:6} KiB RSS   udp-ingress: {:5.1}% CPU, {:6} KiB RSS",
-            (ppmd.cpu_s() - c0p) * 100.0 / wall,
-            ppmd.rss_kib(),
-            (ingress.cpu_s() - c0i) * 100.0 / wall,
-            ingress.rss_kib()
-        );
-        Ok(())
-    };
-    measure("idle", false)?;
-    measure("50 Hz", true)?;
-    ingress.stop();
-    ppmd.stop();
+    println!("== 4. memory and CPU (3 s idle, then 3 s at 50 Hz), grid and follow timing");
+    for timing in ["grid", "follow"] {
+        let setup = Setup::new(&format!("res-{timing}"), "")?;
+        let ppmd = setup.spawn("ppmd", &["--output", "sim:/dev/null", "--timing", timing])?;
+        let ingress = setup.spawn("udp-ingress", &[])?;
+        let measure = |label: &str, traffic: bool| -> Result<()> {
+            let (c0p, c0i, t0) = (ppmd.cpu_s(), ingress.cpu_s(), Instant::now());
+            if traffic {
+                paced(setup.port, 150, 50.0, |i| {
+                    format!("[{}]", 1000 + i).into_bytes()
+                })?;
+            } else {
+                std::thread::sleep(Duration::from_secs(3));
+            }
+            let wall = t0.elapsed().as_secs_f64();
+            println!(
+                "{timing:<7} {label:<6} ppmd: {:5.1}% CPU, {:6} KiB RSS   udp-ingress: {:5.1}% CPU, {:6} KiB RSS",
+                (ppmd.cpu_s() - c0p) * 100.0 / wall,
+                ppmd.rss_kib(),
+                (ingress.cpu_s() - c0i) * 100.0 / wall,
+                ingress.rss_kib()
+            );
+            Ok(())
+        };
+        measure("idle", false)?;
+        measure("50 Hz", true)?;
+        ingress.stop();
+        ppmd.stop();
+    }
     Ok(())
 }
 
