@@ -51,6 +51,95 @@ impl CommandSource for RepeatSource {
     }
 }
 
+/// A fresh command (the same one, freshly stamped) each time a ticker
+/// thread ticks, `hz` times a second, with a wake-up on a socket after each
+/// tick, as udp-ingress sends them; asks the loop to stop (through `stop`)
+/// after `commands` commands. For benchmarks and test drivers of follow
+/// timing. Lock-free: the ticker only counts.
+pub struct TickSource {
+    sample: CommandSample,
+    ticks: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    taken: u64,
+    commands: u64,
+    rx: std::os::unix::net::UnixDatagram,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    ticker: Option<std::thread::JoinHandle<()>>,
+}
+
+impl TickSource {
+    /// Starts the ticker.
+    pub fn start(
+        sample: CommandSample,
+        hz: f64,
+        commands: u64,
+        stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    ) -> std::io::Result<TickSource> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let (tx, rx) = std::os::unix::net::UnixDatagram::pair()?;
+        rx.set_nonblocking(true)?;
+        tx.set_nonblocking(true)?;
+        let ticks = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let ticker = {
+            let (ticks, stop) = (ticks.clone(), stop.clone());
+            let period = (1e9 / hz) as u64;
+            std::thread::spawn(move || {
+                let mut next = crate::clock::now_ns() + period;
+                while !stop.load(Relaxed) {
+                    crate::clock::sleep_until(next);
+                    ticks.fetch_add(1, Relaxed);
+                    let _ = tx.send(&[1]);
+                    next += period;
+                }
+            })
+        };
+        Ok(TickSource {
+            sample,
+            ticks,
+            taken: 0,
+            commands,
+            rx,
+            stop,
+            ticker: Some(ticker),
+        })
+    }
+}
+
+impl Drop for TickSource {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(t) = self.ticker.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl CommandSource for TickSource {
+    fn newest(&mut self) -> Option<CommandSample> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let ticks = self.ticks.load(Relaxed);
+        if ticks == self.taken {
+            return None;
+        }
+        self.taken = ticks;
+        self.commands = self.commands.saturating_sub(1);
+        if self.commands == 0 {
+            self.stop.store(true, Relaxed);
+        }
+        self.sample.recv_mono_ns = crate::clock::now_ns();
+        Some(self.sample)
+    }
+
+    fn wake_fd(&self) -> Option<RawFd> {
+        use std::os::fd::AsRawFd;
+        Some(self.rx.as_raw_fd())
+    }
+
+    fn clear_wake(&mut self) {
+        let mut b = [0u8; 64];
+        while self.rx.recv(&mut b).is_ok() {}
+    }
+}
+
 type Subscriber =
     iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, CommandSample, ()>;
 

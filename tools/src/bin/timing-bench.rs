@@ -5,12 +5,14 @@
 //! backend with a constant command, on one real-time thread, in alternating
 //! blocks; the only difference is the spin margin (ppmd's `auto` versus 0,
 //! which makes the wait a plain `clock_nanosleep(TIMER_ABSTIME)`). A third
-//! kind of block drives a second output beside the first. Prints p50, p99,
-//! p99.9 and max edge error of each, the ratios, and the CPU share each costs.
+//! kind of block drives a second output beside the first, and a fourth runs
+//! the output in follow timing, its frames started by commands that come at
+//! 50 Hz and wake the loop. Prints p50, p99, p99.9 and max edge error of
+//! each, the ratios, and the CPU share each costs.
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use ppm_shared::config::{Config, CpuChoice, FailsafeAction};
+use ppm_shared::config::{Config, CpuChoice, FailsafeAction, Timing};
 use ppm_shared::frame::FrameModel;
 use ppm_shared::ipc::CommandSample;
 use ppm_shared::protocol::parse;
@@ -19,7 +21,7 @@ use ppmd::clock::{self, Margin};
 use ppmd::emitter::{self, EmitterConfig, Lane, Sink, Stats};
 use ppmd::output::SimOutput;
 use ppmd::rt::{RtSetup, RT_STACK_BYTES};
-use ppmd::source::RepeatSource;
+use ppmd::source::{CommandSource, RepeatSource, TickSource};
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
 
@@ -43,6 +45,9 @@ struct Cli {
     #[arg(long)]
     config: Option<std::path::PathBuf>,
 }
+
+/// Command rate of the follow-timing blocks, Hz (a groundstation's).
+const FOLLOW_HZ: f64 = 50.0;
 
 /// Results of one loop over all its blocks.
 struct Totals {
@@ -91,16 +96,22 @@ fn run_block(
     totals: &mut Totals,
 ) -> Result<()> {
     let stop = Arc::new(AtomicBool::new(false));
-    let mut sources: Vec<RepeatSource> = outputs
-        .iter()
-        .enumerate()
-        .map(|(i, (_, sample))| RepeatSource {
-            sample: *sample,
-            // The first output's count ends the block.
-            frames: if i == 0 { frames } else { u64::MAX },
-            stop: stop.clone(),
-        })
-        .collect();
+    let mut sources: Vec<Box<dyn CommandSource>> = Vec::new();
+    for (i, (model, sample)) in outputs.iter().enumerate() {
+        // The first output's count ends the block.
+        let frames = if i == 0 { frames } else { u64::MAX };
+        sources.push(match model.timing() {
+            Timing::Grid => Box::new(RepeatSource {
+                sample: *sample,
+                frames,
+                stop: stop.clone(),
+            }),
+            // Commands at FOLLOW_HZ, each waking the loop, as from udp-ingress.
+            Timing::Follow => {
+                Box::new(TickSource::start(*sample, FOLLOW_HZ, frames, stop.clone())?)
+            }
+        });
+    }
     let mut outs = outputs
         .iter()
         .map(|_| SimOutput::create(std::path::Path::new("/dev/null"), &[], u64::MAX))
@@ -126,7 +137,7 @@ fn run_block(
             .map(|((((model, _), source), out), (stats, (meter, _)))| Lane {
                 model,
                 cfg,
-                source,
+                source: source.as_mut(),
                 sink: Sink::Line(out),
                 stats,
                 meter,
@@ -163,7 +174,11 @@ fn main() -> Result<()> {
         max_ns: rt.spin_margin_max_us as u64 * 1_000,
     };
     let block_frames = cli.block * 1_000_000_000 / model.frame_ns();
-    let blocks = (cli.seconds / cli.block.max(1)).max(3);
+    let blocks = (cli.seconds / cli.block.max(1)).max(4);
+    let mut follow_cfg = cfg.clone();
+    follow_cfg.ppm.timing = Timing::Follow;
+    let follow = follow_cfg.validate()?;
+    let follow_commands = cli.block * FOLLOW_HZ as u64;
     let cmd = parse(b"[1000, 1200, 1700, 2000]", &model).context("bench command")?;
     let sample = CommandSample::new(&cmd, 1, 0, 0);
     let mut other_cfg = cfg.clone();
@@ -178,23 +193,25 @@ fn main() -> Result<()> {
     let worker = std::thread::Builder::new()
         .name("timing-bench".into())
         .stack_size(RT_STACK_BYTES)
-        .spawn(move || -> Result<(String, Totals, Totals, Totals)> {
+        .spawn(move || -> Result<(String, [Totals; 4])> {
             let obtained = setup.apply()?;
             let mut summary = obtained.summary();
             for s in &obtained.shortfalls {
                 summary += &format!("\nDEGRADED: {s}");
             }
-            let (mut spin, mut sleep, mut two) = (Totals::new(), Totals::new(), Totals::new());
+            let [mut spin, mut sleep, mut two, mut fol] =
+                [Totals::new(), Totals::new(), Totals::new(), Totals::new()];
             for b in 0..blocks {
                 let one = [(&m2, sample)];
                 let both = [(&m2, sample), (&other2, other_sample)];
-                match b % 3 {
+                match b % 4 {
                     0 => run_block(&one, auto, block_frames, &mut spin)?,
                     1 => run_block(&one, Margin::Fixed(0), block_frames, &mut sleep)?,
-                    _ => run_block(&both, auto, block_frames, &mut two)?,
+                    2 => run_block(&both, auto, block_frames, &mut two)?,
+                    _ => run_block(&[(&follow, sample)], auto, follow_commands, &mut fol)?,
                 }
             }
-            Ok((summary, spin, sleep, two))
+            Ok((summary, [spin, sleep, two, fol]))
         })?;
     println!(
         "ppm timing benchmark: ppmd's emission loop on the sim backend, {} channels, {:.1} ms frames, {} edges a frame",
@@ -203,13 +220,13 @@ fn main() -> Result<()> {
         2 * (model.channels() + 1)
     );
     println!(
-        "{} s in {blocks} alternating blocks of {} s, same frame schedule for every loop; \"two outputs\" adds a second line of {} channels at {:.1} ms from the same thread (both lines counted)",
+        "{} s in {blocks} alternating blocks of {} s, same frame for every loop; \"two outputs\" adds a second line of {} channels at {:.1} ms from the same thread (both lines counted); \"follow timing\" starts each frame when a command comes, {FOLLOW_HZ} a second, each waking the loop",
         blocks * cli.block,
         cli.block,
         other.channels(),
         other.frame_ns() as f64 / 1e6
     );
-    let (summary, spin, sleep, two) = worker
+    let (summary, [spin, sleep, two, fol]) = worker
         .join()
         .map_err(|_| anyhow::anyhow!("benchmark thread panicked"))??;
     println!("real-time: {summary}");
@@ -220,6 +237,7 @@ fn main() -> Result<()> {
     );
     for (name, t) in [
         ("ppmd (sleep, then spin)", &spin),
+        ("ppmd, follow timing", &fol),
         ("ppmd, two outputs", &two),
         ("baseline (absolute sleep)", &sleep),
     ] {
@@ -236,7 +254,12 @@ fn main() -> Result<()> {
             t.overruns
         );
     }
-    let (a, b, c) = (spin.percentiles(), sleep.percentiles(), two.percentiles());
+    let (a, b, c, f) = (
+        spin.percentiles(),
+        sleep.percentiles(),
+        two.percentiles(),
+        fol.percentiles(),
+    );
     println!();
     println!(
         "p99 edge error: baseline / ppmd = {:.0}x (p50 {:.0}x, p99.9 {:.0}x)",
@@ -249,6 +272,12 @@ fn main() -> Result<()> {
         c.p50 / a.p50.max(1.0),
         c.p99 / a.p99.max(1.0),
         c.p999 / a.p999.max(1.0)
+    );
+    println!(
+        "follow timing / grid timing: p50 {:.2}x, p99 {:.2}x, p99.9 {:.2}x",
+        f.p50 / a.p50.max(1.0),
+        f.p99 / a.p99.max(1.0),
+        f.p999 / a.p999.max(1.0)
     );
     println!(
         "spinning costs {:.1}% of the pinned core: ppmd's loop uses {:.1}% CPU, the baseline {:.1}%; time spent spinning {:.1}% of wall time",
