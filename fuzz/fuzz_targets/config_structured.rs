@@ -8,7 +8,7 @@ use arbitrary::Arbitrary;
 use libfuzzer_sys::fuzz_target;
 use ppm_fuzz::check_model;
 use ppm_shared::config::{
-    channel_names, ChannelOverride, Config, CpuChoice, FailsafeAction, SpinMargin,
+    channel_names, ChannelOverride, Config, CpuChoice, FailsafeAction, SpinMargin, Timing,
 };
 use ppm_shared::frame::Level;
 
@@ -134,6 +134,9 @@ struct Input {
     startup: u8,
     frame_log_max_mb: Option<u64>,
     trace_max_mb: Option<u64>,
+    /// Follow timing, with its sync limits when given.
+    follow: Option<(Option<Us>, Option<Us>)>,
+    follow_sync_min: Option<Us>,
 }
 
 const ORDERS: &[&str] = &[
@@ -263,9 +266,23 @@ fuzz_target!(|input: Input| {
         c.ppmd.trace_max_mb = v;
     }
 
+    if let Some((min, max)) = input.follow {
+        c.ppm.timing = Timing::Follow;
+        if let Some(v) = min {
+            c.ppm.follow_sync_min_us = v.get();
+        }
+        if let Some(v) = max {
+            c.ppm.follow_sync_max_us = v.get();
+        }
+    } else if let Some(v) = input.follow_sync_min {
+        // Checked in grid timing too.
+        c.ppm.follow_sync_min_us = v.get();
+    }
+
     match c.validate() {
         Ok(m) => {
             check_model(&m);
+            assert_eq!(m.timing(), c.ppm.timing);
             assert_eq!(m.channels(), c.ppm.channels as usize);
             assert_eq!(
                 m.names(),

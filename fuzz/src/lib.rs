@@ -3,7 +3,9 @@
 //! satisfy.
 
 use ppm_shared::auth::{self, AuthKey, MAC_HEX_LEN};
-use ppm_shared::config::{Config, SYNC_MAX_US, SYNC_MIN_US};
+use ppm_shared::config::{
+    Config, Timing, FOLLOW_SYNC_CEILING_US, FOLLOW_SYNC_FLOOR_US, SYNC_MAX_US, SYNC_MIN_US,
+};
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::{us_to_ns, Channels, FrameModel, Level};
 use ppm_shared::protocol::{self, Command, Reject, RejectReason};
@@ -12,6 +14,17 @@ use std::sync::OnceLock;
 /// Configurations the wire targets parse against.
 pub const MODEL_CONFIGS: &[(&str, &str)] = &[
     ("default", ""),
+    (
+        // Follow timing: 12 channels, whose frame_us would not fit grid.
+        "follow12",
+        r#"
+[ppm]
+channels = 12
+timing = "follow"
+follow_sync_min_us = 4500
+follow_sync_max_us = 18500
+"#,
+    ),
     (
         "taer4",
         r#"
@@ -133,16 +146,27 @@ pub fn check_model(m: &FrameModel) {
     assert_eq!(m.names().len(), n);
     let sum_max: u64 = (0..n).map(|i| m.max_ns(i) as u64).sum();
     let sum_min: u64 = (0..n).map(|i| m.min_ns(i) as u64).sum();
+    // Follow timing's syncs are its limits, whatever the frame; grid's are
+    // what the frame leaves. Either way strictly inside 4..19 ms, with margin.
+    let (sync_min, sync_max) = m.follow_sync_ns();
     assert!(
-        m.frame_ns() >= sum_max + us_to_ns(SYNC_MIN_US),
-        "worst-case sync below 4 ms: frame {} sum_max {sum_max}",
-        m.frame_ns()
+        sync_min >= us_to_ns(FOLLOW_SYNC_FLOOR_US)
+            && sync_max <= us_to_ns(FOLLOW_SYNC_CEILING_US)
+            && sync_min <= sync_max,
+        "follow syncs {sync_min}..{sync_max}"
     );
-    assert!(
-        m.frame_ns() - sum_min <= us_to_ns(SYNC_MAX_US),
-        "best-case sync above 19 ms: frame {} sum_min {sum_min}",
-        m.frame_ns()
-    );
+    if m.timing() == Timing::Grid {
+        assert!(
+            m.frame_ns() >= sum_max + us_to_ns(SYNC_MIN_US),
+            "worst-case sync below 4 ms: frame {} sum_max {sum_max}",
+            m.frame_ns()
+        );
+        assert!(
+            m.frame_ns() - sum_min <= us_to_ns(SYNC_MAX_US),
+            "best-case sync above 19 ms: frame {} sum_min {sum_min}",
+            m.frame_ns()
+        );
+    }
     assert!(m.pulse_ns() >= 50_000, "pulse {}", m.pulse_ns());
     for i in 0..n {
         let (lo, d, hi) = (m.min_ns(i), m.default_ns(i), m.max_ns(i));
@@ -215,28 +239,36 @@ pub fn check_frame(m: &FrameModel, c: &Channels) {
         );
     }
     let last_start = e[2 * n].at_ns;
-    assert!(
-        last_start + us_to_ns(SYNC_MIN_US) <= m.frame_ns(),
-        "last pulse at {last_start} leaves less than 4 ms of a {} ns frame",
-        m.frame_ns()
-    );
-    assert!(
-        m.frame_ns() - last_start <= us_to_ns(SYNC_MAX_US),
-        "sync over 19 ms"
-    );
-    // Two frames plus the next frame's first edge: a transmitter reads the
-    // second frame, and it must be exactly the values.
-    let mut edges: Vec<(u64, Level)> = Vec::with_capacity(2 * e.len() + 1);
-    for k in 0..2u64 {
-        edges.extend(e.iter().map(|x| (k * m.frame_ns() + x.at_ns, x.level)));
+    // Frame to frame: grid frames every frame_ns; follow frames as close as
+    // they may come (the shortest sync) and as far (the longest).
+    let (sync_min, sync_max) = m.follow_sync_ns();
+    let periods = match m.timing() {
+        Timing::Grid => vec![m.frame_ns()],
+        Timing::Follow => vec![last_start + sync_min, last_start + sync_max],
+    };
+    for period in periods {
+        assert!(
+            last_start + us_to_ns(SYNC_MIN_US) <= period,
+            "last pulse at {last_start} leaves less than 4 ms of a {period} ns frame"
+        );
+        assert!(
+            period - last_start <= us_to_ns(SYNC_MAX_US),
+            "sync over 19 ms"
+        );
+        // Two frames plus the next frame's first edge: a transmitter reads
+        // the second frame, and it must be exactly the values.
+        let mut edges: Vec<(u64, Level)> = Vec::with_capacity(2 * e.len() + 1);
+        for k in 0..2u64 {
+            edges.extend(e.iter().map(|x| (k * period + x.at_ns, x.level)));
+        }
+        edges.push((2 * period, active));
+        let frames = decode(edges, active, DecoderLimits::default());
+        assert_eq!(frames.len(), 1, "decoded {frames:?}");
+        let got: Vec<u32> = frames[0].channels_ns.iter().map(|&v| v as u32).collect();
+        assert_eq!(got, c.as_ns(), "decoded values");
+        assert!(frames[0].complete);
+        assert_eq!(frames[0].start_ns, period);
     }
-    edges.push((2 * m.frame_ns(), active));
-    let frames = decode(edges, active, DecoderLimits::default());
-    assert_eq!(frames.len(), 1, "decoded {frames:?}");
-    let got: Vec<u32> = frames[0].channels_ns.iter().map(|&v| v as u32).collect();
-    assert_eq!(got, c.as_ns(), "decoded values");
-    assert!(frames[0].complete);
-    assert_eq!(frames[0].start_ns, m.frame_ns());
 }
 
 /// Invariants of an accepted command.

@@ -1376,6 +1376,72 @@ mod tests {
     }
 
     #[test]
+    fn follow_timing_keys() {
+        let c = Config::parse(
+            "[ppm]\ntiming = 'follow'\nfollow_sync_min_us = 4500.0\nfollow_sync_max_us = 18500.0",
+        )
+        .unwrap();
+        assert_eq!(c.ppm.timing, Timing::Follow);
+        let m = c.validate().unwrap();
+        assert_eq!(m.timing(), Timing::Follow);
+        assert_eq!(m.follow_sync_ns(), (4_500_000, 18_500_000));
+        assert_eq!(Config::default().ppm.timing, Timing::Grid);
+        assert_eq!(
+            Config::default().validate().unwrap().follow_sync_ns(),
+            (5_000_000, 18_000_000)
+        );
+        // Follow timing does not use frame_us: 12 channels of up to 2000 us
+        // need no longer frame (grid would refuse it).
+        let twelve = "[ppm]\nchannels = 12\ntiming = 'follow'";
+        Config::parse(twelve).unwrap().validate().unwrap();
+        let e = Config::parse(&twelve.replace("follow", "grid"))
+            .unwrap()
+            .validate()
+            .unwrap_err();
+        assert_eq!(e.key(), Some("ppm.frame_us"));
+        for (text, key) in [
+            ("timing = 'fast'", "timing"),
+            ("follow_sync_min_us = 4499.0", "ppm.follow_sync_min_us"),
+            ("follow_sync_min_us = 4000.0", "ppm.follow_sync_min_us"),
+            ("follow_sync_min_us = nan", "ppm.follow_sync_min_us"),
+            ("follow_sync_max_us = 18501.0", "ppm.follow_sync_max_us"),
+            ("follow_sync_max_us = 19000.0", "ppm.follow_sync_max_us"),
+            ("follow_sync_max_us = inf", "ppm.follow_sync_max_us"),
+            (
+                "follow_sync_min_us = 9000.0\nfollow_sync_max_us = 8000.0",
+                "ppm.follow_sync_max_us",
+            ),
+        ] {
+            // Checked in either timing.
+            for timing in ["grid", "follow"] {
+                let text = format!("[ppm]\ntiming = '{timing}'\n{text}");
+                let e = match Config::parse(&text) {
+                    Err(e) => e.to_string(),
+                    Ok(c) => c.validate().unwrap_err().to_string(),
+                };
+                assert!(e.contains(key), "{text}: {e}");
+            }
+        }
+        assert_eq!("follow".parse(), Ok(Timing::Follow));
+        assert_eq!("grid".parse(), Ok(Timing::Grid));
+        assert!("Follow".parse::<Timing>().is_err());
+        // Per output, and named there.
+        let c = Config::parse(
+            "[[outputs]]\nname = 'a'\noutput = 'sim:a'\n[[outputs]]\nname = 'b'\noutput = 'sim:b'\nppm.timing = 'follow'\nppm.follow_sync_min_us = 100.0",
+        )
+        .unwrap();
+        let e = c.validate_outputs().unwrap_err();
+        assert_eq!(e.key(), Some("outputs[1].ppm.follow_sync_min_us"));
+        let c = Config::parse(
+            "[[outputs]]\nname = 'a'\noutput = 'sim:a'\n[[outputs]]\nname = 'b'\noutput = 'sim:b'\nppm.timing = 'follow'\ningress.listen = '127.0.0.1:5006'",
+        )
+        .unwrap();
+        let outs = c.validate_outputs().unwrap();
+        assert_eq!(outs[0].1.timing(), Timing::Grid);
+        assert_eq!(outs[1].1.timing(), Timing::Follow);
+    }
+
+    #[test]
     fn ingress_scheduling_keys() {
         let c = Config::parse("[ingress]\npriority = 79\ncpu = 0\nbusy_poll = true").unwrap();
         c.validate().unwrap();
