@@ -193,15 +193,16 @@ fn status_counts_every_datagram_and_reports_ppmd() {
         e["max"].as_f64().unwrap(),
     );
     assert!(0.0 <= p50 && p50 <= p99 && p99 <= max, "{e}");
-    for k in ["overruns", "late_frames", "failsafe_entries"] {
+    for k in ["overruns", "late_frames", "failsafe_entries", "repeats"] {
         assert!(p[k].is_u64(), "{k}: {p}");
     }
+    assert_eq!(p["timing"], "grid", "{p}");
     assert!(p["degraded"].is_boolean(), "{p}");
     let age = p["snapshot_age_ms"].as_f64().unwrap();
     assert!((0.0..=3_000.0).contains(&age), "{p}");
     assert_eq!(
         p.as_object().unwrap().len(),
-        8,
+        10,
         "exactly the documented keys: {p}"
     );
 

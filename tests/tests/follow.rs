@@ -1,0 +1,306 @@
+//! Follow timing with the real binaries: frames start when commands come,
+//! every frame on the simulated line is read by EdgeTX, OpenTX, Betaflight
+//! and ArduPilot as their firmware decodes PPM, and the frame log, the exit
+//! summary and the status reply say the timing. How soon a command reaches
+//! the line is measured by `ppm-bench --only e2e`, not here.
+
+use nix::sys::signal::Signal;
+use ppm_shared::receiver::{decode_as, Receiver};
+use ppm_shared::trace::Trace;
+use ppm_shared::Level;
+use ppm_tests::{at_50hz, free_udp_port, read_trace, Sandbox, Sender};
+use serde_json::Value;
+use std::net::{SocketAddr, UdpSocket};
+use std::path::Path;
+use std::time::Duration;
+
+const SECOND: Duration = Duration::from_secs(1);
+const MS: u64 = 1_000_000;
+
+/// A frame in the frame log: start, values (us), ingress_seq, timing.
+#[derive(Debug)]
+struct Logged {
+    start: u64,
+    ch_us: Vec<f64>,
+    ingress_seq: Option<u64>,
+    recv: Option<u64>,
+    timing: String,
+}
+
+fn logged_frames(path: &Path) -> Vec<Logged> {
+    std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|r| r["type"] == "frame")
+        .map(|r| Logged {
+            start: r["mono_ns"].as_u64().unwrap(),
+            ch_us: r["ch_us"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect(),
+            ingress_seq: r["ingress_seq"].as_u64(),
+            recv: r["recv_mono_ns"].as_u64(),
+            timing: r["timing"].as_str().unwrap().to_string(),
+        })
+        .collect()
+}
+
+/// The number before `what` in ppmd's summary line for the output (`12
+/// overruns`).
+fn summary_count(log: &str, what: &str) -> u64 {
+    let line = log
+        .lines()
+        .find(|l| l.contains("stopped"))
+        .unwrap_or_else(|| panic!("no summary:\n{log}"));
+    let words: Vec<&str> = line.split([' ', ',', '(', ')', ';']).collect();
+    let at = words
+        .iter()
+        .position(|w| *w == what)
+        .unwrap_or_else(|| panic!("no `{what}` in {line}"));
+    words[at - 1].parse().unwrap()
+}
+
+/// One status query, and its reply.
+fn status(to: SocketAddr) -> Value {
+    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    socket.set_read_timeout(Some(5 * SECOND)).unwrap();
+    socket.send_to(br#"{"get":"status"}"#, to).unwrap();
+    let mut buf = [0u8; 65_536];
+    let (n, _) = socket.recv_from(&mut buf).expect("a status reply");
+    serde_json::from_slice(&buf[..n]).unwrap()
+}
+
+/// Checks that every receiver hands on every logged frame, exactly (but the
+/// frames it reads while it locks on, and, for those that hand a frame on
+/// at the sync after it, the last one), and that nothing else is read.
+fn assert_every_receiver_reads(trace: &Trace, logged: &[Logged], overruns: u64) {
+    let leading = trace.idle_level.unwrap_or(Level::Low).opposite();
+    for r in Receiver::ALL {
+        let (read, stats) = decode_as(
+            r,
+            trace.edges.iter().map(|e| (e.scheduled_ns, e.level)),
+            leading,
+        );
+        let trainer = matches!(r, Receiver::EdgeTx | Receiver::OpenTx);
+        let read: Vec<_> = read.iter().filter(|f| f.complete || trainer).collect();
+        for f in &read {
+            let l = logged
+                .iter()
+                .find(|l| l.start == f.start_ns)
+                .unwrap_or_else(|| panic!("{r:?} read a frame at {} not logged", f.start_ns));
+            let want: Vec<u64> = l.ch_us.iter().map(|&v| v.round() as u64).collect();
+            assert_eq!(f.channels_us(), want, "{r:?} at {}", f.start_ns);
+        }
+        let closed = logged.len() - !trainer as usize;
+        let want = closed.saturating_sub(r.warmup_frames());
+        // A lead-in pulse after an overrun (a stall of this shared machine)
+        // makes Betaflight count its frames again before it locks.
+        let slack = overruns as usize * (r.warmup_frames() + 1);
+        assert!(
+            read.len() <= want && read.len() + slack >= want,
+            "{r:?} read {} of {} frames ({overruns} overruns, {stats:?})",
+            read.len(),
+            logged.len()
+        );
+        if trainer {
+            // The gap before a lead-in pulse may be longer than a sync.
+            assert!(stats.invalid_periods <= overruns, "{r:?}: {stats:?}");
+        }
+    }
+}
+
+#[test]
+fn follow_frames_start_with_the_commands_and_every_receiver_reads_them() {
+    let sb = Sandbox::new("follow");
+    let log_path = sb.dir.join("frames.jsonl");
+    let cfg = sb.config(&format!(
+        "[ppm]\ntiming = \"follow\"\n[ppmd]\nframe_log = \"{}\"\n",
+        log_path.display()
+    ));
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    assert!(ppmd
+        .log_text()
+        .contains("follow timing, sync 5000..18000 us"));
+    let sender = Sender::new(sb.addr());
+    let mut reply = Value::Null;
+    at_50hz(100, |i| {
+        let ail = 1_000 + 3 * i;
+        sender.send(format!(r#"{{"ch": [{ail}, 1900], "seq": {i}}}"#).as_bytes());
+        if i == 80 {
+            reply = status(sb.addr());
+        }
+    });
+    // Past the failsafe (200 ms): the repeats, then silence.
+    std::thread::sleep(Duration::from_millis(400));
+    assert!(
+        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
+        "{}",
+        ppmd.log_text()
+    );
+    assert!(ingress
+        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
+        .success());
+    let log = ppmd.log_text();
+    let (late, overruns, repeats) = (
+        summary_count(&log, "late"),
+        summary_count(&log, "overruns"),
+        summary_count(&log, "repeats"),
+    );
+
+    assert_eq!(reply["ppmd"]["timing"], "follow", "{reply}");
+    assert_eq!(reply["ppmd"]["state"], "active", "{reply}");
+
+    let logged = logged_frames(&log_path);
+    assert!(logged.len() >= 60, "{} frames", logged.len());
+    assert!(logged.iter().all(|l| l.timing == "follow"));
+    let trace = read_trace(&sb.dir.join("line.trace"));
+    assert_every_receiver_reads(&trace, &logged, overruns);
+
+    // Frame to frame (scheduled times, exact): a frame starts after its
+    // command was received, never carries an older one than the frame
+    // before, leaves the follow syncs between frames, and repeats the
+    // previous command only at the longest sync (or late, counted).
+    let leading: std::collections::BTreeSet<u64> = trace
+        .edges
+        .iter()
+        .filter(|e| e.level == Level::High)
+        .map(|e| e.scheduled_ns)
+        .collect();
+    let mut late_repeats = 0;
+    let mut counted_repeats = 0;
+    for w in logged.windows(2) {
+        let (a, b) = (&w[0], &w[1]);
+        assert!(b.recv.unwrap() <= b.start, "{b:?}");
+        assert!(b.ingress_seq >= a.ingress_seq, "{a:?} then {b:?}");
+        let a_last = a.start + a.ch_us.iter().map(|v| (v * 1e3) as u64).sum::<u64>();
+        let sync = b.start - a_last;
+        if sync >= 18_500_000 {
+            assert!(
+                leading.contains(&(b.start - 5 * MS)),
+                "a long gap before {} without a lead-in pulse",
+                b.start
+            );
+            continue;
+        }
+        assert!(sync >= 5 * MS, "{sync} ns before {b:?}");
+        if a.ingress_seq == b.ingress_seq {
+            counted_repeats += 1;
+            late_repeats += (sync != 18 * MS) as u64;
+        }
+    }
+    assert!(
+        late_repeats <= late,
+        "{late_repeats} late repeats, {late} late frames"
+    );
+    // After the last command the frame repeats at the longest sync until the
+    // failsafe (200 ms) silences it.
+    assert!(counted_repeats >= 3, "{counted_repeats} repeats");
+    assert!(repeats >= counted_repeats, "{repeats} counted by ppmd");
+    // Commands reach the line (how many, and how soon, is ppm-bench's part).
+    let carried: std::collections::BTreeSet<u64> =
+        logged.iter().filter_map(|l| l.ingress_seq).collect();
+    assert!(carried.len() >= 50, "{} of 100 commands", carried.len());
+}
+
+#[test]
+fn a_follow_output_runs_beside_a_grid_output() {
+    let sb = Sandbox::new("follow-outputs");
+    let port_b = free_udp_port();
+    let cfg_path = sb.dir.join("ppm.toml");
+    std::fs::write(
+        &cfg_path,
+        format!(
+            r#"
+[ingress]
+listen = "127.0.0.1:{port_a}"
+[ipc]
+root = "{root}"
+[rt]
+allow_degraded = true
+
+[[outputs]]
+name = "{name}a"
+output = "sim:a.trace"
+frame_log = "a.jsonl"
+
+[[outputs]]
+name = "{name}b"
+output = "sim:b.trace"
+frame_log = "b.jsonl"
+[outputs.ingress]
+listen = "127.0.0.1:{port_b}"
+[outputs.ppm]
+channels = 6
+order = "TAER"
+timing = "follow"
+"#,
+            port_a = sb.port,
+            root = sb.dir.join("ipc").display(),
+            name = sb.name,
+        ),
+    )
+    .unwrap();
+    let cfg = cfg_path.to_str().unwrap();
+    let (name_a, name_b) = (format!("{}a", sb.name), format!("{}b", sb.name));
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg], "ppmd");
+    let mut ing_a = sb.spawn(
+        "udp-ingress",
+        &["--config", cfg, "--name", &name_a],
+        "ing-a",
+    );
+    let mut ing_b = sb.spawn(
+        "udp-ingress",
+        &["--config", cfg, "--name", &name_b],
+        "ing-b",
+    );
+    ppmd.wait_for_log(&format!("{name_b}: 6 channels"), 30 * SECOND);
+    ing_a.wait_for_log("listening on", 30 * SECOND);
+    ing_b.wait_for_log("listening on", 30 * SECOND);
+    let to_b = SocketAddr::from(([127, 0, 0, 1], port_b));
+    let (send_a, send_b) = (Sender::new(sb.addr()), Sender::new(to_b));
+    let mut replies = Vec::new();
+    at_50hz(75, |i| {
+        send_a.send(b"[1100, 1200, 1300, 1400]");
+        send_b.send(format!("[{}, 1200, 1300]", 1_000 + 4 * i).as_bytes());
+        if i == 60 {
+            replies = vec![status(sb.addr()), status(to_b)];
+        }
+    });
+    assert!(
+        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
+        "{}",
+        ppmd.log_text()
+    );
+    for ing in [&mut ing_a, &mut ing_b] {
+        assert!(ing.signal_and_wait(Signal::SIGINT, 10 * SECOND).success());
+    }
+    assert_eq!(replies[0]["ppmd"]["timing"], "grid");
+    assert_eq!(replies[1]["ppmd"]["timing"], "follow");
+    let log = ppmd.log_text();
+    assert!(log.contains(&format!("{name_b}: stopped")) && log.contains("repeats)"));
+    for (file, timing, trace) in [
+        ("a.jsonl", "grid", "a.trace"),
+        ("b.jsonl", "follow", "b.trace"),
+    ] {
+        let logged = logged_frames(&sb.dir.join(file));
+        assert!(logged.len() >= 40, "{file}: {} frames", logged.len());
+        assert!(logged.iter().all(|l| l.timing == timing), "{file}");
+        let trace = read_trace(&sb.dir.join(trace));
+        let frames = trace.decode(false);
+        assert_eq!(frames.len(), logged.len(), "{file}");
+        for (f, l) in frames.iter().zip(&logged) {
+            assert_eq!(f.start_ns, l.start);
+            let want: Vec<u64> = l.ch_us.iter().map(|&v| v.round() as u64).collect();
+            assert_eq!(f.channels_us(), want, "{file}");
+        }
+    }
+    // The follow line carries its commands (how many, and how soon, is
+    // ppm-bench's part).
+    let b = logged_frames(&sb.dir.join("b.jsonl"));
+    let carried: std::collections::BTreeSet<u64> = b.iter().filter_map(|l| l.ingress_seq).collect();
+    assert!(carried.len() >= 38, "{} of 75 commands", carried.len());
+}
