@@ -13,6 +13,7 @@
 
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::Level;
+use ppm_shared::receiver::{decode_as, Receiver};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
@@ -359,6 +360,7 @@ fn check(flavor: &str) {
     );
 
     check_two_outputs(&out, base, flavor);
+    check_follow(&out, gpio18, flavor);
 
     let ppmd = read(&out, "ppmd.log");
     assert!(ppmd.contains("policy SCHED_FIFO priority 80"), "{ppmd}");
@@ -432,6 +434,78 @@ fn check_two_outputs(out: &Path, base: u32, flavor: &str) {
         together >= 2 * 40,
         "{together} calls set both lines on {flavor}"
     );
+}
+
+/// ppmd in follow timing on GPIO18: every receiver model reads every frame
+/// ppmd logged from the kernel's record of the line (but those it reads
+/// while it locks on, and, for Betaflight and ArduPilot, which hand a frame
+/// on at the sync after it, the last one), each within 20 us per channel of
+/// what ppmd logged (guest interrupts move an edge by a few us now and then).
+fn check_follow(out: &Path, gpio18: u32, flavor: &str) {
+    let log = read(out, "follow_ppmd.log");
+    assert_eq!(read(out, "follow_ppmd_exit.txt").trim(), "0", "{log}");
+    assert!(log.contains("follow timing, sync 5000..18000 us"), "{log}");
+    let sets = sets(
+        &read(out, "follow_trace.txt"),
+        &read(out, "follow_trace_raw.txt"),
+        gpio18,
+    );
+    let logged: Vec<(u64, Vec<u64>)> = read(out, "follow_frames.jsonl")
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|r| r["type"] == "frame")
+        .map(|r| {
+            assert_eq!(r["timing"], "follow", "{r}");
+            let ch = r["ch_us"].as_array().unwrap();
+            let ch = ch.iter().map(|v| v.as_f64().unwrap().round() as u64);
+            (r["mono_ns"].as_u64().unwrap(), ch.collect())
+        })
+        .collect();
+    assert!(
+        logged.len() >= 45,
+        "{} follow frames on {flavor}",
+        logged.len()
+    );
+    let overruns: usize = log
+        .lines()
+        .find(|l| l.contains("stopped"))
+        .and_then(|l| {
+            l.split(" overruns")
+                .next()?
+                .rsplit(' ')
+                .next()?
+                .parse()
+                .ok()
+        })
+        .unwrap_or_else(|| panic!("no overrun count in:\n{log}"));
+    for r in Receiver::ALL {
+        let (read, stats) = decode_as(
+            r,
+            sets.iter().map(|&(t, v)| (t, Level::from_bit(v == 1))),
+            Level::High,
+        );
+        let trainer = matches!(r, Receiver::EdgeTx | Receiver::OpenTx);
+        let read: Vec<_> = read.iter().filter(|f| f.complete || trainer).collect();
+        let want = (logged.len() - !trainer as usize).saturating_sub(r.warmup_frames());
+        let slack = overruns * (r.warmup_frames() + 1);
+        assert!(
+            read.len() <= want && read.len() + slack >= want,
+            "{r:?} read {} of {} follow frames on {flavor} ({overruns} overruns, {stats:?})",
+            read.len(),
+            logged.len()
+        );
+        for f in read {
+            let (_, want) = logged
+                .iter()
+                .find(|(start, _)| start.abs_diff(f.start_ns) <= 20_000)
+                .unwrap_or_else(|| panic!("{r:?} read a frame at {} not logged", f.start_ns));
+            let got = f.channels_us();
+            assert!(
+                got.len() == want.len() && got.iter().zip(want).all(|(g, w)| g.abs_diff(*w) <= 20),
+                "{r:?} on {flavor}: {got:?}, logged {want:?}"
+            );
+        }
+    }
 }
 
 #[test]

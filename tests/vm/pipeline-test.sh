@@ -7,8 +7,10 @@
 #     ppm-send over loopback at 50 Hz, then SIGTERM to ppmd.
 #   - one ppmd with two outputs on GPIO19 and GPIO20 (one request), fed by
 #     two udp-ingress, traced with the calls that set the values.
+#   - ppmd in follow timing on GPIO18, commands from ppm-send at 50 Hz.
 # Results in /out: gpio_trace.txt, *.log, chip.txt, ppmd_exit.txt,
-# debug_gpio_after.txt, frames.jsonl, two_trace.txt, two_ppmd_exit.txt.
+# debug_gpio_after.txt, frames.jsonl, two_trace.txt, two_ppmd_exit.txt,
+# follow_trace.txt, follow_frames.jsonl, follow_ppmd_exit.txt.
 set -eu
 . /lib/vmtest.sh
 
@@ -103,6 +105,21 @@ stop_ppmd "$ppmd2" two_ppmd_exit two_trace
 echo nop > $VMTEST_TRACEFS/current_tracer
 kill -TERM "$ing_a" "$ing_b"
 wait "$ing_a" "$ing_b" || true
+
+# Follow timing on GPIO18 (released by the first ppmd): frames start when
+# the commands come.
+start_gpio_trace gpio_value
+udp-ingress --config /tmp/ppm.toml --listen 127.0.0.1:5008 2> /out/follow_ingress.log &
+fing=$!
+ppmd --config /tmp/ppm.toml --timing follow --output "gpio:$chip:GPIO18" \
+    --frame-log /out/follow_frames.jsonl 2> /out/follow_ppmd.log &
+fppmd=$!
+sleep 1
+ppm-send --to 127.0.0.1:5008 --rate 50 --count 50 --sweep 1:1000:1490:2s '[1000, 1200, 1700, 2000]'
+sleep 0.5
+stop_ppmd "$fppmd" follow_ppmd_exit follow_trace
+kill -TERM "$fing"
+wait "$fing" || true
 
 # jitter --capture: GPIO17 requested as an input with edge detection, driven
 # from outside by pull-ppm (ppmd's timing loop writing gpio-sim's pull
