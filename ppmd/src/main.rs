@@ -524,7 +524,11 @@ impl Monitor {
             total_error: meter::histogram(),
             total_write: meter::histogram(),
             snapshot: TimingSnapshot {
-                frame_ns: model.frame_ns(),
+                // Follow timing has no fixed interval.
+                frame_ns: match model.timing() {
+                    Timing::Grid => model.frame_ns(),
+                    Timing::Follow => 0,
+                },
                 timing: (model.timing() == Timing::Follow) as u32,
                 pid: std::process::id(),
                 priority: obtained.priority as u32,

@@ -136,7 +136,8 @@ pub struct TimingSnapshot {
     pub mono_ns: u64,
     /// Time since ppmd started, ns.
     pub uptime_ns: u64,
-    /// Frame length, ns (the loop's interval).
+    /// Frame length, ns (the loop's interval); 0 in follow timing, whose
+    /// frames follow the commands.
     pub frame_ns: u64,
     /// Current spin margin, ns.
     pub margin_ns: u64,
