@@ -70,12 +70,34 @@ pub struct DecoderStats {
     pub overflows: u64,
 }
 
+/// Which level changes a PPM reader times: those to the `leading` level; a
+/// repeated level is no edge.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct LeadingEdges {
+    leading: Level,
+    level: Option<Level>,
+}
+
+impl LeadingEdges {
+    pub(crate) fn new(leading: Level) -> LeadingEdges {
+        LeadingEdges {
+            leading,
+            level: None,
+        }
+    }
+
+    /// Notes the line's level after a change; true when it is a timed edge.
+    pub(crate) fn timed(&mut self, level: Level) -> bool {
+        let changed = self.level.replace(level) != Some(level);
+        changed && level == self.leading
+    }
+}
+
 /// Streaming decoder: feed edges in time order with [`Decoder::push`].
 #[derive(Debug, Clone)]
 pub struct Decoder {
     limits: DecoderLimits,
-    leading: Level,
-    level: Option<Level>,
+    edges: LeadingEdges,
     last_leading_ns: Option<u64>,
     frame: Option<DecodedFrame>,
     stats: DecoderStats,
@@ -87,8 +109,7 @@ impl Decoder {
     pub fn new(leading: Level, limits: DecoderLimits) -> Decoder {
         Decoder {
             limits,
-            leading,
-            level: None,
+            edges: LeadingEdges::new(leading),
             last_leading_ns: None,
             frame: None,
             stats: DecoderStats::default(),
@@ -103,11 +124,7 @@ impl Decoder {
     /// Feeds the line's level after a change at `at_ns`. A repeated level is
     /// not an edge and is ignored. Returns a frame when this edge ended one.
     pub fn push(&mut self, at_ns: u64, level: Level) -> Option<DecodedFrame> {
-        if self.level == Some(level) {
-            return None;
-        }
-        self.level = Some(level);
-        if level != self.leading {
+        if !self.edges.timed(level) {
             return None;
         }
         self.stats.edges += 1;

@@ -12,7 +12,7 @@
 //! the capture clock's truncation and EdgeTX's 16-bit timer wrap, so a
 //! waveform that decodes here decodes there.
 
-use crate::decode::DecodedFrame;
+use crate::decode::{DecodedFrame, LeadingEdges};
 use crate::frame::Level;
 use serde::Deserialize;
 
@@ -117,8 +117,7 @@ pub struct ReceiverStats {
 #[derive(Debug, Clone)]
 pub struct ReceiverDecoder {
     receiver: Receiver,
-    leading: Level,
-    level: Option<Level>,
+    edges: LeadingEdges,
     /// Capture of the previous timed edge, in ticks.
     last_tick: Option<u64>,
     /// Channels of the frame in progress, us; `None` while not synchronised.
@@ -146,8 +145,7 @@ impl ReceiverDecoder {
     pub fn new(receiver: Receiver, leading: Level) -> ReceiverDecoder {
         ReceiverDecoder {
             receiver,
-            leading,
-            level: None,
+            edges: LeadingEdges::new(leading),
             last_tick: None,
             frame: None,
             start_ns: 0,
@@ -170,11 +168,7 @@ impl ReceiverDecoder {
     /// it arrives: their frames are returned at the sync or invalid period
     /// that ends them, `complete` false when an invalid period cut them).
     pub fn push(&mut self, at_ns: u64, level: Level) -> Option<DecodedFrame> {
-        if self.level == Some(level) {
-            return None;
-        }
-        self.level = Some(level);
-        if level != self.leading {
+        if !self.edges.timed(level) {
             return None;
         }
         self.stats.edges += 1;

@@ -283,6 +283,64 @@ impl Sender {
     }
 }
 
+/// One status query to an ingress at `to`, and its reply.
+pub fn status(to: SocketAddr) -> serde_json::Value {
+    let socket = UdpSocket::bind("127.0.0.1:0").expect("binding a socket");
+    socket
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    socket.send_to(br#"{"get":"status"}"#, to).unwrap();
+    let mut buf = [0u8; 65_536];
+    let (n, _) = socket.recv_from(&mut buf).expect("a status reply");
+    serde_json::from_slice(&buf[..n]).expect("a JSON status reply")
+}
+
+/// Starts one ppmd with the configuration at `cfg` (several outputs) and one
+/// `udp-ingress --name NAME` per name (logs `ing-0`, `ing-1`, ...), and waits
+/// until ppmd has set up its last output and every ingress listens.
+pub fn start_outputs(sb: &Sandbox, cfg: &Path, names: &[&str]) -> (Proc, Vec<Proc>) {
+    let cfg = cfg.to_str().expect("a UTF-8 path");
+    let ppmd = sb.spawn("ppmd", &["--config", cfg], "ppmd");
+    let ingresses: Vec<Proc> = names
+        .iter()
+        .enumerate()
+        .map(|(i, name)| {
+            sb.spawn(
+                "udp-ingress",
+                &["--config", cfg, "--name", name],
+                &format!("ing-{i}"),
+            )
+        })
+        .collect();
+    let last = names.last().expect("an output");
+    let from = ppm_shared::ipc::command_service_name(last);
+    ppmd.wait_for_log(&format!("commands from `{from}`"), STARTUP);
+    for ing in &ingresses {
+        ing.wait_for_log("listening on", STARTUP);
+    }
+    (ppmd, ingresses)
+}
+
+/// Stops ppmd (SIGTERM) and the ingresses (SIGINT), each of which must
+/// exit with status 0.
+pub fn stop_all(ppmd: &mut Proc, ingresses: &mut [&mut Proc]) {
+    let wait = Duration::from_secs(10);
+    assert!(
+        ppmd.signal_and_wait(nix::sys::signal::Signal::SIGTERM, wait)
+            .success(),
+        "{}",
+        ppmd.log_text()
+    );
+    for ing in ingresses {
+        assert!(
+            ing.signal_and_wait(nix::sys::signal::Signal::SIGINT, wait)
+                .success(),
+            "{}",
+            ing.log_text()
+        );
+    }
+}
+
 /// Reads and decodes a sim trace by scheduled time.
 pub fn read_trace(path: &Path) -> ppm_shared::trace::Trace {
     let f = File::open(path).unwrap_or_else(|e| panic!("opening {}: {e}", path.display()));

@@ -4,17 +4,17 @@
 //! summary and the status reply say the timing. How soon a command reaches
 //! the line is measured by `ppm-bench --only e2e`, not here.
 
-use nix::sys::signal::Signal;
 use ppm_shared::receiver::{decode_as, Receiver};
 use ppm_shared::trace::Trace;
 use ppm_shared::Level;
-use ppm_tests::{at_50hz, free_udp_port, read_trace, Sandbox, Sender};
+use ppm_tests::{
+    at_50hz, free_udp_port, read_trace, start_outputs, status, stop_all, Sandbox, Sender,
+};
 use serde_json::Value;
-use std::net::{SocketAddr, UdpSocket};
+use std::net::SocketAddr;
 use std::path::Path;
 use std::time::Duration;
 
-const SECOND: Duration = Duration::from_secs(1);
 const MS: u64 = 1_000_000;
 
 /// A frame in the frame log: start, values (us), ingress_seq, timing.
@@ -61,16 +61,6 @@ fn summary_count(log: &str, what: &str) -> u64 {
         .position(|w| *w == what)
         .unwrap_or_else(|| panic!("no `{what}` in {line}"));
     words[at - 1].parse().unwrap()
-}
-
-/// One status query, and its reply.
-fn status(to: SocketAddr) -> Value {
-    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
-    socket.set_read_timeout(Some(5 * SECOND)).unwrap();
-    socket.send_to(br#"{"get":"status"}"#, to).unwrap();
-    let mut buf = [0u8; 65_536];
-    let (n, _) = socket.recv_from(&mut buf).expect("a status reply");
-    serde_json::from_slice(&buf[..n]).unwrap()
 }
 
 /// Checks that every receiver hands on every logged frame, exactly (but the
@@ -136,14 +126,7 @@ fn follow_frames_start_with_the_commands_and_every_receiver_reads_them() {
     });
     // Past the failsafe (200 ms): the repeats, then silence.
     std::thread::sleep(Duration::from_millis(400));
-    assert!(
-        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
-        "{}",
-        ppmd.log_text()
-    );
-    assert!(ingress
-        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
-        .success());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
     let log = ppmd.log_text();
     let (late, overruns, repeats) = (
         summary_count(&log, "late"),
@@ -244,22 +227,8 @@ timing = "follow"
         ),
     )
     .unwrap();
-    let cfg = cfg_path.to_str().unwrap();
     let (name_a, name_b) = (format!("{}a", sb.name), format!("{}b", sb.name));
-    let mut ppmd = sb.spawn("ppmd", &["--config", cfg], "ppmd");
-    let mut ing_a = sb.spawn(
-        "udp-ingress",
-        &["--config", cfg, "--name", &name_a],
-        "ing-a",
-    );
-    let mut ing_b = sb.spawn(
-        "udp-ingress",
-        &["--config", cfg, "--name", &name_b],
-        "ing-b",
-    );
-    ppmd.wait_for_log(&format!("{name_b}: 6 channels"), 30 * SECOND);
-    ing_a.wait_for_log("listening on", 30 * SECOND);
-    ing_b.wait_for_log("listening on", 30 * SECOND);
+    let (mut ppmd, mut ings) = start_outputs(&sb, &cfg_path, &[&name_a, &name_b]);
     let to_b = SocketAddr::from(([127, 0, 0, 1], port_b));
     let (send_a, send_b) = (Sender::new(sb.addr()), Sender::new(to_b));
     let mut replies = Vec::new();
@@ -270,14 +239,10 @@ timing = "follow"
             replies = vec![status(sb.addr()), status(to_b)];
         }
     });
-    assert!(
-        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
-        "{}",
-        ppmd.log_text()
-    );
-    for ing in [&mut ing_a, &mut ing_b] {
-        assert!(ing.signal_and_wait(Signal::SIGINT, 10 * SECOND).success());
-    }
+    let [a, b] = &mut ings[..] else {
+        unreachable!()
+    };
+    stop_all(&mut ppmd, &mut [a, b]);
     assert_eq!(replies[0]["ppmd"]["timing"], "grid");
     assert_eq!(replies[1]["ppmd"]["timing"], "follow");
     let log = ppmd.log_text();

@@ -6,9 +6,10 @@
 //! timing, which its ingress's status reply shows.
 
 use nix::sys::signal::Signal;
-use ppm_tests::{at_50hz, bin, free_udp_port, read_trace, Sandbox, Sender};
-use serde_json::Value;
-use std::net::{SocketAddr, UdpSocket};
+use ppm_tests::{
+    at_50hz, bin, free_udp_port, read_trace, start_outputs, status, stop_all, Sandbox, Sender,
+};
+use std::net::SocketAddr;
 use std::path::Path;
 use std::process::Command;
 use std::time::Duration;
@@ -53,16 +54,6 @@ action = "hold"
     )
 }
 
-/// One status query to an ingress, and its reply.
-fn status(to: SocketAddr) -> Value {
-    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
-    socket.set_read_timeout(Some(5 * SECOND)).unwrap();
-    socket.send_to(br#"{"get":"status"}"#, to).unwrap();
-    let mut buf = [0u8; 65_536];
-    let (n, _) = socket.recv_from(&mut buf).expect("a status reply");
-    serde_json::from_slice(&buf[..n]).unwrap()
-}
-
 /// Every frame of the trace at `path`, as whole microseconds, with the
 /// scheduled frame starts.
 fn frames(path: &Path) -> Vec<(u64, Vec<u64>)> {
@@ -94,20 +85,7 @@ fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
         "{err}"
     );
 
-    let mut ppmd = sb.spawn("ppmd", &["--config", cfg], "ppmd");
-    let mut ing_a = sb.spawn(
-        "udp-ingress",
-        &["--config", cfg, "--name", &name_a],
-        "ing-a",
-    );
-    let mut ing_b = sb.spawn(
-        "udp-ingress",
-        &["--config", cfg, "--name", &name_b],
-        "ing-b",
-    );
-    ppmd.wait_for_log(&format!("{name_b}: 6 channels"), 30 * SECOND);
-    ing_a.wait_for_log("listening on", 30 * SECOND);
-    ing_b.wait_for_log("listening on", 30 * SECOND);
+    let (mut ppmd, mut ings) = start_outputs(&sb, &cfg_path, &[&name_a, &name_b]);
 
     let (to_a, to_b) = (sb.addr(), SocketAddr::from(([127, 0, 0, 1], port_b)));
     let (send_a, send_b) = (Sender::new(to_a), Sender::new(to_b));
@@ -120,14 +98,10 @@ fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
             statuses = vec![status(to_a), status(to_b)];
         }
     });
-    assert!(
-        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
-        "{}",
-        ppmd.log_text()
-    );
-    for ing in [&mut ing_a, &mut ing_b] {
-        assert!(ing.signal_and_wait(Signal::SIGINT, 10 * SECOND).success());
-    }
+    let [a, b] = &mut ings[..] else {
+        unreachable!()
+    };
+    stop_all(&mut ppmd, &mut [a, b]);
 
     // Each line carries its own commands, decoded on its own.
     let log = ppmd.log_text();

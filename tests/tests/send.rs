@@ -3,10 +3,10 @@
 //! every target, signed sending, and `--status` of each target.
 
 use nix::sys::signal::Signal;
-use ppm_tests::{bin, read_trace, Proc, Sandbox};
+use ppm_tests::{bin, read_trace, status, Proc, Sandbox};
 use serde_json::{json, Value};
 use std::io::Write;
-use std::net::{SocketAddr, UdpSocket};
+use std::net::UdpSocket;
 use std::os::unix::fs::PermissionsExt;
 use std::process::{Command, Output, Stdio};
 use std::time::Duration;
@@ -41,7 +41,7 @@ impl Vehicle {
     }
 
     fn status(&self) -> Value {
-        status_of(self.sb.addr())
+        status(self.sb.addr())
     }
 
     /// Stops ppmd and decodes its line: each frame's channels in us.
@@ -54,15 +54,6 @@ impl Vehicle {
             .map(|f| f.channels_us())
             .collect()
     }
-}
-
-fn status_of(to: SocketAddr) -> Value {
-    let s = UdpSocket::bind("127.0.0.1:0").unwrap();
-    s.set_read_timeout(Some(5 * SECOND)).unwrap();
-    s.send_to(br#"{"get":"status"}"#, to).unwrap();
-    let mut buf = [0u8; 65_536];
-    let (n, _) = s.recv_from(&mut buf).expect("a status reply");
-    serde_json::from_slice(&buf[..n]).unwrap()
 }
 
 fn ppm_send(args: &[&str], stdin: Option<&str>) -> Output {
