@@ -523,7 +523,10 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
         }
         // Before looking: a command published from now on wakes the loop.
         p.woken = false;
-        lane.source.clear_wake();
+        if !lane.source.clear_wake() && p.wake_fd.take().is_some() {
+            // It might stay readable and end every wait at once.
+            add(&stats.wake_errors, 1);
+        }
     }
     let mut arrived = false;
     if let Some(sample) = lane.source.newest() {
@@ -1413,6 +1416,8 @@ mod tests {
         with_fd: bool,
         /// Hands out this fd number instead of its socket's.
         fake_fd: Option<std::os::fd::RawFd>,
+        /// Clearing the wake-ups fails.
+        broken_clear: bool,
         /// (time it was available, first value in us) per command.
         made: Arc<std::sync::Mutex<Vec<(u64, u32)>>>,
         feeder: Option<std::thread::JoinHandle<()>>,
@@ -1454,6 +1459,7 @@ mod tests {
                 rx,
                 with_fd: true,
                 fake_fd: None,
+                broken_clear: false,
                 made,
                 feeder: Some(feeder),
                 stop,
@@ -1477,9 +1483,14 @@ mod tests {
             self.with_fd
                 .then(|| self.fake_fd.unwrap_or(self.rx.as_raw_fd()))
         }
-        fn clear_wake(&mut self) {
+        fn clear_wake(&mut self) -> bool {
+            if self.broken_clear {
+                // Leaves the wake-up pending: the fd stays readable.
+                return false;
+            }
             let mut b = [0u8; 16];
             while self.rx.recv(&mut b).is_ok() {}
+            true
         }
     }
 
@@ -1729,13 +1740,20 @@ mod tests {
     #[test]
     fn a_broken_wake_fd_is_counted_and_the_lane_polls() {
         let model = follow_model("");
-        let mut src = Paced::start(&model, 8, 25, 40);
-        // No such file descriptor: every wait would end at once.
-        src.fake_fd = Some(999_999);
-        let (edges, stats, made) = run_follow(&model, &mut src, FailsafeAction::Silence);
-        check_follow(&edges, &model, &made, &stats);
-        assert_eq!(stats.wake_errors.load(Relaxed), 1);
-        assert_eq!(stats.commands.load(Relaxed), 8);
+        for clear_fails in [false, true] {
+            let mut src = Paced::start(&model, 8, 25, 40);
+            if clear_fails {
+                // The wake-ups cannot be cleared: the fd stays readable.
+                src.broken_clear = true;
+            } else {
+                // No such file descriptor: every wait would end at once.
+                src.fake_fd = Some(999_999);
+            }
+            let (edges, stats, made) = run_follow(&model, &mut src, FailsafeAction::Silence);
+            check_follow(&edges, &model, &made, &stats);
+            assert_eq!(stats.wake_errors.load(Relaxed), 1, "{clear_fails}");
+            assert_eq!(stats.commands.load(Relaxed), 8);
+        }
     }
 
     #[test]

@@ -24,9 +24,13 @@ pub trait CommandSource {
     }
 
     /// Clears the wake-ups received so far (called before [`Self::newest`],
-    /// so a command published after it wakes the loop again). Must not block
-    /// or allocate.
-    fn clear_wake(&mut self) {}
+    /// so a command published after it wakes the loop again); false when
+    /// that failed (the loop then stops watching the fd, which might stay
+    /// readable, and looks for commands every
+    /// [`crate::emitter::FOLLOW_POLL_NS`]). Must not block or allocate.
+    fn clear_wake(&mut self) -> bool {
+        true
+    }
 }
 
 /// The same command, freshly stamped, every frame; asks the loop to stop
@@ -134,9 +138,10 @@ impl CommandSource for TickSource {
         Some(self.rx.as_raw_fd())
     }
 
-    fn clear_wake(&mut self) {
+    fn clear_wake(&mut self) -> bool {
         let mut b = [0u8; 64];
         while self.rx.recv(&mut b).is_ok() {}
+        true
     }
 }
 
@@ -217,11 +222,12 @@ impl CommandSource for IpcSource {
         self.listener.as_ref().map(|(_, fd)| *fd)
     }
 
-    fn clear_wake(&mut self) {
-        if let Some((listener, _)) = &self.listener {
-            if listener.try_wait(|_| {}).is_err() {
-                self.errors += 1;
-            }
-        }
+    fn clear_wake(&mut self) -> bool {
+        let Some((listener, _)) = &self.listener else {
+            return true;
+        };
+        let cleared = listener.try_wait(|_| {}).is_ok();
+        self.errors += !cleared as u64;
+        cleared
     }
 }

@@ -68,7 +68,7 @@ impl CommandSource for Counted {
     fn wake_fd(&self) -> Option<std::os::fd::RawFd> {
         self.inner.wake_fd()
     }
-    fn clear_wake(&mut self) {
+    fn clear_wake(&mut self) -> bool {
         self.inner.clear_wake()
     }
     fn newest(&mut self) -> Option<CommandSample> {
