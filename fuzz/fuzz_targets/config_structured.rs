@@ -11,6 +11,7 @@ use ppm_shared::config::{
     channel_names, ChannelOverride, Config, CpuChoice, FailsafeAction, SpinMargin, Timing,
 };
 use ppm_shared::frame::Level;
+use ppm_shared::receiver::{Receiver, ReceiverChoice};
 
 /// A float in microseconds, biased towards the limits that matter.
 #[derive(Arbitrary, Debug, Clone, Copy)]
@@ -136,7 +137,17 @@ struct Input {
     trace_max_mb: Option<u64>,
     /// Follow timing, with its sync limits when given.
     follow: Option<(Option<Us>, Option<Us>)>,
+    /// `ppm.receiver`: any, or one of the four.
+    receiver: u8,
     follow_sync_min: Option<Us>,
+}
+
+/// `ppm.receiver`: any, or one of the four.
+fn receiver(k: u8) -> ReceiverChoice {
+    match k % 5 {
+        0 => ReceiverChoice::Any,
+        k => ReceiverChoice::One(Receiver::ALL[k as usize - 1]),
+    }
 }
 
 const ORDERS: &[&str] = &[
@@ -204,7 +215,11 @@ fuzz_target!(|input: Input| {
                 sum_min += o.and_then(|o| o.min_us).unwrap_or(p.min_us);
                 sum_max += o.and_then(|o| o.max_us).unwrap_or(p.max_us);
             }
-            let (lo, hi) = (sum_max + 4_000.0, sum_min + 19_000.0);
+            let rules = receiver(input.receiver).rules();
+            let (lo, hi) = (
+                sum_max + rules.sync_min_us.0,
+                sum_min + rules.sync_max_us.0.min(30_000.0),
+            );
             (lo + (hi - lo) * pick as f64 / 255.0).round()
         }
     };
@@ -266,6 +281,7 @@ fuzz_target!(|input: Input| {
         c.ppmd.trace_max_mb = v;
     }
 
+    c.ppm.receiver = receiver(input.receiver);
     if let Some((min, max)) = input.follow {
         c.ppm.timing = Timing::Follow;
         if let Some(v) = min {

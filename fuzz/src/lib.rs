@@ -3,12 +3,11 @@
 //! satisfy.
 
 use ppm_shared::auth::{self, AuthKey, MAC_HEX_LEN};
-use ppm_shared::config::{
-    Config, Timing, FOLLOW_SYNC_CEILING_US, FOLLOW_SYNC_FLOOR_US, SYNC_MAX_US, SYNC_MIN_US,
-};
+use ppm_shared::config::{Config, Timing, FOLLOW_SYNC_CEILING_US};
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::{us_to_ns, Channels, FrameModel, Level};
 use ppm_shared::protocol::{self, Command, Reject, RejectReason};
+use ppm_shared::receiver::{decode_as, Receiver, SYNC_MARGIN_US};
 use std::sync::OnceLock;
 
 /// Configurations the wire targets parse against.
@@ -31,6 +30,7 @@ follow_sync_max_us = 18500
 [ppm]
 channels = 4
 order = "TAER"
+receiver = "edgetx"
 [ppm.channel.ail]
 unit = "deg"
 unit_min = -15.0
@@ -50,6 +50,7 @@ unit_max = 100
 [ppm]
 channels = 16
 order = "ETRA"
+receiver = "ardupilot"
 frame_us = 35000
 pulse_us = 400.25
 idle_level = "high"
@@ -112,7 +113,7 @@ default_us = 2200
     ),
     (
         "one",
-        "[ppm]\nchannels = 1\nframe_us = 19800\npulse_us = 50\nmin_us = 800\nmax_us = 2200\n",
+        "[ppm]\nreceiver = \"edgetx\"\nchannels = 1\nframe_us = 19300\npulse_us = 50\nmin_us = 820\nmax_us = 2180\n",
     ),
 ];
 
@@ -147,32 +148,47 @@ pub fn check_model(m: &FrameModel) {
     let sum_max: u64 = (0..n).map(|i| m.max_ns(i) as u64).sum();
     let sum_min: u64 = (0..n).map(|i| m.min_ns(i) as u64).sum();
     // Follow timing's syncs are its limits, whatever the frame; grid's are
-    // what the frame leaves. Either way strictly inside 4..19 ms, with margin.
+    // what the frame leaves. Either way within the receiver's window, less
+    // the margins.
+    let rules = m.receiver().rules();
+    let (rule_min, rule_max) = (
+        us_to_ns(rules.sync_min_us.0),
+        if rules.sync_max_us.0.is_finite() {
+            us_to_ns(rules.sync_max_us.0)
+        } else {
+            u64::MAX
+        },
+    );
+    assert!(rule_min >= us_to_ns(2_700.0 + SYNC_MARGIN_US));
     let (sync_min, sync_max) = m.follow_sync_ns();
     assert!(
-        sync_min >= us_to_ns(FOLLOW_SYNC_FLOOR_US)
+        sync_min >= rule_min
             && sync_max <= us_to_ns(FOLLOW_SYNC_CEILING_US)
             && sync_min <= sync_max,
         "follow syncs {sync_min}..{sync_max}"
     );
     if m.timing() == Timing::Grid {
         assert!(
-            m.frame_ns() >= sum_max + us_to_ns(SYNC_MIN_US),
-            "worst-case sync below 4 ms: frame {} sum_max {sum_max}",
+            m.frame_ns() >= sum_max + rule_min,
+            "worst-case sync below {rule_min}: frame {} sum_max {sum_max}",
             m.frame_ns()
         );
         assert!(
-            m.frame_ns() - sum_min <= us_to_ns(SYNC_MAX_US),
-            "best-case sync above 19 ms: frame {} sum_min {sum_min}",
+            m.frame_ns() - sum_min <= rule_max,
+            "best-case sync above {rule_max}: frame {} sum_min {sum_min}",
             m.frame_ns()
         );
     }
+    let n_ok = rules.min_channels.0..=rules.max_channels.0;
+    assert!(n_ok.contains(&n), "{n} channels for {:?}", m.receiver());
     assert!(m.pulse_ns() >= 50_000, "pulse {}", m.pulse_ns());
     for i in 0..n {
         let (lo, d, hi) = (m.min_ns(i), m.default_ns(i), m.max_ns(i));
+        let window = us_to_ns(rules.channel_min_us.0)..=us_to_ns(rules.channel_max_us.0);
         assert!(
-            (800_000..=2_200_000).contains(&lo) && (800_000..=2_200_000).contains(&hi),
-            "channel {i}: {lo}..={hi} outside 800..2200 us"
+            window.contains(&(lo as u64)) && window.contains(&(hi as u64)),
+            "channel {i}: {lo}..={hi} outside {window:?} ns for {:?}",
+            m.receiver()
         );
         assert!(
             lo <= d && d <= hi,
@@ -246,14 +262,17 @@ pub fn check_frame(m: &FrameModel, c: &Channels) {
         Timing::Grid => vec![m.frame_ns()],
         Timing::Follow => vec![last_start + sync_min, last_start + sync_max],
     };
+    let rules = m.receiver().rules();
     for period in periods {
         assert!(
-            last_start + us_to_ns(SYNC_MIN_US) <= period,
-            "last pulse at {last_start} leaves less than 4 ms of a {period} ns frame"
+            last_start + us_to_ns(rules.sync_min_us.0) <= period,
+            "last pulse at {last_start} leaves too short a sync in a {period} ns frame"
         );
         assert!(
-            period - last_start <= us_to_ns(SYNC_MAX_US),
-            "sync over 19 ms"
+            !rules.sync_max_us.0.is_finite()
+                || period - last_start <= us_to_ns(rules.sync_max_us.0),
+            "sync over {} us",
+            rules.sync_max_us.0
         );
         // Two frames plus the next frame's first edge: a transmitter reads
         // the second frame, and it must be exactly the values.
@@ -262,7 +281,29 @@ pub fn check_frame(m: &FrameModel, c: &Channels) {
             edges.extend(e.iter().map(|x| (k * period + x.at_ns, x.level)));
         }
         edges.push((2 * period, active));
-        let frames = decode(edges, active, DecoderLimits::default());
+        // The trainer inputs among the receivers read it to the microsecond.
+        for r in m.receiver().receivers() {
+            if matches!(r, Receiver::EdgeTx | Receiver::OpenTx) {
+                let (read, stats) = decode_as(r, edges.iter().copied(), active);
+                assert_eq!(stats.invalid_periods, 0, "{r:?}");
+                assert_eq!(read.len(), 1, "{r:?} read {read:?}");
+                let ch = &read[0].channels_ns;
+                assert!(
+                    ch.len() == n
+                        && ch
+                            .iter()
+                            .zip(c.as_ns())
+                            .all(|(g, w)| g.abs_diff(*w as u64) < 1_000),
+                    "{r:?} read {read:?}"
+                );
+            }
+        }
+        let any_sync = DecoderLimits {
+            sync_min_ns: 2_700_000,
+            sync_max_ns: u64::MAX,
+            ..DecoderLimits::default()
+        };
+        let frames = decode(edges, active, any_sync);
         assert_eq!(frames.len(), 1, "decoded {frames:?}");
         let got: Vec<u32> = frames[0].channels_ns.iter().map(|&v| v as u32).collect();
         assert_eq!(got, c.as_ns(), "decoded values");

@@ -464,6 +464,7 @@ fn open_sim(cfg: &Config, model: &FrameModel, path: Option<PathBuf>) -> Result<B
         format!("channels {}", model.names().join(",")),
         format!("frame_ns {}", model.frame_ns()),
         format!("pulse_ns {}", model.pulse_ns()),
+        format!("receiver {}", model.receiver().name()),
     ];
     let sim = SimOutput::create(&path, &header, cfg.ppmd.trace_max_mb << 20)
         .with_context(|| format!("creating sim trace {}", path.display()))?;

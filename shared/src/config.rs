@@ -6,6 +6,7 @@
 //! settings against what real transmitters accept; both errors name the key.
 
 use crate::frame::{FrameModel, Level, UnitMapping, MAX_CHANNELS};
+use crate::receiver::ReceiverChoice;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -20,18 +21,10 @@ pub const SYNC_MAX_US: f64 = 19_000.0;
 pub const CHANNEL_MIN_US: f64 = 800.0;
 /// Largest channel period a transmitter accepts.
 pub const CHANNEL_MAX_US: f64 = 2_200.0;
-/// Margin kept inside the receivers' sync window (strictly between
-/// [`SYNC_MIN_US`] and [`SYNC_MAX_US`]) by `follow` timing: it covers the
-/// lateness of one edge on a loaded real-time board (a tuned PREEMPT_RT
-/// Raspberry Pi wakes at most 100-190 us late, and ppmd spins the last part
-/// of every wait) plus the receivers' capture resolution, 0.5..1 us.
-pub const FOLLOW_SYNC_MARGIN_US: f64 = 500.0;
-/// Shortest `ppm.follow_sync_min_us`: EdgeTX's 4 ms plus the margin.
-pub const FOLLOW_SYNC_FLOOR_US: f64 = SYNC_MIN_US + FOLLOW_SYNC_MARGIN_US;
-/// Longest `ppm.follow_sync_max_us`: EdgeTX's 19 ms less the margin. A
-/// `follow` frame that comes late is moved later only while its sync stays
-/// under this.
-pub const FOLLOW_SYNC_CEILING_US: f64 = SYNC_MAX_US - FOLLOW_SYNC_MARGIN_US;
+/// The longest sync `follow` timing leaves, for every receiver: EdgeTX's
+/// 19 ms less [`crate::receiver::SYNC_MARGIN_US`]. A `follow` frame that
+/// comes late is moved later only while its sync stays under this.
+pub const FOLLOW_SYNC_CEILING_US: f64 = SYNC_MAX_US - crate::receiver::SYNC_MARGIN_US;
 
 /// Why a configuration was refused. Every variant names the file or the key.
 #[derive(Debug, thiserror::Error)]
@@ -143,12 +136,18 @@ pub struct PpmSection {
     pub max_us: f64,
     /// Per-channel overrides, keyed by channel name: `[ppm.channel.thr]`.
     pub channel: BTreeMap<String, ChannelOverride>,
+    /// The receiver the signal is for: `"any"` (default: what EdgeTX,
+    /// OpenTX, Betaflight and ArduPilot all read), `"edgetx"` (2.10 and
+    /// later), `"opentx"` (and EdgeTX before 2.10), `"betaflight"` or
+    /// `"ardupilot"`. Settings it would misread are refused at start.
+    pub receiver: ReceiverChoice,
     /// When frames start: `"grid"` (default: every `frame_us`, whenever
     /// commands come) or `"follow"` (a fresh command starts its frame as soon
     /// as the previous frame's sync allows; see [`Timing`]).
     pub timing: Timing,
     /// `follow`: the shortest sync gap left before a frame, in microseconds,
-    /// at least 4500 (EdgeTX's 4000 us plus a margin). Default 5000.
+    /// at least 4500 (EdgeTX's 4000 us plus a margin; 3200 for Betaflight or
+    /// ArduPilot alone). Default 5000.
     pub follow_sync_min_us: f64,
     /// `follow`: the longest sync gap; when no fresh command has come by
     /// then, the last frame is repeated (or the failsafe acts). At most
@@ -204,6 +203,7 @@ impl Default for PpmSection {
             min_us: 1_000.0,
             max_us: 2_000.0,
             channel: BTreeMap::new(),
+            receiver: ReceiverChoice::Any,
             timing: Timing::Grid,
             follow_sync_min_us: 5_000.0,
             follow_sync_max_us: 18_000.0,
@@ -1101,12 +1101,15 @@ pub fn validate_name(name: &str) -> Result<(), ConfigError> {
 }
 
 /// Validated per-channel limits, in microseconds.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub(crate) struct ChannelLimits {
     pub default_us: f64,
     pub min_us: f64,
     pub max_us: f64,
     pub mapping: UnitMapping,
+    /// The keys `min_us` and `max_us` come from, for messages.
+    pub min_key: String,
+    pub max_key: String,
 }
 
 /// Resolves names and limits of every channel and checks them; used by
@@ -1174,6 +1177,8 @@ pub(crate) fn resolve_channels(
             min_us,
             max_us,
             mapping: resolve_mapping(name, &o, min_us, max_us)?,
+            min_key,
+            max_key,
         });
     }
     Ok((names, limits))
@@ -1375,6 +1380,125 @@ mod tests {
         }
     }
 
+    /// Validates `[ppm]` lines under `receiver`: Ok, or the key refused.
+    fn under(receiver: &str, ppm: &str) -> Result<(), String> {
+        let text = format!("[ppm]\nreceiver = '{receiver}'\n{ppm}");
+        let c = Config::parse(&text).map_err(|e| e.to_string())?;
+        c.validate()
+            .map(|_| ())
+            .map_err(|e| e.key().unwrap_or("?").to_string())
+    }
+
+    #[test]
+    fn receivers_bound_the_channel_count() {
+        let ch = "channels";
+        for (receiver, fewest, most) in [
+            ("any", 5, 12),
+            ("edgetx", 1, 16),
+            ("opentx", 1, 16),
+            ("betaflight", 4, 12),
+            ("ardupilot", 5, 16),
+        ] {
+            // A frame long enough for 16 channels at 2000 us, short enough
+            // for 1 at 1000 us under the 18.5 ms longest sync: follow timing.
+            let t = "timing = 'follow'\n";
+            assert_eq!(under(receiver, &format!("{t}{ch} = {fewest}")), Ok(()));
+            assert_eq!(under(receiver, &format!("{t}{ch} = {most}")), Ok(()));
+            let want = Err("ppm.channels".to_string());
+            if fewest > 1 {
+                assert_eq!(under(receiver, &format!("{t}{ch} = {}", fewest - 1)), want);
+            }
+            assert_eq!(under(receiver, &format!("{t}{ch} = {}", most + 1)), want);
+        }
+        let e = Config::parse("[ppm]\nchannels = 4")
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("ArduPilot") && e.contains("MIN_RCIN_CHANNELS"),
+            "{e}"
+        );
+        assert!(e.contains("5..=12"), "{e}");
+    }
+
+    #[test]
+    fn receivers_bound_the_channel_values() {
+        for (receiver, lo, hi) in [
+            ("any", 905.0, 2_095.0),
+            ("edgetx", 820.0, 2_180.0),
+            ("opentx", 821.0, 2_179.0),
+            ("betaflight", 905.0, 2_095.0),
+            ("ardupilot", 800.0, 2_200.0),
+        ] {
+            let limits = |min: f64, max: f64| {
+                format!("min_us = {min}\nmax_us = {max}\ndefault_us = {min}\ntiming = 'follow'")
+            };
+            assert_eq!(under(receiver, &limits(lo, hi)), Ok(()), "{receiver}");
+            assert_eq!(
+                under(receiver, &limits(lo - 0.1, hi)),
+                Err("ppm.min_us".into()),
+                "{receiver}"
+            );
+            assert_eq!(
+                under(receiver, &limits(lo, hi + 0.1)),
+                Err("ppm.max_us".into()),
+                "{receiver}"
+            );
+        }
+        let e = Config::parse("[ppm.channel.ail]\nmin_us = 850.0")
+            .unwrap()
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("ppm.channel.ail.min_us")
+                && e.contains("Betaflight")
+                && e.contains("raise ppm.channel.ail.min_us to 905 us"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn receivers_bound_the_grid_sync() {
+        // 8 channels of 1000..=2000 us: 16 ms at the most, 8 at the least.
+        for (receiver, shortest, longest) in [
+            ("any", 4_500.0, Some(18_500.0)),
+            ("edgetx", 4_500.0, Some(18_500.0)),
+            ("opentx", 4_500.0, Some(18_500.0)),
+            ("betaflight", 3_200.0, None),
+            ("ardupilot", 3_200.0, None),
+        ] {
+            let frame = |us: f64| format!("frame_us = {us}");
+            assert_eq!(under(receiver, &frame(16_000.0 + shortest)), Ok(()));
+            assert_eq!(
+                under(receiver, &frame(16_000.0 + shortest - 1.0)),
+                Err("ppm.frame_us".into()),
+                "{receiver}"
+            );
+            match longest {
+                Some(l) => {
+                    assert_eq!(under(receiver, &frame(8_000.0 + l)), Ok(()));
+                    assert_eq!(
+                        under(receiver, &frame(8_000.0 + l + 1.0)),
+                        Err("ppm.frame_us".into())
+                    );
+                }
+                None => assert_eq!(under(receiver, &frame(60_000.0)), Ok(())),
+            }
+            // Follow timing's shortest sync, likewise.
+            let follow = |us: f64| format!("timing = 'follow'\nfollow_sync_min_us = {us}");
+            assert_eq!(under(receiver, &follow(shortest)), Ok(()));
+            assert_eq!(
+                under(receiver, &follow(shortest - 1.0)),
+                Err("ppm.follow_sync_min_us".into())
+            );
+            // Either polarity: the receivers time the edges that leave idle.
+            assert_eq!(under(receiver, "idle_level = 'high'"), Ok(()));
+        }
+        assert!(under("spektrum", "").unwrap_err().contains("spektrum"));
+    }
+
     #[test]
     fn follow_timing_keys() {
         let c = Config::parse(
@@ -1538,7 +1662,8 @@ mod tests {
             ("[ppm]\npulse_us = 1000", "ppm.pulse_us"),
             ("[ppm]\npulse_us = 0", "ppm.pulse_us"),
             ("[ppm]\nframe_us = 19000", "ppm.frame_us"),
-            ("[ppm]\nchannels = 3", "ppm.frame_us"),
+            ("[ppm]\nchannels = 3\nreceiver = 'edgetx'", "ppm.frame_us"),
+            ("[ppm]\nchannels = 3", "ppm.channels"),
             ("[ppm.channel.aux9]\nmin_us = 900", "ppm.channel.aux9"),
             ("[ppm.channel.ail]\nmax_us = 2250", "ppm.channel.ail.max_us"),
             (

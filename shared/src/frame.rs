@@ -7,10 +7,8 @@
 //! at its idle level until the next frame starts; that gap is the sync period
 //! `frame - sum(values)`.
 
-use crate::config::{
-    self, ConfigError, PpmSection, Timing, FOLLOW_SYNC_CEILING_US, FOLLOW_SYNC_FLOOR_US,
-    SYNC_MAX_US, SYNC_MIN_US,
-};
+use crate::config::{self, ConfigError, PpmSection, Timing, FOLLOW_SYNC_CEILING_US};
+use crate::receiver::{ReceiverChoice, Rules, SYNC_MARGIN_US};
 use serde::Deserialize;
 
 /// Most channels one frame carries (the transmitters' limit).
@@ -134,6 +132,7 @@ pub struct FrameModel {
     idle: Level,
     timing: Timing,
     follow_sync_ns: (u64, u64),
+    receiver: ReceiverChoice,
 }
 
 impl FrameModel {
@@ -152,7 +151,48 @@ impl FrameModel {
             idle: ppm.idle_level,
             timing: ppm.timing,
             follow_sync_ns: (0, 0),
+            receiver: ppm.receiver,
         };
+        let rules = ppm.receiver.rules();
+        let (fewest, most) = (rules.min_channels, rules.max_channels);
+        if !(fewest.0..=most.0).contains(&limits.len()) {
+            let rule = if limits.len() < fewest.0 {
+                fewest.1
+            } else {
+                most.1
+            };
+            return Err(invalid(
+                "ppm.channels",
+                format!(
+                    "{} channels: {rule}; under {}: use {}..={} channels, or set ppm.receiver to the one receiver you use",
+                    limits.len(),
+                    receiver_key(ppm.receiver),
+                    fewest.0,
+                    most.0
+                ),
+            ));
+        }
+        for l in &limits {
+            let (lo, hi) = (rules.channel_min_us, rules.channel_max_us);
+            let (key, v, bound, rule, nearest) = if l.min_us < lo.0 {
+                (&l.min_key, l.min_us, lo, "raise", lo.0)
+            } else if l.max_us > hi.0 {
+                (&l.max_key, l.max_us, hi, "lower", hi.0)
+            } else {
+                continue;
+            };
+            return Err(invalid(
+                key,
+                format!(
+                    "{v} us: {}, less {} us for edge error, so {}..={} us under {}: {rule} {key} to {nearest} us",
+                    bound.1,
+                    crate::receiver::CHANNEL_MARGIN_US,
+                    lo.0,
+                    hi.0,
+                    receiver_key(ppm.receiver),
+                ),
+            ));
+        }
         for (i, l) in limits.iter().enumerate() {
             m.default_ns[i] = us_to_ns(l.default_us) as u32;
             m.min_ns[i] = us_to_ns(l.min_us) as u32;
@@ -181,7 +221,7 @@ impl FrameModel {
             ));
         }
         let frame_ns = us_to_ns(ppm.frame_us);
-        m.follow_sync_ns = follow_sync(ppm)?;
+        m.follow_sync_ns = follow_sync(ppm, &rules)?;
         m.frame_ns = frame_ns;
         if ppm.timing == Timing::Follow {
             // Frames follow the commands: the sync gaps are the follow
@@ -190,30 +230,37 @@ impl FrameModel {
         }
         let sum_max: u64 = m.max_ns[..m.channels].iter().map(|&v| v as u64).sum();
         let sum_min: u64 = m.min_ns[..m.channels].iter().map(|&v| v as u64).sum();
-        let sync_min_ns = us_to_ns(SYNC_MIN_US);
-        let sync_max_ns = us_to_ns(SYNC_MAX_US);
+        let (sync_min, sync_max) = (rules.sync_min_us, rules.sync_max_us);
+        let sync_min_ns = us_to_ns(sync_min.0);
         if frame_ns < sum_max + sync_min_ns {
             return Err(invalid(
                 "ppm.frame_us",
                 format!(
-                    "{} us leaves a sync gap of {} us when all {} channels are at their maximum (sum {} us); transmitters need at least {SYNC_MIN_US} us: raise ppm.frame_us to at least {} us or lower the channel maximums",
+                    "{} us leaves a sync gap of {} us when all {} channels are at their maximum (sum {} us); {}, and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: the gap must be at least {} us under {}: raise ppm.frame_us to at least {} us or lower the channel maximums",
                     ppm.frame_us,
                     (frame_ns as f64 - sum_max as f64) / 1e3,
                     m.channels,
                     sum_max as f64 / 1e3,
+                    sync_min.1,
+                    sync_min.0,
+                    receiver_key(ppm.receiver),
                     (sum_max + sync_min_ns) as f64 / 1e3
                 ),
             ));
         }
-        if frame_ns > sum_min + sync_max_ns {
+        if sync_max.0.is_finite() && frame_ns > sum_min + us_to_ns(sync_max.0) {
+            let sync_max_ns = us_to_ns(sync_max.0);
             return Err(invalid(
                 "ppm.frame_us",
                 format!(
-                    "{} us leaves a sync gap of {} us when all {} channels are at their minimum (sum {} us); transmitters read a gap over {SYNC_MAX_US} us as signal loss: lower ppm.frame_us to at most {} us or add channels",
+                    "{} us leaves a sync gap of {} us when all {} channels are at their minimum (sum {} us); {} (a longer gap is signal loss), and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: the gap must be at most {} us under {}: lower ppm.frame_us to at most {} us or add channels",
                     ppm.frame_us,
                     (frame_ns - sum_min) as f64 / 1e3,
                     m.channels,
                     sum_min as f64 / 1e3,
+                    sync_max.1,
+                    sync_max.0,
+                    receiver_key(ppm.receiver),
                     (sum_min + sync_max_ns) as f64 / 1e3
                 ),
             ));
@@ -224,6 +271,11 @@ impl FrameModel {
     /// When frames start.
     pub fn timing(&self) -> Timing {
         self.timing
+    }
+
+    /// The receiver the model was checked for.
+    pub fn receiver(&self) -> ReceiverChoice {
+        self.receiver
     }
 
     /// `follow` timing's shortest and longest sync gap, ns.
@@ -432,24 +484,37 @@ impl FrameModel {
     }
 }
 
+/// `ppm.receiver = "NAME"`, for messages.
+fn receiver_key(r: ReceiverChoice) -> String {
+    match r {
+        ReceiverChoice::Any => "ppm.receiver = \"any\" (every supported receiver)".into(),
+        ReceiverChoice::One(r) => format!("ppm.receiver = \"{}\"", r.name()),
+    }
+}
+
 /// `ppm.follow_sync_min_us` and `ppm.follow_sync_max_us` in ns, checked
-/// against the sync window every supported receiver accepts (checked in
-/// either timing, so a file stays valid when its timing is switched).
-fn follow_sync(ppm: &PpmSection) -> Result<(u64, u64), ConfigError> {
+/// against the sync window of the receiver (checked in either timing, so a
+/// file stays valid when its timing is switched).
+fn follow_sync(ppm: &PpmSection, rules: &Rules) -> Result<(u64, u64), ConfigError> {
     let (min, max) = (ppm.follow_sync_min_us, ppm.follow_sync_max_us);
-    if !min.is_finite() || min < FOLLOW_SYNC_FLOOR_US {
+    let floor = rules.sync_min_us;
+    let ceiling = rules.sync_max_us.0.min(FOLLOW_SYNC_CEILING_US);
+    if !min.is_finite() || min < floor.0 {
         return Err(invalid(
             "ppm.follow_sync_min_us",
             format!(
-                "{min} us is below {FOLLOW_SYNC_FLOOR_US} us: EdgeTX and OpenTX read a sync gap only above {SYNC_MIN_US} us, and a late edge must not take it under that"
+                "{min} us: {}, and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: at least {} us under {}",
+                floor.1,
+                floor.0,
+                receiver_key(ppm.receiver)
             ),
         ));
     }
-    if !max.is_finite() || max > FOLLOW_SYNC_CEILING_US {
+    if !max.is_finite() || max > ceiling {
         return Err(invalid(
             "ppm.follow_sync_max_us",
             format!(
-                "{max} us is above {FOLLOW_SYNC_CEILING_US} us: EdgeTX and OpenTX read a sync gap only below {SYNC_MAX_US} us, and a late frame must not take it over that"
+                "{max} us is above {ceiling} us: EdgeTX and OpenTX read a sync only below 19000 us, and a late frame must not take it there ({SYNC_MARGIN_US} us kept; the most for every receiver)"
             ),
         ));
     }

@@ -340,7 +340,8 @@ mod tests {
         let s = CommandSample::new(&cmd, 1, 5, 6);
         assert_eq!(s.seq(), Some(9));
         assert_eq!(s.channels(&m), Some(cmd.channels));
-        let four = Config::parse("[ppm]\nchannels = 4\nframe_us = 12000").unwrap();
+        let four =
+            Config::parse("[ppm]\nchannels = 4\nframe_us = 12500\nreceiver = 'edgetx'").unwrap();
         assert_eq!(s.channels(&four.validate().unwrap()), None);
     }
 }

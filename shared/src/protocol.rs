@@ -591,7 +591,7 @@ mod tests {
 
     #[test]
     fn named_channels_follow_the_order() {
-        let c = Config::parse("[ppm]\norder = 'TAER'\nchannels = 4").unwrap();
+        let c = Config::parse("[ppm]\norder = 'TAER'\nchannels = 4\nreceiver = 'edgetx'").unwrap();
         let m = c.validate().unwrap();
         let cmd = parse(br#"{"thr": 1100, "rud": 1900}"#, &m).unwrap();
         assert_eq!(cmd.channels.as_ns(), us(&[1100.0, 1500.0, 1500.0, 1900.0]));

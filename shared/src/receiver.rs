@@ -99,6 +99,153 @@ impl std::str::FromStr for Receiver {
     }
 }
 
+/// The receiver a configuration is for (`ppm.receiver`): one of them, or
+/// `any`, what every one of them accepts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize)]
+#[serde(try_from = "String")]
+pub enum ReceiverChoice {
+    /// Every modelled receiver.
+    Any,
+    /// This one.
+    One(Receiver),
+}
+
+impl std::str::FromStr for ReceiverChoice {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "any" => Ok(ReceiverChoice::Any),
+            _ => s.parse().map(ReceiverChoice::One).map_err(|_| {
+                format!("`{s}` is not a receiver: use any, edgetx, opentx, betaflight or ardupilot")
+            }),
+        }
+    }
+}
+
+impl TryFrom<String> for ReceiverChoice {
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        s.parse()
+    }
+}
+
+impl ReceiverChoice {
+    /// The name used in configuration and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            ReceiverChoice::Any => "any",
+            ReceiverChoice::One(r) => r.name(),
+        }
+    }
+
+    /// The receivers this choice covers.
+    pub fn receivers(self) -> Vec<Receiver> {
+        match self {
+            ReceiverChoice::Any => Receiver::ALL.to_vec(),
+            ReceiverChoice::One(r) => vec![r],
+        }
+    }
+
+    /// What ppm may send: the tightest of each bound over the receivers
+    /// covered, each with the rule it comes from.
+    pub fn rules(self) -> Rules {
+        let all: Vec<Rules> = self.receivers().into_iter().map(Receiver::rules).collect();
+        let pick = |better: fn(&Rules, &Rules) -> bool| {
+            *all.iter()
+                .reduce(|a, b| if better(b, a) { b } else { a })
+                .expect("a receiver")
+        };
+        Rules {
+            min_channels: pick(|a, b| a.min_channels.0 > b.min_channels.0).min_channels,
+            max_channels: pick(|a, b| a.max_channels.0 < b.max_channels.0).max_channels,
+            channel_min_us: pick(|a, b| a.channel_min_us.0 > b.channel_min_us.0).channel_min_us,
+            channel_max_us: pick(|a, b| a.channel_max_us.0 < b.channel_max_us.0).channel_max_us,
+            sync_min_us: pick(|a, b| a.sync_min_us.0 > b.sync_min_us.0).sync_min_us,
+            sync_max_us: pick(|a, b| a.sync_max_us.0 < b.sync_max_us.0).sync_max_us,
+        }
+    }
+}
+
+/// Margin kept inside a receiver's channel window: a channel's period is
+/// the time between two edges, each of which may come a little late (the
+/// tail of ppmd's edge error on a loaded real-time board: p99.9 under 10 us
+/// in most runs, now and then tens of us), and the trainer inputs truncate
+/// to whole microseconds.
+pub const CHANNEL_MARGIN_US: f64 = 20.0;
+
+/// Margin kept inside a receiver's sync window: one late edge (the frame's
+/// first, or the previous frame's last) lengthens or shortens the sync by
+/// its lateness; a tuned PREEMPT_RT Raspberry Pi wakes at most 100-190 us
+/// late, and ppmd spins the last part of every wait on top of that.
+pub const SYNC_MARGIN_US: f64 = 500.0;
+
+/// What ppm may send to a receiver, each bound with the rule it comes from
+/// (for error messages). Channel and sync bounds are the receiver's own
+/// less [`CHANNEL_MARGIN_US`] and [`SYNC_MARGIN_US`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rules {
+    /// Fewest channels in a frame.
+    pub min_channels: (usize, &'static str),
+    /// Most channels in a frame.
+    pub max_channels: (usize, &'static str),
+    /// Lowest channel value, us.
+    pub channel_min_us: (f64, &'static str),
+    /// Highest channel value, us.
+    pub channel_max_us: (f64, &'static str),
+    /// Shortest sync gap, us.
+    pub sync_min_us: (f64, &'static str),
+    /// Longest sync gap, us (`f64::INFINITY`: none).
+    pub sync_max_us: (f64, &'static str),
+}
+
+impl Receiver {
+    /// What ppm may send to this receiver.
+    pub fn rules(self) -> Rules {
+        const TRAINER_SYNC_MIN: &str =
+            "EdgeTX and OpenTX read a sync strictly between 4000 and 19000 us (capture_pulse, captureTrainerPulses)";
+        const TRAINER_SYNC_MAX: &str = TRAINER_SYNC_MIN;
+        const TRAINER_MAX: &str =
+            "EdgeTX and OpenTX read at most 16 channels (MAX_TRAINER_CHANNELS)";
+        let c = CHANNEL_MARGIN_US;
+        let sync = |us: f64| us + SYNC_MARGIN_US;
+        match self {
+            Receiver::EdgeTx => Rules {
+                min_channels: (1, "EdgeTX reads a frame of any channel count"),
+                max_channels: (16, TRAINER_MAX),
+                channel_min_us: (800.0 + c, "EdgeTX 2.10 reads a channel of 800..=2200 us (capture_pulse)"),
+                channel_max_us: (2_200.0 - c, "EdgeTX 2.10 reads a channel of 800..=2200 us (capture_pulse)"),
+                sync_min_us: (sync(4_000.0), TRAINER_SYNC_MIN),
+                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MAX),
+            },
+            Receiver::OpenTx => Rules {
+                min_channels: (1, "OpenTX reads a frame of any channel count"),
+                max_channels: (16, TRAINER_MAX),
+                channel_min_us: (801.0 + c, "OpenTX and EdgeTX before 2.10 read a channel strictly between 800 and 2200 us (captureTrainerPulses)"),
+                channel_max_us: (2_199.0 - c, "OpenTX and EdgeTX before 2.10 read a channel strictly between 800 and 2200 us (captureTrainerPulses)"),
+                sync_min_us: (sync(4_000.0), TRAINER_SYNC_MIN),
+                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MAX),
+            },
+            Receiver::Betaflight => Rules {
+                min_channels: (4, "Betaflight decodes 4..=12 channels (rx_pwm.c, PPM_IN_MIN_NUM_CHANNELS)"),
+                max_channels: (12, "Betaflight decodes 4..=12 channels and drops every frame of 13 or more (rx_pwm.c, PPM_IN_MAX_NUM_CHANNELS)"),
+                channel_min_us: (885.0 + c, "Betaflight takes a channel of 885..=2115 us as valid (rx_min_usec and rx_max_usec, their defaults)"),
+                channel_max_us: (2_115.0 - c, "Betaflight takes a channel of 885..=2115 us as valid (rx_min_usec and rx_max_usec, their defaults)"),
+                sync_min_us: (sync(2_700.0), "Betaflight reads a sync only above 2700 us (rx_pwm.c, PPM_IN_MIN_SYNC_PULSE_US)"),
+                sync_max_us: (f64::INFINITY, "Betaflight has no longest sync"),
+            },
+            Receiver::ArduPilot => Rules {
+                min_channels: (5, "ArduPilot drops a frame of fewer than 5 channels (AP_RCProtocol_PPMSum.cpp, MIN_RCIN_CHANNELS)"),
+                max_channels: (16, "ppm sends at most 16 channels"),
+                // Its window (701..=2299 us) holds ppm's whole range.
+                channel_min_us: (800.0, "ppm sends channels of 800..=2200 us"),
+                channel_max_us: (2_200.0, "ppm sends channels of 800..=2200 us"),
+                sync_min_us: (sync(2_700.0), "ArduPilot reads a sync only from 2700 us (AP_RCProtocol_PPMSum.cpp)"),
+                sync_max_us: (f64::INFINITY, "ArduPilot has no longest sync"),
+            },
+        }
+    }
+}
+
 /// What a receiver threw away.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct ReceiverStats {

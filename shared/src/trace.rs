@@ -5,6 +5,7 @@
 
 use crate::decode::{self, DecodedFrame, DecoderLimits};
 use crate::frame::Level;
+use crate::receiver::{Receiver, ReceiverChoice};
 use std::io::BufRead;
 
 /// One edge of the simulated line.
@@ -79,6 +80,8 @@ pub struct Trace {
     pub edges: Vec<TraceEdge>,
     /// From a `# idle_level N` comment.
     pub idle_level: Option<Level>,
+    /// From a `# receiver NAME` comment: what ppmd's configuration was for.
+    pub receiver: Option<ReceiverChoice>,
 }
 
 impl Trace {
@@ -91,6 +94,9 @@ impl Trace {
         for (i, text) in lines.into_iter().enumerate() {
             if let Some(v) = text.trim().strip_prefix("# idle_level ") {
                 trace.idle_level = Some(Level::from_bit(v.trim() == "1"));
+            }
+            if let Some(v) = text.trim().strip_prefix("# receiver ") {
+                trace.receiver = v.trim().parse().ok();
             }
             match parse_line(&text) {
                 None => {}
@@ -114,6 +120,30 @@ impl Trace {
             leading,
             DecoderLimits::default(),
         )
+    }
+
+    /// The frames `receiver` hands on, decoded as its firmware does (see
+    /// [`crate::receiver`]), by scheduled or actual time.
+    pub fn decode_as(&self, receiver: Receiver, actual: bool) -> Vec<DecodedFrame> {
+        let leading = self.idle_level.unwrap_or(Level::Low).opposite();
+        crate::receiver::decode_as(
+            receiver,
+            self.edges.iter().map(|e| {
+                let t = if actual { e.actual_ns } else { e.scheduled_ns };
+                (t, e.level)
+            }),
+            leading,
+        )
+        .0
+    }
+
+    /// The receiver tools decode as by default: the one the trace's header
+    /// names, EdgeTX 2.10 when it names `any` or none.
+    pub fn default_receiver(&self) -> Receiver {
+        match self.receiver {
+            Some(ReceiverChoice::One(r)) => r,
+            _ => Receiver::EdgeTx,
+        }
     }
 }
 

@@ -6,12 +6,26 @@ use ppm_shared::config::{ChannelOverride, Config, PpmSection};
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::{Channels, FrameModel, Level};
 use ppm_shared::protocol;
+use ppm_shared::receiver::{decode_as, Receiver, ReceiverChoice};
 use proptest::prelude::*;
 
-/// Per-channel limits in tenths of a microsecond: (min, default, max).
-fn limits() -> impl Strategy<Value = (u32, u32, u32)> {
-    (8_000u32..=16_000)
-        .prop_flat_map(|min| (Just(min), min..=22_000))
+/// The receivers a configuration may be for.
+fn receiver() -> impl Strategy<Value = ReceiverChoice> {
+    prop_oneof![
+        Just(ReceiverChoice::Any),
+        Just(ReceiverChoice::One(Receiver::EdgeTx)),
+        Just(ReceiverChoice::One(Receiver::OpenTx)),
+        Just(ReceiverChoice::One(Receiver::Betaflight)),
+        Just(ReceiverChoice::One(Receiver::ArduPilot)),
+    ]
+}
+
+/// Per-channel limits in tenths of a microsecond within `lo..=hi` (us):
+/// (min, default, max).
+fn limits(lo: f64, hi: f64) -> impl Strategy<Value = (u32, u32, u32)> {
+    let (lo, hi) = ((lo * 10.0).ceil() as u32, (hi * 10.0).floor() as u32);
+    (lo..=hi)
+        .prop_flat_map(move |min| (Just(min), min..=hi))
         .prop_flat_map(|(min, max)| (Just(min), min..=max, Just(max)))
 }
 
@@ -21,22 +35,35 @@ fn order() -> impl Strategy<Value = String> {
         .prop_map(|v| v.into_iter().collect())
 }
 
-/// A valid `[ppm]` section, built from its constraints.
+/// A valid `[ppm]` section, built from its receiver's rules.
 fn ppm_section() -> impl Strategy<Value = PpmSection> {
-    (
-        prop::collection::vec(limits(), 1..=16),
-        order(),
-        any::<bool>(),
-        0.0f64..1.0,
-        0.0f64..1.0,
-    )
+    receiver()
+        .prop_flat_map(|r| {
+            let rules = r.rules();
+            let counts = rules.min_channels.0..=rules.max_channels.0;
+            (
+                Just(r),
+                prop::collection::vec(
+                    limits(rules.channel_min_us.0, rules.channel_max_us.0),
+                    counts,
+                ),
+                order(),
+                any::<bool>(),
+                0.0f64..1.0,
+                0.0f64..1.0,
+            )
+        })
         .prop_filter_map(
             "no frame length fits both sync limits",
-            |(lims, order, high, frame_pick, pulse_pick)| {
+            |(receiver, lims, order, high, frame_pick, pulse_pick)| {
+                let rules = receiver.rules();
                 let us = |t: u32| t as f64 / 10.0;
                 let sum_max: f64 = lims.iter().map(|l| us(l.2)).sum();
                 let sum_min: f64 = lims.iter().map(|l| us(l.0)).sum();
-                let (lo, hi) = (sum_max + 4_000.0, sum_min + 19_000.0);
+                let (lo, hi) = (
+                    sum_max + rules.sync_min_us.0,
+                    sum_min + rules.sync_max_us.0.min(30_000.0),
+                );
                 if lo > hi {
                     return None;
                 }
@@ -69,6 +96,7 @@ fn ppm_section() -> impl Strategy<Value = PpmSection> {
                     idle_level: if high { Level::High } else { Level::Low },
                     order,
                     channel,
+                    receiver,
                     ..PpmSection::default()
                 })
             },
@@ -87,7 +115,17 @@ fn model_and_values() -> impl Strategy<Value = (FrameModel, Vec<u32>)> {
         })
 }
 
-/// Three consecutive frames on one timeline, plus the next frame's first edge.
+/// A decoder that takes any gap longer than a channel as a sync (as
+/// Betaflight and ArduPilot do; the receiver models check the rest).
+fn any_sync() -> DecoderLimits {
+    DecoderLimits {
+        sync_min_ns: 2_700_000,
+        sync_max_ns: u64::MAX,
+        ..DecoderLimits::default()
+    }
+}
+
+/// Consecutive frames on one timeline, plus the next frame's first edge.
 fn waveform(m: &FrameModel, frames: &[Channels]) -> Vec<(u64, Level)> {
     let mut out = vec![];
     for (k, c) in frames.iter().enumerate() {
@@ -113,7 +151,7 @@ proptest! {
     fn decode_encode_is_identity((m, values) in model_and_values()) {
         let c = Channels::from_ns(&values);
         let edges = waveform(&m, &[c, c, c]);
-        let frames = decode(edges, m.idle_level().opposite(), DecoderLimits::default());
+        let frames = decode(edges, m.idle_level().opposite(), any_sync());
         // The first frame has no sync before it; a transmitter reads the next two.
         prop_assert_eq!(frames.len(), 2);
         for (k, f) in frames.iter().enumerate() {
@@ -121,6 +159,29 @@ proptest! {
             prop_assert_eq!(&f.channels_ns, &want);
             prop_assert!(f.complete);
             prop_assert_eq!(f.start_ns, (k as u64 + 1) * m.frame_ns());
+        }
+    }
+
+    /// Every receiver a configuration is for reads every frame it makes,
+    /// whatever the values within their limits, to the microsecond (their
+    /// capture clocks truncate).
+    #[test]
+    fn every_receiver_reads_what_its_configuration_makes((m, values) in model_and_values()) {
+        let c = Channels::from_ns(&values);
+        // Enough frames for Betaflight to lock on.
+        let edges = waveform(&m, &[c; 32]);
+        for r in m.receiver().receivers() {
+            let (frames, stats) = decode_as(r, edges.iter().copied(), m.idle_level().opposite());
+            let complete: Vec<_> = frames.iter().filter(|f| f.complete).collect();
+            // The first frame has no sync before it.
+            prop_assert_eq!(complete.len(), 31 - r.warmup_frames(), "{:?} {:?}", r, stats);
+            prop_assert_eq!(stats.invalid_periods, 0);
+            for f in complete {
+                prop_assert_eq!(f.channels_ns.len(), values.len());
+                for (got, want) in f.channels_ns.iter().zip(&values) {
+                    prop_assert!(got.abs_diff(*want as u64) < 1_000, "{:?}: {} for {}", r, got, want);
+                }
+            }
         }
     }
 
@@ -140,7 +201,7 @@ proptest! {
         let frames = decode(
             waveform(&m, &[cmd.channels, cmd.channels]),
             m.idle_level().opposite(),
-            DecoderLimits::default(),
+            any_sync(),
         );
         prop_assert_eq!(frames.len(), 1);
         for i in 0..m.channels() {
@@ -161,13 +222,17 @@ proptest! {
         let (min, max) = (o.min_us.unwrap(), o.max_us.unwrap());
         let smallest_min = s.channel.values().map(|o| o.min_us.unwrap()).fold(f64::MAX, f64::min);
         let sum = |f: fn(&ChannelOverride) -> f64| -> f64 { s.channel.values().map(f).sum() };
+        let rules = s.receiver.rules();
+        // Betaflight and ArduPilot have no longest sync: push the frame to
+        // the shortest one instead.
+        let which = if which == 3 && !rules.sync_max_us.0.is_finite() { 2 } else { which };
         let key = match which {
             0 => { bad.channels = if pick % 2 == 0 { 0 } else { 17 + pick as u32 }; "ppm.channels".to_string() }
             1 => { bad.pulse_us = smallest_min + pick as f64; "ppm.pulse_us".into() }
-            2 => { bad.frame_us = sum(|o| o.max_us.unwrap()) + 4_000.0 - 1.0 - pick as f64; "ppm.frame_us".into() }
-            3 => { bad.frame_us = sum(|o| o.min_us.unwrap()) + 19_000.0 + 1.0 + pick as f64; "ppm.frame_us".into() }
-            4 => { o.min_us = Some(799.9 - pick as f64); format!("ppm.channel.{name}.min_us") }
-            5 => { o.max_us = Some(2_200.1 + pick as f64); format!("ppm.channel.{name}.max_us") }
+            2 => { bad.frame_us = sum(|o| o.max_us.unwrap()) + rules.sync_min_us.0 - 1.0 - pick as f64; "ppm.frame_us".into() }
+            3 => { bad.frame_us = sum(|o| o.min_us.unwrap()) + rules.sync_max_us.0 + 1.0 + pick as f64; "ppm.frame_us".into() }
+            4 => { o.min_us = Some(rules.channel_min_us.0 - 0.1 - pick as f64); format!("ppm.channel.{name}.min_us") }
+            5 => { o.max_us = Some(rules.channel_max_us.0 + 0.1 + pick as f64); format!("ppm.channel.{name}.max_us") }
             6 => { o.default_us = Some(if pick % 2 == 0 { min - 0.1 } else { max + 0.1 }); format!("ppm.channel.{name}.default_us") }
             7 => { o.min_us = Some(max + 0.1); format!("ppm.channel.{name}.min_us") }
             8 => { bad.order = ["AETRA", "AER", "XETR", "aetr x"][pick % 4].into(); "ppm.order".into() }
@@ -181,7 +246,8 @@ proptest! {
     }
 }
 
-/// A model whose aileron channel (index 0, limits 800..=2200 us) has a random
+/// A model whose aileron channel (index 0, limits 820..=2180 us, EdgeTX's
+/// window less its margin) has a random
 /// unit range, µs range, direction and trim: `(model, unit_min, unit_max)`.
 fn units_model() -> impl Strategy<Value = (FrameModel, f64, f64)> {
     (
@@ -196,8 +262,8 @@ fn units_model() -> impl Strategy<Value = (FrameModel, f64, f64)> {
             let us_lo = us_lo as f64 / 10.0;
             let us_hi = (us_lo + us_span as f64 / 10.0).min(2_200.0);
             let o = ChannelOverride {
-                min_us: Some(800.0),
-                max_us: Some(2_200.0),
+                min_us: Some(820.0),
+                max_us: Some(2_180.0),
                 unit_min: Some(lo),
                 unit_max: Some(lo + span),
                 unit_us_min: Some(us_lo),
@@ -208,6 +274,7 @@ fn units_model() -> impl Strategy<Value = (FrameModel, f64, f64)> {
             };
             let ppm = PpmSection {
                 channel: [("ail".to_string(), o)].into(),
+                receiver: ReceiverChoice::One(Receiver::EdgeTx),
                 ..PpmSection::default()
             };
             let m = FrameModel::from_config(&ppm).expect("generated config is valid");

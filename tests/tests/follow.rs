@@ -1,7 +1,7 @@
 //! Follow timing with the real binaries: frames start when commands come,
-//! every frame on the simulated line is read by EdgeTX, OpenTX, Betaflight
-//! and ArduPilot as their firmware decodes PPM, and the frame log, the exit
-//! summary and the status reply say the timing. How soon a command reaches
+//! every frame on the simulated line (follow, and grid beside it) is read by
+//! EdgeTX, OpenTX, Betaflight and ArduPilot as their firmware decodes PPM,
+//! and the frame log, the exit summary and the status reply say the timing. How soon a command reaches
 //! the line is measured by `ppm-bench --only e2e`, not here.
 
 use ppm_shared::receiver::{decode_as, Receiver};
@@ -49,11 +49,15 @@ fn logged_frames(path: &Path) -> Vec<Logged> {
 }
 
 /// The number before `what` in ppmd's summary line for the output (`12
-/// overruns`).
+/// overruns`); with several outputs, `NAME: ` first.
 fn summary_count(log: &str, what: &str) -> u64 {
+    output_count(log, "", what)
+}
+
+fn output_count(log: &str, output: &str, what: &str) -> u64 {
     let line = log
         .lines()
-        .find(|l| l.contains("stopped"))
+        .find(|l| l.contains(&format!("{output}stopped")))
         .unwrap_or_else(|| panic!("no summary:\n{log}"));
     let words: Vec<&str> = line.split([' ', ',', '(', ')', ';']).collect();
     let at = words
@@ -247,11 +251,15 @@ timing = "follow"
     assert_eq!(replies[1]["ppmd"]["timing"], "follow");
     let log = ppmd.log_text();
     assert!(log.contains(&format!("{name_b}: stopped")) && log.contains("repeats)"));
-    for (file, timing, trace) in [
-        ("a.jsonl", "grid", "a.trace"),
-        ("b.jsonl", "follow", "b.trace"),
+    for (file, timing, trace, name) in [
+        ("a.jsonl", "grid", "a.trace", &name_a),
+        ("b.jsonl", "follow", "b.trace", &name_b),
     ] {
         let logged = logged_frames(&sb.dir.join(file));
+        // Every receiver reads either line, grid or follow.
+        let overruns = output_count(&log, &format!("{name}: "), "overruns");
+        let whole = read_trace(&sb.dir.join(trace));
+        assert_every_receiver_reads(&whole, &logged, overruns);
         assert!(logged.len() >= 40, "{file}: {} frames", logged.len());
         assert!(logged.iter().all(|l| l.timing == timing), "{file}");
         let trace = read_trace(&sb.dir.join(trace));

@@ -88,3 +88,48 @@ fn watch_follows_a_rotated_and_a_restarted_trace() {
     wait_for_output(&out, "ail  1900.0");
     watch.kill();
 }
+
+/// `--receiver` decodes as that receiver's firmware does: Betaflight hands
+/// a frame on only once 26 frames of one channel count locked it, EdgeTX
+/// each frame; the trace's `# receiver` line picks the default.
+#[test]
+fn watch_decodes_as_the_receiver_asked_for() {
+    let sb = Sandbox::new("watch-receiver");
+    let model = Config::default().validate().unwrap();
+    let path = sb.dir.join("line.trace");
+    let mut t = 1_000_000_000;
+    append_frames(&path, &model, b"[1100, 1900]", 30, &mut t);
+    let frames = |args: &[&str]| -> usize {
+        let out = std::process::Command::new(ppm_tests::bin("ppm-watch"))
+            .arg(&path)
+            .arg("--once")
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{out:?}");
+        let text = String::from_utf8(out.stdout).unwrap();
+        assert!(
+            text.lines().all(|l| l.contains("ail  1100.0 ele  1900.0")),
+            "{text}"
+        );
+        text.lines().count()
+    };
+    // 30 frames: the first has no sync before it; the trainer inputs use
+    // the last one's channels as they come.
+    assert_eq!(frames(&["--receiver", "edgetx"]), 29);
+    assert_eq!(frames(&["--receiver", "opentx"]), 29);
+    // Betaflight and ArduPilot hand a frame on at the sync after it.
+    assert_eq!(frames(&["--receiver", "betaflight"]), 28 - 26);
+    assert_eq!(frames(&["--receiver", "ardupilot"]), 28 - 2);
+    assert_eq!(frames(&[]), 29, "edgetx without a # receiver line");
+    let text = std::fs::read_to_string(&path).unwrap();
+    std::fs::write(&path, format!("# receiver ardupilot\n{text}")).unwrap();
+    assert_eq!(frames(&[]), 26);
+    let bad = std::process::Command::new(ppm_tests::bin("ppm-watch"))
+        .arg(&path)
+        .args(["--once", "--receiver", "spektrum"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("spektrum"));
+}

@@ -2,6 +2,7 @@
 //! periods a transmitter would see, from a sim trace or captured edges.
 
 use ppm_shared::decode::DecodedFrame;
+use ppm_shared::receiver::Receiver;
 use ppm_shared::trace::Trace;
 
 /// Nearest-rank percentiles of a set of values.
@@ -87,10 +88,14 @@ pub struct TraceReport {
     pub period_error_ns: Percentiles,
     /// Frames at the same position whose channel count differs between the two decodings.
     pub frames_differing: usize,
+    /// The receiver whose reading is counted below.
+    pub receiver: Option<Receiver>,
+    /// Frames that receiver hands on, by actual time.
+    pub frames_read: usize,
 }
 
-/// Analyses a sim trace.
-pub fn analyse_trace(trace: &Trace) -> TraceReport {
+/// Analyses a sim trace; counts the frames `receiver` hands on.
+pub fn analyse_trace(trace: &Trace, receiver: Receiver) -> TraceReport {
     let mut errors: Vec<f64> = trace.edges.iter().map(|e| e.error_ns() as f64).collect();
     let scheduled = trace.decode(false);
     let actual = trace.decode(true);
@@ -102,6 +107,8 @@ pub fn analyse_trace(trace: &Trace) -> TraceReport {
         frames_actual: actual.len(),
         period_error_ns: Percentiles::of(&mut periods),
         frames_differing: differing,
+        receiver: Some(receiver),
+        frames_read: trace.decode_as(receiver, true).len(),
     }
 }
 

@@ -787,7 +787,9 @@ mod tests {
                 "publish_latency_us": {"count": 0, "p50": 0.0, "p99": 0.0, "max": 0.0},
                 "ppmd": {
                     "state": "active",
+                    "timing": "grid",
                     "frames": 400,
+                    "repeats": 0,
                     "edge_error_us": {"p50": 0.031, "p99": 1.25, "max": 17000.4},
                     "overruns": 1,
                     "late_frames": 2,

@@ -13,6 +13,7 @@ use ppm_shared::config::Config;
 use ppm_shared::decode::{Decoder, DecoderLimits};
 use ppm_shared::frame::Level;
 use ppm_shared::ipc::{self, TimingSnapshot, HIST_BUCKETS};
+use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder};
 use ppm_shared::trace::Trace;
 use ppm_tools::analysis::{analyse_trace, Percentiles};
 use ppm_tools::cyclic::LatencyStats;
@@ -92,9 +93,15 @@ struct Cli {
     #[arg(long, value_name = "US,US,...", value_delimiter = ',')]
     expect: Vec<f64>,
     /// ppm configuration (for --attach: the shared-memory root; for
-    /// --capture: the idle level).
+    /// --capture: the idle level and the receiver).
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// With --trace or --capture: count the frames this receiver hands on,
+    /// decoding as its firmware does: edgetx, opentx, betaflight or
+    /// ardupilot (default: the one the trace or --config names, edgetx for
+    /// `any`).
+    #[arg(long, value_name = "RECEIVER")]
+    receiver: Option<Receiver>,
 }
 
 fn main() {
@@ -102,7 +109,7 @@ fn main() {
     let r = if let Some(name) = &cli.attach {
         attach(&cli, name)
     } else if let Some(path) = &cli.trace {
-        trace(path)
+        trace(path, cli.receiver)
     } else if let Some(spec) = &cli.capture {
         capture(&cli, spec)
     } else {
@@ -385,10 +392,11 @@ fn attach_line(s: &TimingSnapshot, unit: u64) -> String {
 }
 
 /// Analysis of a sim trace.
-fn trace(path: &PathBuf) -> Result<()> {
+fn trace(path: &PathBuf, receiver: Option<Receiver>) -> Result<()> {
     let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
     let t = Trace::read(std::io::BufReader::new(file))?;
-    let r = analyse_trace(&t);
+    let receiver = receiver.unwrap_or(t.default_receiver());
+    let r = analyse_trace(&t, receiver);
     println!("# jitter --trace {}", path.display());
     println!(
         "edges {} frames {} (decoded by scheduled time) {} (by actual time), {} differing",
@@ -399,6 +407,11 @@ fn trace(path: &PathBuf) -> Result<()> {
         "channel period error us: {} (|actual - scheduled| of {} periods)",
         r.period_error_ns.line(1_000.0),
         r.period_error_ns.count
+    );
+    println!(
+        "{} hands on {} frames (by actual time, as its firmware decodes)",
+        receiver.name(),
+        r.frames_read
     );
     Ok(())
 }
@@ -429,6 +442,12 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
     let stop = stop_flag()?;
     let leading = cfg.ppm.idle_level.opposite();
     let mut decoder = Decoder::new(leading, DecoderLimits::default());
+    let receiver = cli.receiver.unwrap_or(match cfg.ppm.receiver {
+        ReceiverChoice::One(r) => r,
+        ReceiverChoice::Any => Receiver::EdgeTx,
+    });
+    let mut as_receiver = ReceiverDecoder::new(receiver, leading);
+    let mut read = 0usize;
     let mut frames = Vec::new();
     let mut events = 0u64;
     let started = Instant::now();
@@ -453,13 +472,16 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
             EdgeKind::Falling => Level::Low,
         };
         frames.extend(decoder.push(e.timestamp_ns, level));
+        read += as_receiver.push(e.timestamp_ns, level).is_some() as usize;
     }
     frames.extend(decoder.finish());
+    read += as_receiver.finish().is_some() as usize;
     let complete: Vec<_> = frames.iter().filter(|f| f.complete).collect();
     println!(
-        "# jitter --capture {spec}: {events} edges, {} frames ({} complete)",
+        "# jitter --capture {spec}: {events} edges, {} frames ({} complete); {} hands on {read}",
         frames.len(),
-        complete.len()
+        complete.len(),
+        receiver.name()
     );
     let Some(first) = complete.first() else {
         bail!("no complete PPM frame captured: is the input wired to ppmd's output and ppmd emitting?");

@@ -1,10 +1,11 @@
-//! `ppm-watch`: decodes the simulated line's trace as a transmitter would and
-//! shows the channel values, live or once.
+//! `ppm-watch`: decodes the simulated line's trace as a receiver's firmware
+//! would and shows the channel values, live or once.
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use ppm_shared::decode::{DecodedFrame, Decoder, DecoderLimits};
+use ppm_shared::decode::DecodedFrame;
 use ppm_shared::frame::Level;
+use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder};
 use ppm_shared::trace::{parse_line, Trace};
 use ppm_tools::parse_duration;
 use std::fs::File;
@@ -13,7 +14,7 @@ use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-/// Decode a ppmd sim trace with transmitter semantics and print the channels.
+/// Decode a ppmd sim trace as a receiver does and print the channels.
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Cli {
@@ -28,6 +29,11 @@ struct Cli {
     /// Decode by actual edge times instead of scheduled times.
     #[arg(long)]
     actual: bool,
+    /// Decode as this receiver does: edgetx, opentx, betaflight or
+    /// ardupilot (default: the one ppmd's configuration names in the trace,
+    /// edgetx when that is `any`).
+    #[arg(long, value_name = "RECEIVER")]
+    receiver: Option<Receiver>,
 }
 
 fn main() {
@@ -44,8 +50,9 @@ fn run(cli: Cli) -> Result<()> {
         let mut header = Header::default();
         text.lines().for_each(|l| header.take(l));
         let trace = Trace::read(text.as_bytes())?;
+        let receiver = cli.receiver.unwrap_or(trace.default_receiver());
         let mut out = std::io::stdout().lock();
-        for f in trace.decode(cli.actual) {
+        for f in trace.decode_as(receiver, cli.actual) {
             if writeln!(out, "{}", header.format(&f)).is_err() {
                 break; // reader went away (e.g. `| head`)
             }
@@ -60,6 +67,7 @@ fn run(cli: Cli) -> Result<()> {
 struct Header {
     idle: Option<Level>,
     names: Vec<String>,
+    receiver: Option<ReceiverChoice>,
 }
 
 impl Header {
@@ -68,6 +76,8 @@ impl Header {
             self.idle = Some(Level::from_bit(v.trim() == "1"));
         } else if let Some(v) = line.strip_prefix("# channels ") {
             self.names = v.trim().split(',').map(str::to_string).collect();
+        } else if let Some(v) = line.strip_prefix("# receiver ") {
+            self.receiver = v.trim().parse().ok();
         }
     }
 
@@ -100,7 +110,7 @@ fn follow(cli: &Cli) -> Result<()> {
     };
     eprintln!("watching {} (Ctrl-C to stop)", cli.trace.display());
     let mut header = Header::default();
-    let mut decoder: Option<Decoder> = None;
+    let mut decoder: Option<ReceiverDecoder> = None;
     let mut pending = String::new();
     let mut offset = 0u64;
     let mut last_print: Option<Instant> = None;
@@ -135,10 +145,11 @@ fn follow(cli: &Cli) -> Result<()> {
             };
             last_edge = Instant::now();
             let d = decoder.get_or_insert_with(|| {
-                Decoder::new(
-                    header.idle.unwrap_or(Level::Low).opposite(),
-                    DecoderLimits::default(),
-                )
+                let receiver = cli.receiver.unwrap_or(match header.receiver {
+                    Some(ReceiverChoice::One(r)) => r,
+                    _ => Receiver::EdgeTx,
+                });
+                ReceiverDecoder::new(receiver, header.idle.unwrap_or(Level::Low).opposite())
             });
             let t = if cli.actual {
                 edge.actual_ns
