@@ -295,6 +295,24 @@ pub fn status(to: SocketAddr) -> serde_json::Value {
     serde_json::from_slice(&buf[..n]).expect("a JSON status reply")
 }
 
+/// Writes `ppm.toml` with two outputs, `<name>a` (the defaults, on the
+/// sandbox's port, line `sim:a.trace`, frame log `a.jsonl`) and `<name>b`
+/// (line `sim:b.trace`, on `port_b`), with `b_keys` added to b's entry
+/// (keys, then its `[outputs.*]` sections); returns the path and the names.
+pub fn two_outputs(sb: &Sandbox, port_b: u16, b_keys: &str) -> (PathBuf, [String; 2]) {
+    let (a, b) = (format!("{}a", sb.name), format!("{}b", sb.name));
+    let path = sb.dir.join("ppm.toml");
+    let text = format!(
+        "[ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n\n\
+         [[outputs]]\nname = \"{a}\"\noutput = \"sim:a.trace\"\nframe_log = \"a.jsonl\"\n\n\
+         [[outputs]]\nname = \"{b}\"\noutput = \"sim:b.trace\"\ningress.listen = \"127.0.0.1:{port_b}\"\n{b_keys}\n",
+        sb.port,
+        sb.dir.join("ipc").display(),
+    );
+    std::fs::write(&path, text).expect("writing the config");
+    (path, [a, b])
+}
+
 /// Starts one ppmd with the configuration at `cfg` (several outputs) and one
 /// `udp-ingress --name NAME` per name (logs `ing-0`, `ing-1`, ...), and waits
 /// until ppmd has set up its last output and every ingress listens.

@@ -8,7 +8,8 @@ use ppm_shared::receiver::{decode_as, Receiver};
 use ppm_shared::trace::Trace;
 use ppm_shared::Level;
 use ppm_tests::{
-    at_50hz, free_udp_port, read_trace, start_outputs, status, stop_all, Sandbox, Sender,
+    at_50hz, free_udp_port, read_trace, start_outputs, status, stop_all, two_outputs, Sandbox,
+    Sender,
 };
 use serde_json::Value;
 use std::net::SocketAddr;
@@ -197,41 +198,8 @@ fn follow_frames_start_with_the_commands_and_every_receiver_reads_them() {
 fn a_follow_output_runs_beside_a_grid_output() {
     let sb = Sandbox::new("follow-outputs");
     let port_b = free_udp_port();
-    let cfg_path = sb.dir.join("ppm.toml");
-    std::fs::write(
-        &cfg_path,
-        format!(
-            r#"
-[ingress]
-listen = "127.0.0.1:{port_a}"
-[ipc]
-root = "{root}"
-[rt]
-allow_degraded = true
-
-[[outputs]]
-name = "{name}a"
-output = "sim:a.trace"
-frame_log = "a.jsonl"
-
-[[outputs]]
-name = "{name}b"
-output = "sim:b.trace"
-frame_log = "b.jsonl"
-[outputs.ingress]
-listen = "127.0.0.1:{port_b}"
-[outputs.ppm]
-channels = 6
-order = "TAER"
-timing = "follow"
-"#,
-            port_a = sb.port,
-            root = sb.dir.join("ipc").display(),
-            name = sb.name,
-        ),
-    )
-    .unwrap();
-    let (name_a, name_b) = (format!("{}a", sb.name), format!("{}b", sb.name));
+    let b = "frame_log = \"b.jsonl\"\n[outputs.ppm]\nchannels = 6\norder = \"TAER\"\ntiming = \"follow\"";
+    let (cfg_path, [name_a, name_b]) = two_outputs(&sb, port_b, b);
     let (mut ppmd, mut ings) = start_outputs(&sb, &cfg_path, &[&name_a, &name_b]);
     let to_b = SocketAddr::from(([127, 0, 0, 1], port_b));
     let (send_a, send_b) = (Sender::new(sb.addr()), Sender::new(to_b));

@@ -7,7 +7,8 @@
 
 use nix::sys::signal::Signal;
 use ppm_tests::{
-    at_50hz, bin, free_udp_port, read_trace, start_outputs, status, stop_all, Sandbox, Sender,
+    at_50hz, bin, free_udp_port, read_trace, start_outputs, status, stop_all, two_outputs, Sandbox,
+    Sender,
 };
 use std::net::SocketAddr;
 use std::path::Path;
@@ -16,28 +17,9 @@ use std::time::Duration;
 
 const SECOND: Duration = Duration::from_secs(1);
 
-/// Two outputs: `<name>a`, 8 channels AETR at 22.5 ms; `<name>b`, 6 channels
-/// TAER at 20 ms with a unit range on aileron and failsafe `hold`.
-fn config(sb: &Sandbox, port_b: u16) -> String {
-    format!(
-        r#"
-[ingress]
-listen = "127.0.0.1:{port_a}"
-[ipc]
-root = "{root}"
-[rt]
-allow_degraded = true
-
-[[outputs]]
-name = "{name}a"
-output = "sim:a.trace"
-frame_log = "a.jsonl"
-
-[[outputs]]
-name = "{name}b"
-output = "sim:b.trace"
-[outputs.ingress]
-listen = "127.0.0.1:{port_b}"
+/// Output b of the two: 6 channels TAER at 20 ms with a unit range on
+/// aileron and failsafe `hold` (a: 8 channels AETR at 22.5 ms).
+const B: &str = r#"
 [outputs.ppm]
 channels = 6
 order = "TAER"
@@ -47,12 +29,7 @@ unit_min = -10.0
 unit_max = 10.0
 [outputs.failsafe]
 action = "hold"
-"#,
-        port_a = sb.port,
-        root = sb.dir.join("ipc").display(),
-        name = sb.name,
-    )
-}
+"#;
 
 /// Every frame of the trace at `path`, as whole microseconds, with the
 /// scheduled frame starts.
@@ -68,11 +45,8 @@ fn frames(path: &Path) -> Vec<(u64, Vec<u64>)> {
 fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
     let sb = Sandbox::new("outputs");
     let port_b = free_udp_port();
-    let cfg_path = sb.dir.join("ppm.toml");
-    std::fs::write(&cfg_path, config(&sb, port_b)).unwrap();
+    let (cfg_path, [name_a, name_b]) = two_outputs(&sb, port_b, B);
     let cfg = cfg_path.to_str().unwrap();
-    let (name_a, name_b) = (format!("{}a", sb.name), format!("{}b", sb.name));
-
     // An ingress must say which output it feeds.
     let out = Command::new(bin("udp-ingress"))
         .args(["--config", cfg])
