@@ -248,7 +248,7 @@ impl FrameModel {
                 ),
             ));
         }
-        if sync_max.0.is_finite() && frame_ns > sum_min + us_to_ns(sync_max.0) {
+        if frame_ns > sum_min + us_to_ns(sync_max.0) {
             let sync_max_ns = us_to_ns(sync_max.0);
             return Err(invalid(
                 "ppm.frame_us",

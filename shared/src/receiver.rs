@@ -179,6 +179,10 @@ pub const CHANNEL_MARGIN_US: f64 = 20.0;
 /// late, and ppmd spins the last part of every wait on top of that.
 pub const SYNC_MARGIN_US: f64 = 500.0;
 
+/// The longest period a 16-bit capture timer at 1 MHz measures, us
+/// (Betaflight's and ArduPilot's): their only bound on a sync.
+const CAPTURE_16_BIT_US: f64 = 65_536.0;
+
 /// What ppm may send to a receiver, each bound with the rule it comes from
 /// (for error messages). Channel and sync bounds are the receiver's own
 /// less [`CHANNEL_MARGIN_US`] and [`SYNC_MARGIN_US`].
@@ -194,7 +198,7 @@ pub struct Rules {
     pub channel_max_us: (f64, &'static str),
     /// Shortest sync gap, us.
     pub sync_min_us: (f64, &'static str),
-    /// Longest sync gap, us (`f64::INFINITY`: none).
+    /// Longest sync gap, us.
     pub sync_max_us: (f64, &'static str),
 }
 
@@ -231,7 +235,7 @@ impl Receiver {
                 channel_min_us: (885.0 + c, "Betaflight takes a channel of 885..=2115 us as valid (rx_min_usec and rx_max_usec, their defaults)"),
                 channel_max_us: (2_115.0 - c, "Betaflight takes a channel of 885..=2115 us as valid (rx_min_usec and rx_max_usec, their defaults)"),
                 sync_min_us: (sync(2_700.0), "Betaflight reads a sync only above 2700 us (rx_pwm.c, PPM_IN_MIN_SYNC_PULSE_US)"),
-                sync_max_us: (f64::INFINITY, "Betaflight has no longest sync"),
+                sync_max_us: (CAPTURE_16_BIT_US - SYNC_MARGIN_US, "Betaflight's 16-bit capture timer at 1 MHz measures a gap only up to 65536 us (rx_pwm.c, PPM_TIMER_PERIOD)"),
             },
             Receiver::ArduPilot => Rules {
                 min_channels: (5, "ArduPilot drops a frame of fewer than 5 channels (AP_RCProtocol_PPMSum.cpp, MIN_RCIN_CHANNELS)"),
@@ -240,7 +244,7 @@ impl Receiver {
                 channel_min_us: (800.0, "ppm sends channels of 800..=2200 us"),
                 channel_max_us: (2_200.0, "ppm sends channels of 800..=2200 us"),
                 sync_min_us: (sync(2_700.0), "ArduPilot reads a sync only from 2700 us (AP_RCProtocol_PPMSum.cpp)"),
-                sync_max_us: (f64::INFINITY, "ArduPilot has no longest sync"),
+                sync_max_us: (CAPTURE_16_BIT_US - SYNC_MARGIN_US, "ArduPilot's 16-bit input capture at 1 MHz measures a gap only up to 65536 us"),
             },
         }
     }
