@@ -923,7 +923,9 @@ mod tests {
         let model = Config::default().validate().unwrap();
         let stop = Arc::new(AtomicBool::new(false));
         let mut src = Script {
-            cmd: cmd.map(|c| CommandSample::new(&parse(c, &model).unwrap(), 1, 0, 0)),
+            cmd: cmd.map(|c| {
+                CommandSample::new(&parse(c, &model).unwrap(), model.fingerprint(), 1, 0, 0)
+            }),
             polls_left: polls,
             stop: stop.clone(),
         };
@@ -1138,7 +1140,7 @@ mod tests {
         stop: &Arc<AtomicBool>,
     ) -> crate::source::RepeatSource {
         crate::source::RepeatSource {
-            sample: CommandSample::new(&parse(cmd, model).unwrap(), 1, 0, 0),
+            sample: CommandSample::new(&parse(cmd, model).unwrap(), model.fingerprint(), 1, 0, 0),
             frames,
             stop: stop.clone(),
         }
@@ -1443,7 +1445,8 @@ mod tests {
                         clock::sleep_until(t0 + k as u64 * every_ms * 1_000_000);
                         let v = 1_100 + 10 * k;
                         let cmd = parse(format!("[{v}, 1900]").as_bytes(), &model).unwrap();
-                        let mut sample = CommandSample::new(&cmd, k as u64 + 1, 0, 0);
+                        let mut sample =
+                            CommandSample::new(&cmd, model.fingerprint(), k as u64 + 1, 0, 0);
                         let now = clock::now_ns();
                         sample.recv_mono_ns = now;
                         *slot.lock().unwrap() = Some(sample);

@@ -310,7 +310,7 @@ fn run(cli: Cli) -> Result<()> {
     let mut monitors = Vec::new();
     for s in setups.iter_mut() {
         monitors.push(Monitor::new(
-            &s.model,
+            (&s.model, s.cfg.failsafe.after_ms),
             &obtained,
             s.reader.take().expect("reader"),
             s.stats.clone(),
@@ -505,6 +505,8 @@ struct Monitor {
     next_log_ns: u64,
     state: LineState,
     mismatched: u64,
+    /// The output's `failsafe.after_ms`, for the mismatch message.
+    failsafe_after_ms: u64,
     wake_errors: u64,
     /// `NAME.` before the HdrHistogram log's tags, with several outputs.
     tag_prefix: String,
@@ -512,7 +514,7 @@ struct Monitor {
 
 impl Monitor {
     fn new(
-        model: &FrameModel,
+        (model, failsafe_after_ms): (&FrameModel, u64),
         obtained: &Obtained,
         reader: MeterReader,
         stats: Arc<Stats>,
@@ -542,6 +544,7 @@ impl Monitor {
             next_log_ns: start_ns + LOG_EVERY_NS,
             state: LineState::Silent,
             mismatched: 0,
+            failsafe_after_ms,
             wake_errors: 0,
             tag_prefix,
         }
@@ -595,6 +598,7 @@ impl Monitor {
         snap.late_edges = s.late_edges.load(Relaxed);
         snap.write_errors = s.write_errors.load(Relaxed);
         snap.failsafe_entries = s.failsafe_entries.load(Relaxed);
+        snap.mismatched = s.mismatched.load(Relaxed);
         snap.repeats = s.repeats.load(Relaxed);
         snap.spin_share_ppm = s.spin_ns.load(Relaxed) * 1_000_000 / snap.uptime_ns.max(1);
         snap.state = s.state() as u32;
@@ -648,8 +652,9 @@ impl Monitor {
         let m = self.stats.mismatched.load(Relaxed);
         if m != self.mismatched {
             log::warn!(
-                "{who}{} command(s) ignored: their channel count differs from this daemon's configuration (udp-ingress runs with another config?)",
-                m - self.mismatched
+                "{who}{} command(s) refused: udp-ingress made them under another channel model (channel count, order, limits, defaults or units differ from this daemon's); restart udp-ingress with ppmd's configuration. The line takes the failsafe action once the last good command is {} ms old",
+                m - self.mismatched,
+                self.failsafe_after_ms
             );
             self.mismatched = m;
         }

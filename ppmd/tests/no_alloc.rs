@@ -120,7 +120,7 @@ fn run_without_allocating(timing: Timing, every_ms: u64) {
             while !done.load(Relaxed) {
                 k += 1;
                 let cmd = parse(format!("[{}]", 1000 + k % 1000).as_bytes(), &model).unwrap();
-                let s = CommandSample::new(&cmd, k, clock::now_ns(), 0);
+                let s = CommandSample::new(&cmd, model.fingerprint(), k, clock::now_ns(), 0);
                 p.loan_uninit().unwrap().write_payload(s).send().unwrap();
                 notifier.notify().unwrap();
                 std::thread::sleep(Duration::from_millis(every_ms));

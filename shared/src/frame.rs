@@ -273,6 +273,35 @@ impl FrameModel {
         self.timing
     }
 
+    /// A fingerprint of what a command means under this model: channel
+    /// count and names (the order), every channel's default, limits and
+    /// `units`/`norm` mapping. udp-ingress stamps it on every command and
+    /// ppmd refuses a command made under another model (FNV-1a, 64 bits;
+    /// the same on every machine).
+    pub fn fingerprint(&self) -> u64 {
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        let mut eat = |bytes: &[u8]| {
+            for b in bytes {
+                h = (h ^ *b as u64).wrapping_mul(0x0000_0100_0000_01b3);
+            }
+        };
+        eat(&(self.channels as u64).to_le_bytes());
+        for i in 0..self.channels {
+            eat(self.names[i].as_bytes());
+            eat(&[0]);
+            for v in [self.default_ns[i], self.min_ns[i], self.max_ns[i]] {
+                eat(&v.to_le_bytes());
+            }
+            let m = &self.mapping[i];
+            let (lo, hi) = m.units.unwrap_or((f64::NAN, f64::NAN));
+            for v in [lo, hi, m.us_lo, m.us_hi, m.trim_us] {
+                eat(&v.to_bits().to_le_bytes());
+            }
+            eat(&[m.units.is_some() as u8, m.reverse as u8]);
+        }
+        h
+    }
+
     /// The receiver the model was checked for.
     pub fn receiver(&self) -> ReceiverChoice {
         self.receiver

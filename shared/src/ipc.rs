@@ -51,11 +51,20 @@ pub struct CommandSample {
     pub clamped: u32,
     /// Channel values in ns, transmitter order, defaults filled in.
     pub values_ns: [u32; MAX_CHANNELS],
+    /// [`FrameModel::fingerprint`] of the model the ingress made it under.
+    pub model: u64,
 }
 
 impl CommandSample {
-    /// A sample carrying `cmd`, received at the given times.
-    pub fn new(cmd: &Command, ingress_seq: u64, recv_mono_ns: u64, recv_real_ns: u64) -> Self {
+    /// A sample carrying `cmd`, parsed under the model with fingerprint
+    /// `model`, received at the given times.
+    pub fn new(
+        cmd: &Command,
+        model: u64,
+        ingress_seq: u64,
+        recv_mono_ns: u64,
+        recv_real_ns: u64,
+    ) -> Self {
         let mut values_ns = [0; MAX_CHANNELS];
         let v = cmd.channels.as_ns();
         values_ns[..v.len()].copy_from_slice(v);
@@ -69,6 +78,7 @@ impl CommandSample {
             channel_count: v.len() as u32,
             clamped: cmd.clamped,
             values_ns,
+            model,
         }
     }
 
@@ -77,11 +87,13 @@ impl CommandSample {
         (self.has_seq != 0).then_some(self.seq)
     }
 
-    /// The channels, if the sample matches the frame model (same channel
-    /// count); `None` means the publisher was configured differently.
+    /// The channels, if the sample was made under this very channel model
+    /// (same count, order, limits, defaults and units); `None` means the
+    /// publisher was configured differently.
     pub fn channels(&self, model: &FrameModel) -> Option<Channels> {
         let n = self.channel_count as usize;
-        (n == model.channels()).then(|| Channels::from_ns(&self.values_ns[..n]))
+        (n == model.channels() && self.model == model.fingerprint())
+            .then(|| Channels::from_ns(&self.values_ns[..n]))
     }
 }
 
@@ -151,6 +163,8 @@ pub struct TimingSnapshot {
     pub overruns: u64,
     /// Frames moved later as a whole.
     pub late_frames: u64,
+    /// Commands refused: made under another channel model.
+    pub mismatched: u64,
     /// Edges written more than 10 us late.
     pub late_edges: u64,
     /// Failed writes.
@@ -201,6 +215,7 @@ impl Default for TimingSnapshot {
             commands: 0,
             overruns: 0,
             late_frames: 0,
+            mismatched: 0,
             late_edges: 0,
             write_errors: 0,
             failsafe_entries: 0,
@@ -337,11 +352,32 @@ mod tests {
     fn round_trip_and_mismatch() {
         let m = Config::default().validate().unwrap();
         let cmd = parse(br#"{"ch": [1100, 1200.5], "seq": 9}"#, &m).unwrap();
-        let s = CommandSample::new(&cmd, 1, 5, 6);
+        let s = CommandSample::new(&cmd, m.fingerprint(), 1, 5, 6);
         assert_eq!(s.seq(), Some(9));
         assert_eq!(s.channels(&m), Some(cmd.channels));
         let four =
             Config::parse("[ppm]\nchannels = 4\nframe_us = 12500\nreceiver = 'edgetx'").unwrap();
         assert_eq!(s.channels(&four.validate().unwrap()), None);
+        // Same count, another meaning: refused.
+        for other in [
+            "[ppm]\norder = 'TAER'",
+            "[ppm]\nmax_us = 1900",
+            "[ppm.channel.thr]\ndefault_us = 1100",
+            "[ppm.channel.ail]\nunit_min = -1\nunit_max = 1",
+            "[ppm.channel.ele]\nreverse = true",
+            "[ppm.channel.rud]\ntrim_us = 3",
+        ] {
+            let o = Config::parse(other).unwrap().validate().unwrap();
+            assert_ne!(o.fingerprint(), m.fingerprint(), "{other}");
+            assert_eq!(s.channels(&o), None, "{other}");
+        }
+        // What does not change a command's meaning keeps the fingerprint.
+        for same in [
+            "[ppm]\nframe_us = 21000",
+            "[ppm]\ntiming = 'follow'\npulse_us = 400",
+        ] {
+            let o = Config::parse(same).unwrap().validate().unwrap();
+            assert_eq!(s.channels(&o), Some(cmd.channels), "{same}");
+        }
     }
 }

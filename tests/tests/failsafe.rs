@@ -120,3 +120,55 @@ fn startup_default_sends_defaults_before_the_first_command() {
         .all(|f| f.channels_us()[..3] == [1500, 1500, 1000]));
     assert!(frames.iter().any(|f| f.channels_us()[0] == 1100));
 }
+
+/// udp-ingress left running with another channel model than ppmd's (here
+/// AETR against ppmd's TAER, where `{"norm": {"thr": -1}}`, zero throttle,
+/// would be 1500 us on channel 1, throttle under TAER: half throttle) puts
+/// nothing on the line: ppmd refuses its commands, counts them, says so in
+/// its log and the status reply. Restarted with ppmd's configuration, the
+/// same command flies, zero throttle on channel 1.
+#[test]
+fn commands_made_under_another_channel_model_are_refused() {
+    let sb = Sandbox::new("fs-model");
+    let ppmd_cfg = sb.dir.join("ppmd.toml");
+    std::fs::copy(sb.config("[ppm]\norder = 'TAER'"), &ppmd_cfg).unwrap();
+    let ingress_cfg = sb.config("");
+    let mut ppmd = sb.start_ppmd(&ppmd_cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&ingress_cfg, &[]);
+    let zero_throttle = br#"{"norm": {"thr": -1}}"#;
+    send(&sb, zero_throttle, 60);
+    // ppmd publishes its snapshot once a second.
+    std::thread::sleep(Duration::from_millis(1_200));
+    let reply = ppm_tests::status(sb.addr());
+    let p = &reply["ppmd"];
+    assert!(p["mismatched_commands"].as_u64().unwrap() >= 50, "{reply}");
+    assert_eq!(p["state"], "silent", "{reply}");
+    assert_eq!(p["frames"], 0, "{reply}");
+    ppmd.wait_for_log(
+        "refused: udp-ingress made them under another channel model",
+        10 * SECOND,
+    );
+    let status = std::process::Command::new(ppm_tests::bin("ppm-status"))
+        .args(["--to", &sb.addr().to_string()])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&status.stdout);
+    assert!(text.contains("commands REFUSED"), "{text}");
+    assert!(ingress
+        .signal_and_wait(Signal::SIGTERM, 10 * SECOND)
+        .success());
+
+    // The ingress restarted with ppmd's configuration.
+    let _ingress = sb.start_ingress(&ppmd_cfg, &[]);
+    send(&sb, zero_throttle, 40);
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    assert!(frames.len() >= 20, "{} frames", frames.len());
+    for f in &frames {
+        assert_eq!(
+            f.channels_us()[..4],
+            [1000, 1500, 1500, 1500],
+            "TAER: throttle first, at its minimum"
+        );
+    }
+}

@@ -193,7 +193,13 @@ fn status_counts_every_datagram_and_reports_ppmd() {
         e["max"].as_f64().unwrap(),
     );
     assert!(0.0 <= p50 && p50 <= p99 && p99 <= max, "{e}");
-    for k in ["overruns", "late_frames", "failsafe_entries", "repeats"] {
+    for k in [
+        "overruns",
+        "late_frames",
+        "failsafe_entries",
+        "repeats",
+        "mismatched_commands",
+    ] {
         assert!(p[k].is_u64(), "{k}: {p}");
     }
     assert_eq!(p["timing"], "grid", "{p}");
@@ -202,7 +208,7 @@ fn status_counts_every_datagram_and_reports_ppmd() {
     assert!((0.0..=3_000.0).contains(&age), "{p}");
     assert_eq!(
         p.as_object().unwrap().len(),
-        10,
+        11,
         "exactly the documented keys: {p}"
     );
 

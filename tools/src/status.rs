@@ -153,7 +153,7 @@ pub fn readable(r: &Value) -> Result<String> {
         let e = &p["edge_error_us"];
         let us = |k: &str| e[k].as_f64().unwrap_or(f64::NAN);
         format!(
-            "ppmd: {}{}, {} frames{}; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} overruns, {} late frames, {} failsafe entries (snapshot {} old)\n",
+            "ppmd: {}{}, {} frames{}; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} overruns, {} late frames, {} failsafe entries{} (snapshot {} old)\n",
             p["state"].as_str().unwrap_or("?"),
             if p["degraded"].as_bool() == Some(true) {
                 " (DEGRADED RUN)"
@@ -174,6 +174,12 @@ pub fn readable(r: &Value) -> Result<String> {
             num(&p["overruns"], "overruns")?,
             num(&p["late_frames"], "late_frames")?,
             num(&p["failsafe_entries"], "failsafe_entries")?,
+            match p["mismatched_commands"].as_u64() {
+                Some(n) if n > 0 => format!(
+                    "; {n} commands REFUSED: udp-ingress runs with another channel model"
+                ),
+                _ => String::new(),
+            },
             age(p["snapshot_age_ms"].as_f64().unwrap_or(f64::NAN)),
         )
     };

@@ -236,6 +236,8 @@ fn run(cli: Cli) -> Result<()> {
         cfg.ipc.root.display()
     );
 
+    // Stamped on every command: ppmd refuses one made under another model.
+    let fingerprint = model.fingerprint();
     let mut intake = Intake::new(
         model,
         Duration::from_millis(cfg.ingress.reject_log_interval_ms),
@@ -281,6 +283,7 @@ fn run(cli: Cli) -> Result<()> {
         ppmd_snapshot: None,
         reply_budget: ReplyBudget::new(),
         ingress_seq: 0,
+        fingerprint,
         publish_errors: 0,
         last_report: Instant::now(),
         reported_received: 0,
@@ -396,6 +399,7 @@ struct Receiver {
     ppmd_snapshot: Option<TimingSnapshot>,
     reply_budget: ReplyBudget,
     ingress_seq: u64,
+    fingerprint: u64,
     publish_errors: u64,
     last_report: Instant,
     reported_received: u64,
@@ -415,6 +419,7 @@ impl Receiver {
                 publish(
                     &mut self.intake,
                     (&self.publisher, &self.notifier),
+                    self.fingerprint,
                     &mut self.ingress_seq,
                     &mut self.publish_errors,
                 );
@@ -460,6 +465,7 @@ impl Receiver {
         if !publish(
             &mut self.intake,
             (&self.publisher, &self.notifier),
+            self.fingerprint,
             &mut self.ingress_seq,
             &mut self.publish_errors,
         ) {
@@ -578,6 +584,7 @@ fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
 fn publish(
     intake: &mut Intake,
     (publisher, notifier): (&Publisher, &Notifier),
+    fingerprint: u64,
     ingress_seq: &mut u64,
     errors: &mut u64,
 ) -> bool {
@@ -585,7 +592,7 @@ fn publish(
         return false;
     };
     *ingress_seq += 1;
-    let sample = CommandSample::new(&r.command, *ingress_seq, r.mono_ns, r.real_ns);
+    let sample = CommandSample::new(&r.command, fingerprint, *ingress_seq, r.mono_ns, r.real_ns);
     let sent = publisher
         .loan_uninit()
         .map(|s| s.write_payload(sample))

@@ -66,7 +66,7 @@ fn main() {
     .expect("real-time setup");
     let stop = Arc::new(AtomicBool::new(false));
     let mut source = RepeatSource {
-        sample: CommandSample::new(&cmd, 1, 0, 0),
+        sample: CommandSample::new(&cmd, model.fingerprint(), 1, 0, 0),
         frames: frames.parse().expect("FRAMES"),
         stop: stop.clone(),
     };

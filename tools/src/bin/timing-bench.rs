@@ -180,14 +180,14 @@ fn main() -> Result<()> {
     let follow = follow_cfg.validate()?;
     let follow_commands = cli.block * FOLLOW_HZ as u64;
     let cmd = parse(b"[1000, 1200, 1700, 2000]", &model).context("bench command")?;
-    let sample = CommandSample::new(&cmd, 1, 0, 0);
+    let sample = CommandSample::new(&cmd, model.fingerprint(), 1, 0, 0);
     let mut other_cfg = cfg.clone();
     other_cfg.ppm.channels = 6;
     other_cfg.ppm.frame_us = 20_000.0;
     let other = other_cfg.validate()?;
     let other_cmd =
         parse(b"[1900, 1111, 1333, 1555, 1777, 1050]", &other).context("bench command")?;
-    let other_sample = CommandSample::new(&other_cmd, 1, 0, 0);
+    let other_sample = CommandSample::new(&other_cmd, other.fingerprint(), 1, 0, 0);
     let m2 = model.clone();
     let other2 = other.clone();
     let worker = std::thread::Builder::new()
