@@ -153,7 +153,9 @@ pub struct Writer {
     stop: Arc<AtomicBool>,
     dropped: Arc<AtomicU64>,
     written: Arc<AtomicU64>,
-    thread: Option<JoinHandle<std::io::Result<()>>>,
+    lost: Arc<AtomicU64>,
+    last_error: Arc<std::sync::Mutex<Option<String>>>,
+    thread: Option<JoinHandle<()>>,
 }
 
 impl Writer {
@@ -162,53 +164,100 @@ impl Writer {
         self.dropped.load(Relaxed)
     }
 
-    /// Rows written.
+    /// Rows written (and flushed).
     pub fn written(&self) -> u64 {
         self.written.load(Relaxed)
     }
 
-    /// Writes what is queued, flushes and stops the thread.
-    pub fn finish(&mut self) -> std::io::Result<()> {
+    /// Rows lost because the file could not be written (a full disk, a
+    /// device that refuses writes); the writer reopens the file and goes on.
+    pub fn lost(&self) -> u64 {
+        self.lost.load(Relaxed)
+    }
+
+    /// The last write error, if any.
+    pub fn last_error(&self) -> Option<String> {
+        self.last_error.lock().map(|e| e.clone()).unwrap_or(None)
+    }
+
+    /// Writes what is queued, flushes and stops the thread. What could not
+    /// be written is counted in [`Writer::lost`], never an error here: a
+    /// log is not worth the line.
+    pub fn finish(&mut self) {
         self.stop.store(true, Relaxed);
-        match self.thread.take() {
-            Some(t) => t
-                .join()
-                .unwrap_or_else(|_| Err(std::io::Error::other("frame log writer panicked"))),
-            None => Ok(()),
+        if let Some(t) = self.thread.take() {
+            if t.join().is_err() {
+                self.set_error("the frame log writer panicked".into());
+            }
+        }
+    }
+
+    fn set_error(&self, e: String) {
+        if let Ok(mut last) = self.last_error.lock() {
+            *last = Some(e);
         }
     }
 }
 
 impl Drop for Writer {
     fn drop(&mut self) {
-        let _ = self.finish();
+        self.finish();
     }
 }
 
-/// Opens (appends to) the log at `path`, rotating at `max_bytes`.
+/// Opens (appends to) the log at `path`, rotating at `max_bytes` (a regular
+/// file only). The path must be writable at start; later write errors are
+/// counted and the file reopened, never fatal.
 pub fn open(path: &Path, max_bytes: u64) -> std::io::Result<(Producer, Writer)> {
     let mut file = Rotating::open(path, max_bytes)?;
     let (producer, mut consumer) = rtrb::RingBuffer::<Record>::new(RING);
     let stop = Arc::new(AtomicBool::new(false));
     let dropped = Arc::new(AtomicU64::new(0));
     let written = Arc::new(AtomicU64::new(0));
-    let (stop2, written2) = (stop.clone(), written.clone());
+    let lost = Arc::new(AtomicU64::new(0));
+    let last_error = Arc::new(std::sync::Mutex::new(None));
+    let (stop2, written2, lost2, error2) = (
+        stop.clone(),
+        written.clone(),
+        lost.clone(),
+        last_error.clone(),
+    );
     let thread = std::thread::Builder::new()
         .name("ppmd-frame-log".into())
         .stack_size(256 * 1024)
-        .spawn(move || -> std::io::Result<()> {
-            loop {
-                let stopping = stop2.load(Relaxed);
-                while let Ok(r) = consumer.pop() {
-                    file.write_line(&r.to_json())?;
-                    written2.fetch_add(1, Relaxed);
+        .spawn(move || loop {
+            let stopping = stop2.load(Relaxed);
+            // Rows since the last flush: written when it succeeds, lost
+            // when it fails.
+            let mut batch = 0u64;
+            let mut failed = None;
+            while let Ok(r) = consumer.pop() {
+                batch += 1;
+                if failed.is_none() {
+                    failed = file.write_line(&r.to_json()).err();
                 }
-                file.flush()?;
-                if stopping {
-                    return Ok(());
-                }
-                std::thread::sleep(FLUSH_EVERY);
             }
+            if failed.is_none() {
+                failed = file.flush().err();
+            }
+            match failed {
+                None => {
+                    written2.fetch_add(batch, Relaxed);
+                }
+                Some(e) => {
+                    lost2.fetch_add(batch, Relaxed);
+                    if let Ok(mut last) = error2.lock() {
+                        *last = Some(e.to_string());
+                    }
+                    // Start over with an empty buffer: what it held is lost
+                    // (counted); the next rows try again.
+                    file.discard();
+                }
+            }
+            if stopping {
+                return;
+            }
+            std::thread::sleep(FLUSH_EVERY);
         })?;
     Ok((
         Producer {
@@ -219,6 +268,8 @@ pub fn open(path: &Path, max_bytes: u64) -> std::io::Result<(Producer, Writer)> 
             stop,
             dropped,
             written,
+            lost,
+            last_error,
             thread: Some(thread),
         },
     ))
@@ -247,7 +298,7 @@ impl Rotating {
     }
 
     fn write_line(&mut self, line: &str) -> std::io::Result<()> {
-        if self.size > 0 && self.size + line.len() as u64 + 1 > self.max_bytes {
+        if self.size > 0 && self.size + line.len() as u64 + 1 > self.max_bytes && self.regular() {
             self.rotate()?;
         }
         self.out.write_all(line.as_bytes())?;
@@ -273,6 +324,22 @@ impl Rotating {
 
     fn flush(&mut self) -> std::io::Result<()> {
         self.out.flush()
+    }
+
+    /// Whether the log is a regular file (a device or a pipe is never
+    /// renamed).
+    fn regular(&self) -> bool {
+        std::fs::metadata(&self.path).is_ok_and(|m| m.is_file())
+    }
+
+    /// Drops what is buffered without writing it (a write failed): the
+    /// file stays open and the next rows try again.
+    fn discard(&mut self) {
+        if let Ok(f) = self.out.get_ref().try_clone() {
+            let old = std::mem::replace(&mut self.out, BufWriter::new(f));
+            // Into its parts: the buffer is dropped, not flushed.
+            drop(old.into_parts());
+        }
     }
 }
 
@@ -339,7 +406,7 @@ mod tests {
         for n in 10..=64 {
             p.push(frame(n));
         }
-        w.finish().unwrap();
+        w.finish();
         assert_eq!(w.written(), 55);
         let lines = |p: &Path| {
             std::fs::read_to_string(p)
@@ -364,9 +431,28 @@ mod tests {
         for n in 0..(RING as u64 * 4) {
             p.push(frame(n));
         }
-        w.finish().unwrap();
+        w.finish();
         assert!(w.dropped() > 0);
         assert_eq!(w.dropped() + w.written(), RING as u64 * 4);
         let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn a_log_that_cannot_be_written_counts_its_losses_and_goes_on() {
+        // /dev/full takes the open and refuses every write (ENOSPC); as a
+        // device it is never rotated (renamed), whatever the cap.
+        let (mut p, mut w) = open(Path::new("/dev/full"), 100).unwrap();
+        for n in 0..50 {
+            p.push(frame(n));
+        }
+        std::thread::sleep(FLUSH_EVERY * 3);
+        assert_eq!(w.lost(), 50, "counted while running");
+        assert!(w.last_error().is_some_and(|e| !e.is_empty()));
+        for n in 50..60 {
+            p.push(frame(n));
+        }
+        w.finish();
+        assert_eq!((w.lost(), w.written()), (60, 0));
+        assert!(Path::new("/dev/full").exists(), "not rotated");
     }
 }

@@ -65,6 +65,8 @@ const MONITOR_EVERY: Duration = Duration::from_millis(100);
 const SNAPSHOT_EVERY_NS: u64 = 1_000_000_000;
 /// How often the timing summary is logged.
 const LOG_EVERY_NS: u64 = 60_000_000_000;
+/// How often a log that goes on failing is said again.
+const LOG_FAILURE_EVERY_NS: u64 = 10_000_000_000;
 
 fn main() {
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("info"))
@@ -323,8 +325,8 @@ fn run(cli: Cli) -> Result<()> {
     }
     while !stop.load(Relaxed) && !timing.is_finished() {
         std::thread::sleep(MONITOR_EVERY);
-        for (monitor, publisher) in monitors.iter_mut().zip(&publishers) {
-            if let Some(snapshot) = monitor.tick(hdr.as_mut())? {
+        for ((monitor, publisher), s) in monitors.iter_mut().zip(&publishers).zip(&setups) {
+            if let Some(snapshot) = monitor.tick(hdr.as_mut(), s.log_writer.as_ref()) {
                 let sent = publisher
                     .loan_uninit()
                     .map(|s| s.write_payload(snapshot))
@@ -344,9 +346,19 @@ fn run(cli: Cli) -> Result<()> {
         .zip(monitors.iter_mut())
         .zip(receive_errors)
     {
-        monitor.tick(hdr.as_mut())?;
         if let Some(w) = s.log_writer.as_mut() {
-            w.finish().context("writing the frame log")?;
+            w.finish();
+        }
+        monitor.tick(hdr.as_mut(), s.log_writer.as_ref());
+        if let Some(w) = s.log_writer.as_ref() {
+            if w.lost() > 0 {
+                log::warn!(
+                    "{}frame log: {} rows could not be written ({})",
+                    tag(several, &s.cfg.name),
+                    w.lost(),
+                    w.last_error().unwrap_or_default()
+                );
+            }
             if w.dropped() > 0 {
                 log::warn!(
                     "{}frame log: {} rows dropped (the writer fell behind)",
@@ -505,6 +517,11 @@ struct Monitor {
     next_log_ns: u64,
     state: LineState,
     mismatched: u64,
+    /// HdrHistogram intervals, and frame-log rows, that could not be written.
+    hdr_lost: u64,
+    frame_log_lost: u64,
+    /// When a failure of each log may be said again.
+    next_log_failure_ns: [u64; 2],
     /// The output's `failsafe.after_ms`, for the mismatch message.
     failsafe_after_ms: u64,
     wake_errors: u64,
@@ -544,6 +561,9 @@ impl Monitor {
             next_log_ns: start_ns + LOG_EVERY_NS,
             state: LineState::Silent,
             mismatched: 0,
+            hdr_lost: 0,
+            frame_log_lost: 0,
+            next_log_failure_ns: [0; 2],
             failsafe_after_ms,
             wake_errors: 0,
             tag_prefix,
@@ -551,9 +571,13 @@ impl Monitor {
     }
 
     /// Reads what the loop handed over; returns a snapshot when an interval ended.
-    fn tick(&mut self, mut hdr: Option<&mut HdrLog>) -> Result<Option<TimingSnapshot>> {
+    fn tick(
+        &mut self,
+        mut hdr: Option<&mut HdrLog>,
+        frame_log: Option<&ppmd::framelog::Writer>,
+    ) -> Option<TimingSnapshot> {
         let mut intervals = 0;
-        let (mut last, mut hdr_result) = (None, Ok(()));
+        let (mut last, mut hdr_failed) = (None, None);
         let (total_error, total_write, snap, start_ns, prefix) = (
             &mut self.total_error,
             &mut self.total_write,
@@ -574,12 +598,26 @@ impl Monitor {
             }
             last = Some(summarize(&iv.edge_error));
             if let Some(h) = hdr.as_mut() {
-                if hdr_result.is_ok() {
-                    hdr_result = h.write(iv, start_ns, prefix);
+                if let Err(e) = h.write(iv, start_ns, prefix) {
+                    hdr_failed = Some(e);
                 }
             }
         });
-        hdr_result.context("writing the HdrHistogram log")?;
+        // A log is not worth the line: its failures are said and counted,
+        // and the next interval tries again.
+        if let Some(e) = hdr_failed {
+            self.hdr_lost += 1;
+            self.log_failure(0, "HdrHistogram log", &format!("{e:#}"));
+        }
+        if let Some(w) = frame_log {
+            let lost = w.lost();
+            if lost > self.frame_log_lost {
+                self.frame_log_lost = lost;
+                let e = w.last_error().unwrap_or_default();
+                self.log_failure(1, "frame log", &format!("{lost} rows lost so far: {e}"));
+            }
+        }
+        self.snapshot.log_errors = self.hdr_lost + self.frame_log_lost;
         self.log_changes();
         // The counters are brought up to date on every tick (the summary at
         // exit reads them); a snapshot goes out once an interval ended.
@@ -622,7 +660,20 @@ impl Monitor {
                 snap.spin_share_ppm as f64 / 1e4,
             );
         }
-        Ok((intervals > 0).then_some(*snap))
+        (intervals > 0).then_some(*snap)
+    }
+
+    /// Says log `which` (0: HdrHistogram, 1: frame log) failed: at once,
+    /// then at most every LOG_FAILURE_EVERY_NS while it goes on failing.
+    fn log_failure(&mut self, which: usize, what: &str, detail: &str) {
+        let now = clock::now_ns();
+        if now >= self.next_log_failure_ns[which] {
+            self.next_log_failure_ns[which] = now + LOG_FAILURE_EVERY_NS;
+            log::warn!(
+                "{}{what}: cannot write ({detail}); ppmd keeps emitting and tries again",
+                self.tag_prefix.replace('.', ": ")
+            );
+        }
     }
 
     fn log_changes(&mut self) {

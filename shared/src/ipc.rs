@@ -165,6 +165,8 @@ pub struct TimingSnapshot {
     pub late_frames: u64,
     /// Commands refused: made under another channel model.
     pub mismatched: u64,
+    /// Frame-log rows and HdrHistogram intervals that could not be written.
+    pub log_errors: u64,
     /// Edges written more than 10 us late.
     pub late_edges: u64,
     /// Failed writes.
@@ -216,6 +218,7 @@ impl Default for TimingSnapshot {
             overruns: 0,
             late_frames: 0,
             mismatched: 0,
+            log_errors: 0,
             late_edges: 0,
             write_errors: 0,
             failsafe_entries: 0,

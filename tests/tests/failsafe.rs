@@ -172,3 +172,45 @@ fn commands_made_under_another_channel_model_are_refused() {
         );
     }
 }
+
+/// Logs are never worth the line: with its HdrHistogram log and its frame
+/// log on a device that refuses every write, ppmd keeps emitting, says so
+/// while running (log line, `log_errors` in the status reply) and exits 0
+/// with its summary at SIGTERM.
+#[test]
+fn logs_that_cannot_be_written_do_not_stop_the_line() {
+    let sb = Sandbox::new("fs-logs");
+    let cfg = sb.config("[ppmd]\nframe_log = \"/dev/full\"");
+    let cfg_s = cfg.to_str().unwrap();
+    let trace = format!("sim:{}", sb.dir.join("line.trace").display());
+    let mut ppmd = sb.spawn(
+        "ppmd",
+        &[
+            "--config",
+            cfg_s,
+            "--output",
+            &trace,
+            "--hdr-log",
+            "/dev/full",
+        ],
+        "ppmd",
+    );
+    ppmd.wait_for_log("commands from", 30 * SECOND);
+    let _ingress = sb.start_ingress(&cfg, &[]);
+    send(&sb, b"[1300]", 100);
+    let reply = ppm_tests::status(sb.addr());
+    assert!(reply["ppmd"]["log_errors"].as_u64().unwrap() > 0, "{reply}");
+    assert_eq!(reply["ppmd"]["state"], "active", "{reply}");
+    ppmd.wait_for_log("HdrHistogram log: cannot write", 10 * SECOND);
+    ppmd.wait_for_log("frame log: cannot write", 10 * SECOND);
+    assert!(
+        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
+        "{}",
+        ppmd.log_text()
+    );
+    let log = ppmd.log_text();
+    assert!(log.contains("stopped"), "the summary: {log}");
+    assert!(log.contains("rows could not be written"), "{log}");
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    assert!(frames.len() >= 60, "{} frames", frames.len());
+}

@@ -199,6 +199,7 @@ fn status_counts_every_datagram_and_reports_ppmd() {
         "failsafe_entries",
         "repeats",
         "mismatched_commands",
+        "log_errors",
     ] {
         assert!(p[k].is_u64(), "{k}: {p}");
     }
@@ -208,7 +209,7 @@ fn status_counts_every_datagram_and_reports_ppmd() {
     assert!((0.0..=3_000.0).contains(&age), "{p}");
     assert_eq!(
         p.as_object().unwrap().len(),
-        11,
+        12,
         "exactly the documented keys: {p}"
     );
 

@@ -174,12 +174,19 @@ pub fn readable(r: &Value) -> Result<String> {
             num(&p["overruns"], "overruns")?,
             num(&p["late_frames"], "late_frames")?,
             num(&p["failsafe_entries"], "failsafe_entries")?,
-            match p["mismatched_commands"].as_u64() {
-                Some(n) if n > 0 => format!(
-                    "; {n} commands REFUSED: udp-ingress runs with another channel model"
-                ),
-                _ => String::new(),
-            },
+            [
+                match p["mismatched_commands"].as_u64() {
+                    Some(n) if n > 0 => format!(
+                        "; {n} commands REFUSED: udp-ingress runs with another channel model"
+                    ),
+                    _ => String::new(),
+                },
+                match p["log_errors"].as_u64() {
+                    Some(n) if n > 0 => format!("; {n} log rows or intervals not written"),
+                    _ => String::new(),
+                },
+            ]
+            .concat(),
             age(p["snapshot_age_ms"].as_f64().unwrap_or(f64::NAN)),
         )
     };
