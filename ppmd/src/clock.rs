@@ -96,7 +96,8 @@ pub struct Readable {
 }
 
 impl Readable {
-    fn any(&self) -> bool {
+    /// Whether any fd ended the sleep.
+    pub fn any(&self) -> bool {
         self.readable | self.broken != 0
     }
 }

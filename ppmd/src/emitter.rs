@@ -256,14 +256,13 @@ impl Frame {
 struct Progress {
     newest: Option<(CommandSample, Channels)>,
     /// Grid: grid start of the next frame, while frames are running.
-    /// Follow: the earliest start of the next frame (the previous frame's
-    /// last pulse plus the shortest sync), while frames are running.
     next_start: Option<u64>,
     /// Grid: gap from the previous frame's last pulse to `next_start`; 0 when
     /// the frame there follows silence or skipped frames (it gets a lead-in).
     prev_sync_ns: u64,
     /// Follow: when the previous frame's last pulse starts, while frames are
-    /// running.
+    /// running (the next frame starts a shortest sync after it at the
+    /// earliest, a longest sync after it at the latest).
     last_pulse: Option<u64>,
     /// Follow: the lane looked for a command at the earliest start and found
     /// none; it now waits for one (woken through its source's wake fd) or
@@ -292,10 +291,15 @@ impl Progress {
         if self.woken {
             return Some((0, false));
         }
-        match (model.timing(), self.next_start) {
+        let running = match model.timing() {
+            Timing::Grid => self.next_start,
+            Timing::Follow => self.last_pulse,
+        };
+        match (model.timing(), running) {
             (_, None) => Some((self.poll_at, false)),
             (Timing::Grid, Some(s)) => Some((s.saturating_sub(lead + self.lead_in_ns()), true)),
-            (Timing::Follow, Some(earliest)) if !self.armed => {
+            (Timing::Follow, Some(last)) if !self.armed => {
+                let earliest = last + model.follow_sync_ns().0;
                 Some((earliest.saturating_sub(lead), true))
             }
             (Timing::Follow, Some(_)) => {
@@ -319,7 +323,7 @@ impl Progress {
     /// command, armed or silent).
     fn watches(&self) -> Option<RawFd> {
         let waiting =
-            self.frame.is_none() && !self.woken && (self.armed || self.next_start.is_none());
+            self.frame.is_none() && !self.woken && (self.armed || self.last_pulse.is_none());
         self.wake_fd.filter(|_| waiting)
     }
 
@@ -439,7 +443,7 @@ pub fn run_lanes(lanes: &mut [Lane], banks: &mut [&mut dyn Bank], stop: &AtomicB
                     }
                 } else if sleep {
                     let r = clock::sleep_until_or_readable(at, fds);
-                    (r.readable | r.broken != 0).then_some(r)
+                    r.any().then_some(r)
                 } else {
                     None
                 };
@@ -546,7 +550,7 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     // Follow: a fresh command starts a frame at once; without one, the last
     // frame repeats only when the longest sync is up.
     let fresh_arrived = arrived && fresh.is_some();
-    if follow && p.next_start.is_some() && !fresh_arrived {
+    if follow && p.last_pulse.is_some() && !fresh_arrived {
         let deadline = p.follow_deadline(model);
         if now + lead < deadline {
             p.armed = true;
@@ -621,7 +625,6 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     });
     if follow {
         p.last_pulse = Some(start + last_pulse);
-        p.next_start = Some(start + last_pulse + model.follow_sync_ns().0);
     } else {
         let grid_start = p.next_start.expect("placed on the grid");
         p.next_start = Some(grid_start + frame_ns);

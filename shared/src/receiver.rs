@@ -207,33 +207,36 @@ impl Receiver {
     pub fn rules(self) -> Rules {
         const TRAINER_SYNC_MIN: &str =
             "EdgeTX and OpenTX read a sync strictly between 4000 and 19000 us (capture_pulse, captureTrainerPulses)";
-        const TRAINER_SYNC_MAX: &str = TRAINER_SYNC_MIN;
         const TRAINER_MAX: &str =
             "EdgeTX and OpenTX read at most 16 channels (MAX_TRAINER_CHANNELS)";
+        const EDGETX_CHANNEL: &str = "EdgeTX 2.10 reads a channel of 800..=2200 us (capture_pulse)";
+        const OPENTX_CHANNEL: &str = "OpenTX and EdgeTX before 2.10 read a channel strictly between 800 and 2200 us (captureTrainerPulses)";
+        const BETAFLIGHT_CHANNEL: &str = "Betaflight takes a channel of 885..=2115 us as valid (rx_min_usec and rx_max_usec, their defaults)";
+        const PPM_RANGE: &str = "ppm sends channels of 800..=2200 us";
         let c = CHANNEL_MARGIN_US;
         let sync = |us: f64| us + SYNC_MARGIN_US;
         match self {
             Receiver::EdgeTx => Rules {
                 min_channels: (1, "EdgeTX reads a frame of any channel count"),
                 max_channels: (16, TRAINER_MAX),
-                channel_min_us: (800.0 + c, "EdgeTX 2.10 reads a channel of 800..=2200 us (capture_pulse)"),
-                channel_max_us: (2_200.0 - c, "EdgeTX 2.10 reads a channel of 800..=2200 us (capture_pulse)"),
+                channel_min_us: (800.0 + c, EDGETX_CHANNEL),
+                channel_max_us: (2_200.0 - c, EDGETX_CHANNEL),
                 sync_min_us: (sync(4_000.0), TRAINER_SYNC_MIN),
-                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MAX),
+                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MIN),
             },
             Receiver::OpenTx => Rules {
                 min_channels: (1, "OpenTX reads a frame of any channel count"),
                 max_channels: (16, TRAINER_MAX),
-                channel_min_us: (801.0 + c, "OpenTX and EdgeTX before 2.10 read a channel strictly between 800 and 2200 us (captureTrainerPulses)"),
-                channel_max_us: (2_199.0 - c, "OpenTX and EdgeTX before 2.10 read a channel strictly between 800 and 2200 us (captureTrainerPulses)"),
+                channel_min_us: (801.0 + c, OPENTX_CHANNEL),
+                channel_max_us: (2_199.0 - c, OPENTX_CHANNEL),
                 sync_min_us: (sync(4_000.0), TRAINER_SYNC_MIN),
-                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MAX),
+                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MIN),
             },
             Receiver::Betaflight => Rules {
                 min_channels: (4, "Betaflight decodes 4..=12 channels (rx_pwm.c, PPM_IN_MIN_NUM_CHANNELS)"),
                 max_channels: (12, "Betaflight decodes 4..=12 channels and drops every frame of 13 or more (rx_pwm.c, PPM_IN_MAX_NUM_CHANNELS)"),
-                channel_min_us: (885.0 + c, "Betaflight takes a channel of 885..=2115 us as valid (rx_min_usec and rx_max_usec, their defaults)"),
-                channel_max_us: (2_115.0 - c, "Betaflight takes a channel of 885..=2115 us as valid (rx_min_usec and rx_max_usec, their defaults)"),
+                channel_min_us: (885.0 + c, BETAFLIGHT_CHANNEL),
+                channel_max_us: (2_115.0 - c, BETAFLIGHT_CHANNEL),
                 sync_min_us: (sync(2_700.0), "Betaflight reads a sync only above 2700 us (rx_pwm.c, PPM_IN_MIN_SYNC_PULSE_US)"),
                 sync_max_us: (CAPTURE_16_BIT_US - SYNC_MARGIN_US, "Betaflight's 16-bit capture timer at 1 MHz measures a gap only up to 65536 us (rx_pwm.c, PPM_TIMER_PERIOD)"),
             },
@@ -241,8 +244,8 @@ impl Receiver {
                 min_channels: (5, "ArduPilot drops a frame of fewer than 5 channels (AP_RCProtocol_PPMSum.cpp, MIN_RCIN_CHANNELS)"),
                 max_channels: (16, "ppm sends at most 16 channels"),
                 // Its window (701..=2299 us) holds ppm's whole range.
-                channel_min_us: (800.0, "ppm sends channels of 800..=2200 us"),
-                channel_max_us: (2_200.0, "ppm sends channels of 800..=2200 us"),
+                channel_min_us: (800.0, PPM_RANGE),
+                channel_max_us: (2_200.0, PPM_RANGE),
                 sync_min_us: (sync(2_700.0), "ArduPilot reads a sync only from 2700 us (AP_RCProtocol_PPMSum.cpp)"),
                 sync_max_us: (CAPTURE_16_BIT_US - SYNC_MARGIN_US, "ArduPilot's 16-bit input capture at 1 MHz measures a gap only up to 65536 us"),
             },
