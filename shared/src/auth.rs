@@ -70,22 +70,27 @@ impl AuthKey {
         Ok(AuthKey(key))
     }
 
-    /// Reads a key file: refused when group or others may read or write
-    /// it, when it cannot be read, or when it is not 64 hex characters.
+    /// Reads a key file: refused when it is not a regular file of at most
+    /// [`KEY_MAX_BYTES`](crate::files::KEY_MAX_BYTES), when group or others
+    /// may read or write it, when it cannot be read, or when it is not 64 hex
+    /// characters.
     pub fn load(path: &Path) -> Result<AuthKey, KeyError> {
         use std::os::unix::fs::PermissionsExt;
         let read = |source| KeyError::Read {
             path: path.to_owned(),
             source,
         };
-        let mode = std::fs::metadata(path).map_err(read)?.permissions().mode() & 0o7777;
+        let max = crate::files::KEY_MAX_BYTES;
+        let file = crate::files::open_regular(std::fs::OpenOptions::new().read(true), path, max)
+            .map_err(read)?;
+        let mode = file.metadata().map_err(read)?.permissions().mode() & 0o7777;
         if mode & 0o077 != 0 {
             return Err(KeyError::Permissions {
                 path: path.to_owned(),
                 mode,
             });
         }
-        let text = std::fs::read_to_string(path).map_err(read)?;
+        let text = crate::files::read_bounded(&file, max).map_err(read)?;
         AuthKey::from_hex(&text).map_err(|problem| KeyError::Format {
             path: path.to_owned(),
             problem,
@@ -279,6 +284,38 @@ mod tests {
         let missing = dir.join("missing");
         let e = AuthKey::load(&missing).unwrap_err().to_string();
         assert!(e.contains("cannot read") && e.contains("missing"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A key file that is a FIFO, a device or a huge file is refused at
+    /// once, and not read whole (a FIFO used to hang the ingress at start).
+    #[test]
+    fn key_files_that_are_not_small_regular_files_are_refused_at_once() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = std::env::temp_dir().join(format!("ppm-auth-odd-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let fifo = dir.join("fifo");
+        nix::unistd::mkfifo(&fifo, nix::sys::stat::Mode::from_bits_truncate(0o600)).unwrap();
+        let big = dir.join("big");
+        let f = std::fs::File::create(&big).unwrap();
+        f.set_len(50 << 20).unwrap();
+        f.set_permissions(std::fs::Permissions::from_mode(0o600))
+            .unwrap();
+        for (path, what) in [
+            (fifo, "a FIFO (named pipe), not a regular file"),
+            (PathBuf::from("/dev/zero"), "a character device"),
+            (
+                big,
+                "52428800 bytes or more, and this file is never larger than 4096",
+            ),
+        ] {
+            let shown = path.display().to_string();
+            let e = crate::files::tests::within_10s(move || AuthKey::load(&path))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(&shown) && e.contains(what), "{e}");
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

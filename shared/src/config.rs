@@ -556,13 +556,18 @@ impl std::str::FromStr for OutputSpec {
 }
 
 impl Config {
-    /// Reads and parses a configuration file. The PPM settings are checked by
+    /// Reads (a regular file of at most
+    /// [`CONFIG_MAX_BYTES`](crate::files::CONFIG_MAX_BYTES)) and parses a
+    /// configuration file. The PPM settings are checked by
     /// [`Config::validate`].
     pub fn load(path: &Path) -> Result<Config, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.to_owned(),
-            source,
-        })?;
+        let text =
+            crate::files::read_small(path, crate::files::CONFIG_MAX_BYTES).map_err(|source| {
+                ConfigError::Read {
+                    path: path.to_owned(),
+                    source,
+                }
+            })?;
         Config::parse(&text).map_err(|e| match e {
             ConfigError::Parse { message, .. } => ConfigError::Parse {
                 path: path.to_owned(),
@@ -1344,6 +1349,40 @@ mod tests {
     fn example_file_lists_the_defaults() {
         let text = include_str!("../../ppm.example.toml");
         assert_eq!(Config::parse(text).unwrap(), Config::default());
+    }
+
+    /// A config path naming a FIFO, a device or a huge file is refused at
+    /// once with what it is (a FIFO used to hang ppmd and udp-ingress at start).
+    #[test]
+    fn config_files_that_are_not_small_regular_files_are_refused_at_once() {
+        let dir = std::env::temp_dir().join(format!("ppm-config-odd-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let fifo = dir.join("ppm.toml");
+        nix::unistd::mkfifo(&fifo, nix::sys::stat::Mode::from_bits_truncate(0o600)).unwrap();
+        let big = dir.join("big.toml");
+        std::fs::File::create(&big)
+            .unwrap()
+            .set_len(crate::files::CONFIG_MAX_BYTES + 1)
+            .unwrap();
+        for (path, what) in [
+            (fifo, "a FIFO (named pipe), not a regular file"),
+            (PathBuf::from("/dev/zero"), "a character device"),
+            (
+                big,
+                "1048577 bytes or more, and this file is never larger than 1048576",
+            ),
+        ] {
+            let shown = path.display().to_string();
+            let e = crate::files::tests::within_10s(move || Config::load(&path))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("cannot read config file") && e.contains(&shown) && e.contains(what),
+                "{e}"
+            );
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

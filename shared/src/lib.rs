@@ -8,6 +8,7 @@
 //! - [`receiver`]: PPM input as EdgeTX, OpenTX, Betaflight and ArduPilot
 //!   decode it, each modelled on its firmware.
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
+//! - [`files`]: bounded reads of the configuration, key and seq files.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
@@ -18,6 +19,7 @@
 pub mod auth;
 pub mod config;
 pub mod decode;
+pub mod files;
 pub mod frame;
 pub mod ipc;
 pub mod protocol;

@@ -266,6 +266,36 @@ fn key_files_others_can_read_and_bad_settings_stop_the_ingress() {
         "{log}"
     );
 
+    // A key file that is a FIFO (it used to hang the ingress, silently), a
+    // seq file that is /dev/zero (read until memory ran out) and a config
+    // that is a FIFO: each stops the ingress at once, saying what it is.
+    let fifo = sb.dir.join("fifo.key");
+    nix::unistd::mkfifo(&fifo, nix::sys::stat::Mode::from_bits_truncate(0o600)).unwrap();
+    let log = run(
+        &["--config", cfg, "--auth-key", fifo.to_str().unwrap()],
+        "fifo",
+    );
+    assert!(
+        log.contains("fifo.key") && log.contains("a FIFO (named pipe), not a regular file"),
+        "{log}"
+    );
+    let good = write_key(&sb, "good.key", KEY_HEX, 0o600);
+    let zero = config_with_ingress(
+        &sb,
+        &format!("auth_key = {good:?}\nseq_file = \"/dev/zero\""),
+        GENTLE_RT,
+    );
+    let log = run(&["--config", &zero], "zero");
+    assert!(
+        log.contains("/dev/zero") && log.contains("a character device"),
+        "{log}"
+    );
+    let log = run(&["--config", fifo.to_str().unwrap()], "fifoconfig");
+    assert!(
+        log.contains("cannot read config file") && log.contains("a FIFO (named pipe)"),
+        "{log}"
+    );
+
     // A bad address block, in the config (named by its key) and on the command line.
     let bad = config_with_ingress(&sb, "allow = [\"10.0.0.0/33\"]", GENTLE_RT);
     let log = run(&["--config", &bad], "badallow");

@@ -40,21 +40,24 @@ impl SeqFile {
             std::fs::create_dir_all(dir)
                 .with_context(|| format!("creating {} for the seq file", dir.display()))?;
         }
-        let file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .mode(0o600)
-            .open(path)
-            .with_context(|| {
-                format!(
-                    "opening the seq file {} (ingress.seq_file) for reading and writing",
-                    path.display()
-                )
-            })?;
-        let mut text = String::new();
-        std::io::Read::read_to_string(&mut &file, &mut text)
+        let max = ppm_shared::files::SEQ_MAX_BYTES;
+        let file = ppm_shared::files::open_regular(
+            std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .mode(0o600),
+            path,
+            max,
+        )
+        .with_context(|| {
+            format!(
+                "opening the seq file {} (ingress.seq_file) for reading and writing",
+                path.display()
+            )
+        })?;
+        let text = ppm_shared::files::read_bounded(&file, max)
             .with_context(|| format!("reading the seq file {}", path.display()))?;
         let t = text.trim();
         let floor = if t.is_empty() {
@@ -175,6 +178,42 @@ mod tests {
             std::fs::read_to_string(&path).unwrap(),
             "00000000000000000043\n"
         );
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    /// A seq file that is a FIFO, a device or a huge file is refused at
+    /// once (`/dev/zero` used to be read until memory ran out).
+    #[test]
+    fn a_seq_file_that_is_not_a_small_regular_file_is_refused_at_once() {
+        let d = dir("odd");
+        std::fs::create_dir_all(&d).unwrap();
+        let fifo = d.join("fifo");
+        nix::unistd::mkfifo(&fifo, nix::sys::stat::Mode::from_bits_truncate(0o600)).unwrap();
+        let big = d.join("big");
+        std::fs::File::create(&big)
+            .unwrap()
+            .set_len(1 << 20)
+            .unwrap();
+        for (path, what) in [
+            (fifo, "a FIFO (named pipe), not a regular file"),
+            (PathBuf::from("/dev/zero"), "a character device"),
+            (
+                big,
+                "1048576 bytes or more, and this file is never larger than 4096",
+            ),
+        ] {
+            let shown = path.display().to_string();
+            let (tx, rx) = std::sync::mpsc::channel();
+            std::thread::spawn(move || {
+                let _ = tx.send(SeqFile::open(&path, Duration::ZERO).map(|_| ()));
+            });
+            let e = rx
+                .recv_timeout(Duration::from_secs(10))
+                .expect("the open returned (it hung for 10 s)")
+                .unwrap_err();
+            let e = format!("{e:#}");
+            assert!(e.contains(&shown) && e.contains(what), "{e}");
+        }
         std::fs::remove_dir_all(&d).unwrap();
     }
 
