@@ -8,7 +8,7 @@
 //! file holds the key as 64 hex characters and must not be readable or
 //! writable by group or others.
 
-use crate::protocol::{Reject, RejectReason};
+use crate::protocol::{may_have_key, Reject, RejectReason};
 use hmac::{Hmac, Mac};
 use serde_json::Value;
 use sha2::Sha256;
@@ -146,13 +146,11 @@ impl Envelope {
 ///
 /// `None`: not a signed datagram (not a JSON object with a `msg` or a `mac`
 /// key). `Some(Err(_))`: such an object of the wrong shape (`bad_shape`) or
-/// with a MAC that is not 64 hex characters (`bad_mac`). Commands never
-/// contain the texts `"msg"` or `"mac"`, so they are not parsed twice.
+/// with a MAC that is not 64 hex characters (`bad_mac`). The parsed keys
+/// decide, so escaped spellings (`"\u006dsg"`) count; a command that cannot
+/// have these keys ([`may_have_key`]) is not parsed twice.
 pub fn envelope(datagram: &[u8]) -> Option<Result<Envelope, Reject>> {
-    if !datagram
-        .windows(5)
-        .any(|w| w == b"\"msg\"" || w == b"\"mac\"")
-    {
+    if !may_have_key(datagram, "msg") && !may_have_key(datagram, "mac") {
         return None;
     }
     let Ok(Value::Object(mut map)) = serde_json::from_slice::<Value>(datagram) else {
@@ -338,6 +336,17 @@ mod tests {
         ] {
             assert_eq!(envelope(not_signed), None, "{not_signed:?}");
         }
+        // Escaped keys are the keys they spell (they were taken for a command).
+        let escaped = signed
+            .replace("\"msg\"", "\"\\u006dsg\"")
+            .replace("\"mac\"", "\"m\\u0061c\"");
+        assert_ne!(escaped, signed);
+        assert_eq!(
+            envelope(escaped.as_bytes()),
+            Some(Ok(env.clone())),
+            "{escaped}"
+        );
+
         let reason = |d: &[u8]| match envelope(d) {
             Some(Err(r)) => r.reason,
             other => panic!("{d:?}: {other:?}"),

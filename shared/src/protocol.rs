@@ -127,6 +127,19 @@ fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
     }
 }
 
+/// True when `datagram` may be a JSON object with the key `key`: it holds
+/// `key` as a quoted string, or a backslash (an escape may spell the key, as
+/// `"\u006dsg"` spells `"msg"`). False means it certainly has no such key,
+/// so a command is not parsed a second time only to look; true means parse
+/// and look at the parsed keys, which decide.
+pub fn may_have_key(datagram: &[u8], key: &str) -> bool {
+    let k = key.as_bytes();
+    datagram.contains(&b'\\')
+        || datagram
+            .windows(k.len() + 2)
+            .any(|w| w[0] == b'"' && w[k.len() + 1] == b'"' && &w[1..=k.len()] == k)
+}
+
 /// Parses one datagram against the frame model.
 pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
     let text = std::str::from_utf8(datagram)
@@ -620,6 +633,33 @@ mod tests {
         );
         let e = parse(br#"{"norm": {"ail": 0}, "ele": 1500}"#, &model()).unwrap_err();
         assert!(e.to_string().contains("beside `norm`"), "{e}");
+    }
+
+    #[test]
+    fn a_key_may_be_present_when_quoted_or_escaped() {
+        assert!(may_have_key(br#"{"get":"status"}"#, "get"));
+        assert!(may_have_key(br#"{"\u0067et":"status"}"#, "get"));
+        assert!(!may_have_key(br#"{"ail":1500,"target":1}"#, "get"));
+        assert!(!may_have_key(b"[1500, 1000]", "msg"));
+        assert!(!may_have_key(br#"{"ms":1}"#, "msg"));
+        assert!(
+            may_have_key(br#"["msg"]"#, "msg"),
+            "a quoted string, parsed to look"
+        );
+    }
+
+    #[test]
+    fn escaped_channel_names_are_the_names_they_spell() {
+        let m = model();
+        let plain = parse(br#"{"ch":[1100],"seq":3}"#, &m).unwrap();
+        assert_eq!(
+            parse(br#"{"\u0063h":[1100],"s\u0065q":3}"#, &m).unwrap(),
+            plain
+        );
+        assert_eq!(
+            parse(br#"{"\u0061il":1100}"#, &m).unwrap(),
+            parse(br#"{"ail":1100}"#, &m).unwrap()
+        );
     }
 
     #[test]

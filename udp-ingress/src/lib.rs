@@ -120,10 +120,11 @@ pub enum Query {
 ///
 /// `None`: not a query (no `"get"` key in a JSON object), parse it as a
 /// command. `Some(Err(_))`: an object with a `get` key that is not exactly
-/// `{"get": "status"}`, rejected as `bad_shape`. Commands never contain the
-/// text `"get"`, so they are not parsed twice.
+/// `{"get": "status"}`, rejected as `bad_shape`. The parsed keys decide, so
+/// `{"\u0067et": "status"}` is a status query; a command that cannot have a
+/// `get` key ([`protocol::may_have_key`]) is not parsed twice.
 pub fn query(datagram: &[u8]) -> Option<Result<Query, Reject>> {
-    if !datagram.windows(5).any(|w| w == b"\"get\"") {
+    if !protocol::may_have_key(datagram, "get") {
         return None;
     }
     let Ok(Value::Object(map)) = serde_json::from_slice::<Value>(datagram) else {
@@ -664,6 +665,47 @@ mod tests {
         let d = detail(br#"{"get":"status","seq":1}"#);
         assert!(d.contains("`seq`"), "{d}");
         assert!(detail(br#"{"ail":1500,"get":"status"}"#).contains("`ail`"));
+    }
+
+    /// JSON is classified by its parsed keys: escaped spellings of `get`,
+    /// `msg` and `mac` behave as the plain ones (they were taken for
+    /// commands: `unknown_channel`, `unsigned`).
+    #[test]
+    fn escaped_keys_are_the_keys_they_spell() {
+        assert_eq!(query(br#"{"\u0067et":"status"}"#), Some(Ok(Query::Status)));
+        assert_eq!(
+            query(br#"{"g\u0065t":"st\u0061tus"}"#),
+            Some(Ok(Query::Status))
+        );
+        let mut i = intake();
+        let t = Instant::now();
+        assert_eq!(
+            i.offer(br#"{"\u0067et":"status"}"#, from(), 1, 1, t),
+            Outcome::Status
+        );
+        assert_eq!(i.counters().status_requests, 1);
+        assert_eq!(i.counters().received, 0);
+
+        let k = key();
+        let mut i = intake().with_auth(k.clone(), None);
+        let msg = r#"{"ch":[1100],"seq":7}"#;
+        let escaped = format!(
+            r#"{{"\u006dsg": {msg:?}, "m\u0061c": "{}"}}"#,
+            k.sign(msg.as_bytes())
+        );
+        assert_eq!(
+            i.offer(escaped.as_bytes(), from(), 1, 1, t),
+            Outcome::Accepted,
+            "{escaped}"
+        );
+        assert_eq!(i.take().unwrap().command.channels.as_ns()[0], 1_100_000);
+        // The same with a MAC of other bytes is a forgery, not unsigned.
+        let forged = escaped.replace(r#"\"ch\""#, r#"\"c\\u0068\""#);
+        assert_ne!(forged, escaped);
+        assert_eq!(
+            reason(i.offer(forged.as_bytes(), from(), 1, 1, t)),
+            RejectReason::BadMac
+        );
     }
 
     #[test]
