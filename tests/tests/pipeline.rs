@@ -120,6 +120,38 @@ fn stale_seq_never_reaches_the_line() {
     assert!(frames.iter().all(|f| f.channels_us()[0] == 1100));
 }
 
+/// Without a key, one datagram with the largest `seq` locks numbered
+/// commands out for `failsafe.after_ms` (200 ms) at most; it used to be
+/// until udp-ingress restarted.
+#[test]
+fn one_huge_seq_locks_numbered_commands_out_for_the_failsafe_interval_only() {
+    let sb = Sandbox::new("hugeseq");
+    let (mut ppmd, ingress) = start_pipeline(&sb, "", "line.trace");
+    let sender = Sender::new(sb.addr());
+    at_50hz(20, |i| {
+        sender.send(format!(r#"{{"ch": [1100], "seq": {}}}"#, 100 + i).as_bytes());
+    });
+    sender.send(br#"{"ch": [1900], "seq": 18446744073709551615}"#);
+    at_50hz(60, |i| {
+        sender.send(format!(r#"{{"ch": [1300], "seq": {}}}"#, 200 + i).as_bytes());
+    });
+    let status = ppm_tests::status(sb.addr());
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    drop(ingress);
+    assert_eq!(status["datagrams"]["seq_resets"], 1, "{status}");
+    let stale = status["datagrams"]["stale"].as_u64().unwrap();
+    assert!(
+        (5..=12).contains(&stale),
+        "200 ms of 20 ms commands: {status}"
+    );
+    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
+    let ch1: Vec<u64> = frames.iter().map(|f| f.channels_us()[0]).collect();
+    let first_1300 = ch1.iter().position(|&v| v == 1300).expect("1300 applied");
+    assert!(ch1[..first_1300].contains(&1900), "{ch1:?}");
+    assert!(ch1[first_1300..].iter().all(|&v| v == 1300), "{ch1:?}");
+    assert!(ch1[first_1300..].len() >= 30, "{ch1:?}");
+}
+
 #[test]
 fn either_start_order_and_restarts_of_either_process() {
     let sb = Sandbox::new("restart");

@@ -156,6 +156,7 @@ fn status_counts_every_datagram_and_reports_ppmd() {
             "applied": 100,
             "superseded": 0,
             "stale": 4,
+            "seq_resets": 0,
             "clamped": 1,
             "clamped_values": 2,
             "rejected": {

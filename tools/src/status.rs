@@ -113,11 +113,15 @@ pub fn readable(r: &Value) -> Result<String> {
         );
     }
     out += &format!(
-        "datagrams: received {}, applied {}, superseded {}, stale {}, clamped {} ({} values)\n",
+        "datagrams: received {}, applied {}, superseded {}, stale {}{}, clamped {} ({} values)\n",
         count("received")?,
         count("applied")?,
         count("superseded")?,
         count("stale")?,
+        match r["datagrams"]["seq_resets"].as_u64() {
+            Some(n) if n > 0 => format!(" (seq gate reset {n}x)"),
+            _ => String::new(),
+        },
         count("clamped")?,
         count("clamped_values")?,
     );
@@ -237,7 +241,7 @@ mod tests {
             "datagrams":{"received":12,"applied":9,
             "rejected":{"invalid_utf8":0,"invalid_json":2,"not_a_number":0,"out_of_range":0,
             "too_many_values":0,"unknown_channel":0,"bad_shape":1},"clamped":1,"clamped_values":2,
-            "stale":0,"superseded":0},"status_requests":4,"status_dropped":0,
+            "stale":0,"seq_resets":2,"superseded":0},"status_requests":4,"status_dropped":0,
             "newest_command_age_ms":12.34,"newest_seq":41,
             "ppmd":{"state":"active","frames":5000,"edge_error_us":{"p50":0.031,"p99":0.05,"max":12.4},
             "overruns":0,"late_frames":1,"failsafe_entries":2,"degraded":true,"snapshot_age_ms":420.0},
@@ -248,7 +252,7 @@ mod tests {
             readable(&r).unwrap(),
             "udp-ingress `ppm`, up 1h 02m 05s\n\
              receive thread: epoll, SCHED_FIFO 70, any CPU (DEGRADED RUN)\n\
-             datagrams: received 12, applied 9, superseded 0, stale 0, clamped 1 (2 values)\n\
+             datagrams: received 12, applied 9, superseded 0, stale 0 (seq gate reset 2x), clamped 1 (2 values)\n\
              rejected: 3 (invalid_json 2, bad_shape 1)\n\
              newest command: 12.3 ms ago, seq 41\n\
              status queries: 4 (0 replies dropped)\n\

@@ -8,7 +8,10 @@
 //!
 //! With a key ([`Intake::with_auth`]) only signed commands with a `seq`
 //! greater than the last accepted one are applied; [`seqfile`] keeps that
-//! `seq` across restarts. With an allowlist ([`Intake::with_allowlist`])
+//! `seq` across restarts. Without a key, the `seq` gate forgets once no
+//! command was accepted for [`Intake::forget_seq_after`] (the failsafe's
+//! `after_ms`): one datagram with a huge `seq` cannot lock numbered commands
+//! out for longer. With an allowlist ([`Intake::with_allowlist`])
 //! datagrams from other sources are dropped before they are parsed.
 
 pub mod seqfile;
@@ -45,6 +48,10 @@ pub struct Counters {
     pub rejected: [u64; RejectReason::ALL.len()],
     /// Commands dropped because their `seq` was not greater than the last applied.
     pub stale: u64,
+    /// Times the `seq` gate forgot the last `seq` (no key, and no command
+    /// accepted for `failsafe.after_ms`): the command then applied instead
+    /// of being stale.
+    pub seq_resets: u64,
     /// Accepted commands with at least one value clamped.
     pub clamped_commands: u64,
     /// Values clamped in all accepted commands.
@@ -70,11 +77,12 @@ impl Counters {
             .map(|r| format!("{}={}", r.as_str(), self.rejected[r.index()]))
             .collect();
         format!(
-            "received {} published {} superseded {} stale {} clamped {} (values {}) rejected {} [{}] status requests {} (dropped {})",
+            "received {} published {} superseded {} stale {} (seq resets {}) clamped {} (values {}) rejected {} [{}] status requests {} (dropped {})",
             self.received,
             self.published,
             self.superseded,
             self.stale,
+            self.seq_resets,
             self.clamped_commands,
             self.clamped_values,
             self.rejected_total(),
@@ -169,6 +177,11 @@ pub struct Intake {
     /// The `seq` of the last command that passed the gate.
     last_seq: Option<u64>,
     gate: SeqGate,
+    /// Without a key: how long without an accepted command before the
+    /// gate forgets (`None`: never).
+    forget_seq: Option<Duration>,
+    /// When the last command was accepted.
+    last_accepted: Option<Instant>,
     newest: Option<Received>,
     latest: Option<Received>,
     counters: Counters,
@@ -186,6 +199,8 @@ impl Intake {
             allow: Vec::new(),
             last_seq: None,
             gate: SeqGate::default(),
+            forget_seq: None,
+            last_accepted: None,
             newest: None,
             latest: None,
             counters: Counters::default(),
@@ -204,6 +219,19 @@ impl Intake {
             self.last_seq = floor;
         }
         self.key = Some(key);
+        self
+    }
+
+    /// Without a key, lets the `seq` gate forget the last `seq` once no
+    /// command was accepted for `after` (give it `failsafe.after_ms`: by
+    /// then the line has taken its failsafe action). A numbered command that
+    /// would be stale is then applied, and the gate starts again from its
+    /// `seq`: a sender that restarted its count, or one forged datagram with
+    /// a huge `seq`, locks numbered commands out for at most `after`. With a
+    /// key ([`Intake::with_auth`]) the gate never forgets: replays stay
+    /// refused.
+    pub fn forget_seq_after(mut self, after: Duration) -> Intake {
+        self.forget_seq = Some(after);
         self
     }
 
@@ -249,7 +277,7 @@ impl Intake {
         self.counters.received += 1;
         match parsed {
             Err(r) => self.reject(r, from, now),
-            Ok(command) if !self.gate.admit(command.seq) => {
+            Ok(command) if !self.gate.admit(command.seq) && !self.forget(command.seq, now) => {
                 if self.key.is_some() {
                     let detail = format!(
                         "seq {} is not greater than the last accepted {}",
@@ -269,6 +297,7 @@ impl Intake {
                 Outcome::Stale
             }
             Ok(command) => {
+                self.last_accepted = Some(now);
                 if command.seq.is_some() {
                     self.last_seq = command.seq;
                 }
@@ -289,6 +318,24 @@ impl Intake {
                 Outcome::Accepted
             }
         }
+    }
+
+    /// For a command the gate refused: true (and the gate restarted from
+    /// `seq`) when there is no key and no command was accepted for the
+    /// forget interval.
+    fn forget(&mut self, seq: Option<u64>, now: Instant) -> bool {
+        let quiet = match (self.forget_seq, self.last_accepted) {
+            (Some(after), Some(t)) => now.saturating_duration_since(t) >= after,
+            (Some(_), None) => true,
+            (None, _) => false,
+        };
+        if self.key.is_some() || !quiet {
+            return false;
+        }
+        self.gate = SeqGate::default();
+        self.gate.admit(seq);
+        self.counters.seq_resets += 1;
+        true
     }
 
     /// Counts a rejected datagram and, when the rate limit allows, gives a log line.
@@ -424,6 +471,7 @@ impl Intake {
                 "clamped": c.clamped_commands,
                 "clamped_values": c.clamped_values,
                 "stale": c.stale,
+            "seq_resets": c.seq_resets,
                 "superseded": c.superseded,
             },
             "status_requests": c.status_requests,
@@ -626,6 +674,69 @@ mod tests {
         assert_eq!(i.counters().stale, 2);
     }
 
+    /// One unsigned datagram with the largest `seq` used to make every
+    /// numbered command stale until the ingress restarted. Now the gate
+    /// forgets once nothing was accepted for the failsafe's interval.
+    #[test]
+    fn without_a_key_one_huge_seq_locks_out_for_the_failsafe_interval_at_most() {
+        let after = Duration::from_millis(200);
+        let ms = Duration::from_millis;
+        let mut i = intake().forget_seq_after(after);
+        let t = Instant::now();
+        let mut offer = |d: &[u8], at: Duration| i.offer(d, from(), 1, 1, t + at);
+        assert_eq!(offer(br#"{"ch":[1100],"seq":5}"#, ms(0)), Outcome::Accepted);
+        let huge = br#"{"ch":[1900],"seq":18446744073709551615}"#;
+        assert_eq!(offer(huge, ms(10)), Outcome::Accepted);
+        // The sender's next commands, every 20 ms: stale until 200 ms after
+        // the last accepted one, then applied, and counted from there.
+        for n in 0..9u64 {
+            let d = format!(r#"{{"ch":[1200],"seq":{}}}"#, 6 + n);
+            assert_eq!(offer(d.as_bytes(), ms(30 + 20 * n)), Outcome::Stale, "{n}");
+        }
+        assert_eq!(
+            offer(br#"{"ch":[1200],"seq":15}"#, ms(210)),
+            Outcome::Accepted
+        );
+        assert_eq!(
+            offer(br#"{"ch":[1200],"seq":16}"#, ms(230)),
+            Outcome::Accepted
+        );
+        assert_eq!(offer(br#"{"ch":[1200],"seq":15}"#, ms(240)), Outcome::Stale);
+        // Commands without a seq keep the line fresh: the gate holds.
+        assert_eq!(offer(br#"{"ch":[1300]}"#, ms(400)), Outcome::Accepted);
+        assert_eq!(offer(br#"{"ch":[1300],"seq":1}"#, ms(590)), Outcome::Stale);
+        assert_eq!(
+            offer(br#"{"ch":[1300],"seq":1}"#, ms(600)),
+            Outcome::Accepted
+        );
+        let c = i.counters();
+        assert_eq!((c.stale, c.seq_resets), (11, 2));
+        assert!(c.summary().contains("(seq resets 2)"), "{}", c.summary());
+    }
+
+    /// With a key the gate never forgets, however long the quiet.
+    #[test]
+    fn with_a_key_the_seq_gate_never_forgets() {
+        let k = key();
+        let mut i = intake()
+            .forget_seq_after(Duration::from_millis(200))
+            .with_auth(k.clone(), None);
+        let t = Instant::now();
+        let d = k.envelope(r#"{"ch":[1100],"seq":5}"#).into_bytes();
+        assert_eq!(i.offer(&d, from(), 1, 1, t), Outcome::Accepted);
+        let later = t + Duration::from_secs(3600);
+        assert_eq!(
+            reason(i.offer(&d, from(), 1, 1, later)),
+            RejectReason::Replay
+        );
+        let older = k.envelope(r#"{"ch":[1100],"seq":4}"#).into_bytes();
+        assert_eq!(
+            reason(i.offer(&older, from(), 1, 1, later)),
+            RejectReason::Replay
+        );
+        assert_eq!(i.counters().seq_resets, 0);
+    }
+
     #[test]
     fn clamps_are_counted() {
         let mut i = intake();
@@ -822,6 +933,7 @@ mod tests {
                     "clamped": 1,
                     "clamped_values": 2,
                     "stale": 1,
+                    "seq_resets": 0,
                     "superseded": 1,
                 },
                 "status_requests": 1,

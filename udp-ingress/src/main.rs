@@ -241,7 +241,8 @@ fn run(cli: Cli) -> Result<()> {
     let mut intake = Intake::new(
         model,
         Duration::from_millis(cfg.ingress.reject_log_interval_ms),
-    );
+    )
+    .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms));
     if let (Some(key), Some(file)) = (key, &seq_file) {
         log::info!(
             "commands must be signed with the key in {}; status queries need no signature; {} (the last accepted seq is kept in {})",
