@@ -269,6 +269,13 @@ pub struct IngressSection {
     /// Sources allowed to send, as address blocks (`"10.0.0.0/24"`,
     /// `"::1/128"`, or a bare address). Default empty: any source.
     pub allow: Vec<String>,
+    /// Sources that get the full status reply to any status query, as
+    /// address blocks. Others get it only for a query padded to at least a
+    /// third of the reply's size (whitespace after the JSON), and otherwise
+    /// `{"pad_to": N}`: no reply is more than 3 times its query, so a spoofed
+    /// query cannot make the ingress an amplifier. Default: the loopback
+    /// blocks (`127.0.0.0/8`, `::1/128`), which no remote sender can spoof.
+    pub status_allow: Vec<String>,
     /// SCHED_FIFO priority of the receive thread, 1..=99 and below
     /// `rt.priority` (ppmd's timing thread must preempt it), or 0 for the
     /// normal scheduler (default).
@@ -290,6 +297,7 @@ impl Default for IngressSection {
             auth_key: None,
             seq_file: None,
             allow: Vec::new(),
+            status_allow: vec!["127.0.0.0/8".into(), "::1/128".into()],
             priority: 0,
             cpu: IngressCpu::None,
             busy_poll: false,
@@ -675,6 +683,7 @@ impl Config {
             ));
         }
         self.allow()?;
+        self.status_allow()?;
         if i.priority > 99 {
             return Err(ConfigError::invalid(
                 "ingress.priority",
@@ -1002,6 +1011,15 @@ impl Config {
             .allow
             .iter()
             .map(|s| parse_net(s).map_err(|m| ConfigError::invalid("ingress.allow", m)))
+            .collect()
+    }
+
+    /// The address blocks of `ingress.status_allow`.
+    pub fn status_allow(&self) -> Result<Vec<ipnet::IpNet>, ConfigError> {
+        self.ingress
+            .status_allow
+            .iter()
+            .map(|s| parse_net(s).map_err(|m| ConfigError::invalid("ingress.status_allow", m)))
             .collect()
     }
 
@@ -1735,6 +1753,10 @@ mod tests {
                 "ingress.allow",
             ),
             ("[ingress]\nallow = ['10.0.0.0/33']", "ingress.allow"),
+            (
+                "[ingress]\nstatus_allow = ['::1/129']",
+                "ingress.status_allow",
+            ),
             ("[ingress]\nallow = ['localhost']", "ingress.allow"),
             ("[ingress]\npriority = 100", "ingress.priority"),
             ("[ingress]\npriority = 80", "ingress.priority"),

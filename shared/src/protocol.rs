@@ -127,6 +127,27 @@ fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
     }
 }
 
+/// The status query, as udp-ingress recognises it (whitespace around it
+/// allowed, and used as padding).
+pub const STATUS_QUERY: &str = r#"{"get":"status"}"#;
+
+/// No status reply is more than this many times the size of the query that
+/// asked for it, unless its source is in `ingress.status_allow`.
+pub const STATUS_REPLY_MAX_RATIO: usize = 3;
+
+/// The size ppm's tools pad their status queries to: a reply runs 600 to
+/// 900 bytes, and stays under 1800 (3 x 600) even with every counter at its
+/// largest.
+pub const STATUS_QUERY_PADDED_LEN: usize = 600;
+
+/// [`STATUS_QUERY`] padded with spaces to [`STATUS_QUERY_PADDED_LEN`]
+/// bytes: it earns the full reply from any source.
+pub fn padded_status_query() -> Vec<u8> {
+    let mut q = STATUS_QUERY.as_bytes().to_vec();
+    q.resize(STATUS_QUERY_PADDED_LEN, b' ');
+    q
+}
+
 /// True when `datagram` may be a JSON object with the key `key`: it holds
 /// `key` as a quoted string, or a backslash (an escape may spell the key, as
 /// `"\u006dsg"` spells `"msg"`). False means it certainly has no such key,

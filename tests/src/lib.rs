@@ -289,7 +289,9 @@ pub fn status(to: SocketAddr) -> serde_json::Value {
     socket
         .set_read_timeout(Some(Duration::from_secs(5)))
         .unwrap();
-    socket.send_to(br#"{"get":"status"}"#, to).unwrap();
+    socket
+        .send_to(&ppm_shared::protocol::padded_status_query(), to)
+        .unwrap();
     let mut buf = [0u8; 65_536];
     let (n, _) = socket.recv_from(&mut buf).expect("a status reply");
     serde_json::from_slice(&buf[..n]).expect("a JSON status reply")

@@ -289,7 +289,67 @@ fn status_without_ppmd_and_ppm_status_errors() {
         "{err}"
     );
     assert!(started.elapsed() >= Duration::from_millis(300));
-    let mut buf = [0u8; 64];
+    let mut buf = [0u8; 1024];
     let (n, _) = silent.recv_from(&mut buf).unwrap();
-    assert_eq!(&buf[..n], br#"{"get":"status"}"#);
+    assert_eq!(n, 600, "padded");
+    assert_eq!(buf[..n].trim_ascii_end(), br#"{"get":"status"}"#);
+}
+
+/// No reply is more than 3 times the datagram that asked for it, unless the
+/// source is in `ingress.status_allow` (the loopback blocks by default): a
+/// bare 16-byte query used to earn a reply of about 700 bytes, whatever its
+/// (spoofable) source.
+#[test]
+fn status_replies_are_at_most_three_times_their_query_outside_status_allow() {
+    let ask = |c: &Client, query: &[u8]| -> Vec<u8> {
+        c.send(query);
+        let mut buf = [0u8; 65_536];
+        let (n, _) = c.socket.recv_from(&mut buf).expect("an answer");
+        buf[..n].to_vec()
+    };
+    let bare = br#"{"get":"status"}"#;
+
+    // Loopback outside status_allow: a bare query gets {"pad_to": N} only.
+    let sb = Sandbox::new("amplify");
+    let cfg = sb.config_with_ingress("status_allow = []", "");
+    let ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let ingress = sb.start_ingress(&cfg, &[]);
+    let c = Client::new(sb.addr());
+    let short = ask(&c, bare);
+    assert!(
+        short.len() <= 3 * bare.len(),
+        "{}",
+        String::from_utf8_lossy(&short)
+    );
+    let need = serde_json::from_slice::<Value>(&short).unwrap()["pad_to"]
+        .as_u64()
+        .expect("pad_to") as usize;
+    // Padded to what it asked (whitespace after the JSON): the whole reply.
+    let mut padded = bare.to_vec();
+    padded.resize(need, b' ');
+    let reply = ask(&c, &padded);
+    assert!(reply.len() <= 3 * padded.len() && reply.len() > 3 * (need - 1) - 3);
+    let reply: Value = serde_json::from_slice(&reply).unwrap();
+    assert_eq!(reply["status_short"], 1, "{reply}");
+    assert_eq!(reply["status_requests"], 2, "{reply}");
+    // The escaped spelling is a query too, and short as well.
+    let escaped = br#"{"\u0067et":"status"}"#;
+    let short = ask(&c, escaped);
+    assert!(short.len() <= 3 * escaped.len());
+    assert!(String::from_utf8_lossy(&short).starts_with(r#"{"pad_to":"#));
+    // ppm-status pads its query: the full reply from a non-allowed source.
+    let out = stdout_of(&["--to", &sb.addr().to_string(), "--json"]);
+    let reply: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(reply["status_short"], 2, "{reply}");
+    drop((ppmd, ingress));
+
+    // The default status_allow (loopback): a bare query gets the reply.
+    let sb = Sandbox::new("amplify2");
+    let cfg = sb.config("");
+    let ingress = sb.start_ingress(&cfg, &[]);
+    let c = Client::new(sb.addr());
+    let reply: Value = serde_json::from_slice(&ask(&c, bare)).unwrap();
+    assert_eq!(reply["status_short"], 0, "{reply}");
+    assert!(reply["datagrams"].is_object(), "{reply}");
+    drop(ingress);
 }

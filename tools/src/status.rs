@@ -7,9 +7,6 @@ use serde_json::Value;
 use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
 use std::time::Duration;
 
-/// The query, as udp-ingress recognises it.
-pub const QUERY: &[u8] = br#"{"get":"status"}"#;
-
 /// Resolves `HOST:PORT` to its first address.
 pub fn resolve(to: &str) -> Result<SocketAddr> {
     to.to_socket_addrs()
@@ -31,8 +28,11 @@ pub fn query(to: SocketAddr, timeout: Duration) -> Result<String> {
         .connect(to)
         .with_context(|| format!("addressing {to}"))?;
     socket.set_read_timeout(Some(timeout))?;
+    // Padded: no reply is more than 3 times its query (unless the source is
+    // in ingress.status_allow), so a bare 16-byte query may get only
+    // {"pad_to": N}.
     socket
-        .send(QUERY)
+        .send(&ppm_shared::protocol::padded_status_query())
         .with_context(|| format!("sending to {to}"))?;
     let mut buf = vec![0u8; 65_536];
     let n = match socket.recv(&mut buf) {

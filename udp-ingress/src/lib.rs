@@ -20,7 +20,7 @@ use ipnet::IpNet;
 use ppm_shared::auth::{self, AuthKey};
 use ppm_shared::frame::FrameModel;
 use ppm_shared::ipc::TimingSnapshot;
-use ppm_shared::protocol::{self, Command, Reject, RejectReason, SeqGate};
+use ppm_shared::protocol::{self, Command, Reject, RejectReason, SeqGate, STATUS_REPLY_MAX_RATIO};
 use serde_json::{json, Value};
 use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
@@ -61,6 +61,9 @@ pub struct Counters {
     /// Status replies not sent (the socket's send buffer was full, or too
     /// many queries arrived in one wake-up).
     pub status_dropped: u64,
+    /// Status queries answered with `{"pad_to": N}` instead of the reply:
+    /// too short for it from a source outside `ingress.status_allow`.
+    pub status_short: u64,
 }
 
 impl Counters {
@@ -155,6 +158,50 @@ pub fn query(datagram: &[u8]) -> Option<Result<Query, Reject>> {
         _ => bad(format!(
             "unknown query {get}: the only query is {{\"get\": \"status\"}}"
         )),
+    }
+}
+
+/// What a status query gets ([`status_answer`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StatusAnswer {
+    /// The whole reply.
+    Full,
+    /// `{"pad_to": N}`: the query must be at least N bytes for the reply.
+    PadTo(usize),
+    /// Nothing: even `{"pad_to": N}` would be more than 3 times the query.
+    Nothing,
+}
+
+/// The text of [`StatusAnswer::PadTo`].
+pub fn pad_to_text(n: usize) -> String {
+    format!(r#"{{"pad_to":{n}}}"#)
+}
+
+/// What a status query of `query_len` bytes from `from` gets, when the
+/// reply is `reply_len` bytes: the reply when `from` lies in `status_allow`
+/// or the reply is at most [`STATUS_REPLY_MAX_RATIO`] times the query;
+/// otherwise `{"pad_to": N}` (N the query size that would earn the reply),
+/// or nothing when even that is too large. A spoofed query never makes
+/// the ingress send more than 3 times what it received.
+pub fn status_answer(
+    reply_len: usize,
+    query_len: usize,
+    from: IpAddr,
+    status_allow: &[IpNet],
+) -> StatusAnswer {
+    let in_block = |ip: IpAddr| status_allow.iter().any(|n| n.contains(&ip));
+    if in_block(from) || in_block(from.to_canonical()) {
+        return StatusAnswer::Full;
+    }
+    let cap = query_len.saturating_mul(STATUS_REPLY_MAX_RATIO);
+    if reply_len <= cap {
+        return StatusAnswer::Full;
+    }
+    let need = reply_len.div_ceil(STATUS_REPLY_MAX_RATIO);
+    if pad_to_text(need).len() <= cap {
+        StatusAnswer::PadTo(need)
+    } else {
+        StatusAnswer::Nothing
     }
 }
 
@@ -428,6 +475,12 @@ impl Intake {
         self.counters.status_dropped += 1;
     }
 
+    /// Counts a status query answered with `{"pad_to": N}` (or nothing),
+    /// as too short for the reply.
+    pub fn status_short(&mut self) {
+        self.counters.status_short += 1;
+    }
+
     /// Records how long the published command took from the kernel's
     /// receive timestamp to being published, ns.
     pub fn published_after(&mut self, ns: u64) {
@@ -476,6 +529,7 @@ impl Intake {
             },
             "status_requests": c.status_requests,
             "status_dropped": c.status_dropped,
+            "status_short": c.status_short,
             "newest_command_age_ms": self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
             "newest_seq": self.latest.and_then(|r| r.command.seq),
             "publish_latency_us": {
@@ -778,6 +832,26 @@ mod tests {
         assert!(detail(br#"{"ail":1500,"get":"status"}"#).contains("`ail`"));
     }
 
+    #[test]
+    fn status_answers_are_at_most_three_times_the_query_outside_status_allow() {
+        let lo: Vec<IpNet> = vec!["127.0.0.0/8".parse().unwrap(), "::1/128".parse().unwrap()];
+        let far: IpAddr = "203.0.113.9".parse().unwrap();
+        let near: IpAddr = "127.0.0.1".parse().unwrap();
+        let mapped: IpAddr = "::ffff:127.0.0.1".parse().unwrap();
+        use StatusAnswer::*;
+        assert_eq!(status_answer(700, 16, near, &lo), Full);
+        assert_eq!(status_answer(700, 16, mapped, &lo), Full);
+        assert_eq!(status_answer(700, 16, far, &lo), PadTo(234));
+        assert_eq!(status_answer(700, 16, near, &[]), PadTo(234));
+        assert_eq!(status_answer(700, 233, far, &lo), PadTo(234));
+        assert_eq!(status_answer(700, 234, far, &lo), Full);
+        assert_eq!(status_answer(702, 234, far, &lo), Full);
+        assert_eq!(pad_to_text(234), r#"{"pad_to":234}"#);
+        // Even {"pad_to": N} is more than 3 times a 4-byte datagram.
+        assert_eq!(status_answer(700, 4, far, &lo), Nothing);
+        assert_eq!(status_answer(700, 5, far, &lo), PadTo(234));
+    }
+
     /// JSON is classified by its parsed keys: escaped spellings of `get`,
     /// `msg` and `mac` behave as the plain ones (they were taken for
     /// commands: `unknown_channel`, `unsigned`).
@@ -938,6 +1012,7 @@ mod tests {
                 },
                 "status_requests": 1,
                 "status_dropped": 1,
+                "status_short": 0,
                 "newest_command_age_ms": 7.0,
                 "newest_seq": null,
                 "publish_latency_us": {"count": 0, "p50": 0.0, "p99": 0.0, "max": 0.0},

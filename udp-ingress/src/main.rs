@@ -25,7 +25,7 @@ use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use udp_ingress::seqfile::SeqFile;
-use udp_ingress::{Intake, Outcome, ReceiveThread};
+use udp_ingress::{pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer};
 
 /// UDP command receiver: keeps the newest valid command and hands it to ppmd
 /// through shared memory.
@@ -157,6 +157,7 @@ fn run(cli: Cli) -> Result<()> {
     let model = cfg.validate()?;
     cfg.check_busy_poll_cpu(sched::resolve_rt_cpu(cfg.rt.cpu))?;
     let allow = cfg.allow()?;
+    let status_allow = cfg.status_allow()?;
     let key = cfg
         .ingress
         .auth_key
@@ -281,6 +282,7 @@ fn run(cli: Cli) -> Result<()> {
         buf: vec![0u8; MAX_DATAGRAM],
         cmsg: nix::cmsg_space!(nix::sys::time::TimeSpec),
         status_to: Vec::with_capacity(MAX_STATUS_PER_WAKE),
+        status_allow,
         ppmd_snapshot: None,
         reply_budget: ReplyBudget::new(),
         ingress_seq: 0,
@@ -396,7 +398,10 @@ struct Receiver {
     thread: ReceiveThread,
     buf: Vec<u8>,
     cmsg: Vec<u8>,
-    status_to: Vec<SocketAddr>,
+    /// Status queries of this wake-up: their sources and sizes.
+    status_to: Vec<(SocketAddr, usize)>,
+    /// `ingress.status_allow`.
+    status_allow: Vec<ipnet::IpNet>,
     ppmd_snapshot: Option<TimingSnapshot>,
     reply_budget: ReplyBudget,
     ingress_seq: u64,
@@ -450,7 +455,7 @@ impl Receiver {
                 Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
                 Outcome::Stale => log::debug!("stale command from {from} dropped"),
                 Outcome::Status if self.status_to.len() < MAX_STATUS_PER_WAKE => {
-                    self.status_to.push(from)
+                    self.status_to.push((from, n))
                 }
                 Outcome::Status => self.intake.status_dropped(),
                 _ => {}
@@ -489,12 +494,26 @@ impl Receiver {
                     self.ppmd_snapshot.as_ref(),
                 )
                 .to_string();
-            for to in self.status_to.drain(..) {
+            for (to, query_len) in self.status_to.drain(..) {
                 if !self.reply_budget.take() {
                     self.intake.status_dropped();
                     continue;
                 }
-                match self.socket.send_to(reply.as_bytes(), to) {
+                let short;
+                let answer =
+                    match status_answer(reply.len(), query_len, to.ip(), &self.status_allow) {
+                        StatusAnswer::Full => reply.as_bytes(),
+                        StatusAnswer::PadTo(n) => {
+                            self.intake.status_short();
+                            short = pad_to_text(n);
+                            short.as_bytes()
+                        }
+                        StatusAnswer::Nothing => {
+                            self.intake.status_short();
+                            continue;
+                        }
+                    };
+                match self.socket.send_to(answer, to) {
                     Ok(_) => {}
                     Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
                         self.intake.status_dropped()

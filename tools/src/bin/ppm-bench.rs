@@ -231,7 +231,10 @@ impl Setup {
     fn status(&self) -> Result<Value> {
         let s = UdpSocket::bind("127.0.0.1:0")?;
         s.set_read_timeout(Some(Duration::from_secs(2)))?;
-        s.send_to(br#"{"get":"status"}"#, ("127.0.0.1", self.port))?;
+        s.send_to(
+            &ppm_shared::protocol::padded_status_query(),
+            ("127.0.0.1", self.port),
+        )?;
         let mut buf = vec![0u8; 65536];
         let n = s
             .recv(&mut buf)
