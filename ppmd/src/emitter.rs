@@ -113,6 +113,10 @@ pub struct Stats {
     pub wakes: AtomicU64,
     /// Follow: wake fds that broke (the lane then polls for commands).
     pub wake_errors: AtomicU64,
+    /// Times the loop decided this lane's next frame (or that the line
+    /// stays silent a while longer): at least once a frame while the loop
+    /// runs. ppmd pets systemd's watchdog only while it advances.
+    pub decisions: AtomicU64,
     /// Current spin margin, ns.
     pub margin_ns: AtomicU64,
     /// Total time spent spinning, ns.
@@ -517,6 +521,7 @@ fn decide_frame(lane: &mut Lane, p: &mut Progress, lead: u64, anchor: Option<u64
     let frame_ns = model.frame_ns();
     let follow = model.timing() == Timing::Follow;
     let now = clock::now_ns();
+    add(&stats.decisions, 1);
     lane.meter.maybe_hand_over(now);
     // Follow: a look at the earliest start (not a wake-up, not a poll while
     // waiting) should have found the line free for a command it finds.

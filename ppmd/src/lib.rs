@@ -9,6 +9,7 @@
 //! - [`framelog`]: the JSON-lines log of every frame sent.
 //! - [`meter`]: histograms of the loop's timing, handed over lock-free.
 //! - [`rt`]: the real-time setup of the timing thread.
+//! - [`watchdog`]: systemd's watchdog, petted while the timing loop moves.
 
 pub mod clock;
 pub mod emitter;
@@ -17,3 +18,4 @@ pub mod meter;
 pub mod output;
 pub mod rt;
 pub mod source;
+pub mod watchdog;

@@ -137,9 +137,21 @@ impl Sandbox {
 
     /// Starts a binary with arguments; its stderr goes to `<dir>/<log>.log`.
     pub fn spawn(&self, binary: &str, args: &[&str], log: &str) -> Proc {
+        self.spawn_with_env(binary, args, &[], log)
+    }
+
+    /// [`Sandbox::spawn`] with environment variables added.
+    pub fn spawn_with_env(
+        &self,
+        binary: &str,
+        args: &[&str],
+        env: &[(&str, &str)],
+        log: &str,
+    ) -> Proc {
         let log_path = self.dir.join(format!("{log}.log"));
         let child = Command::new(bin(binary))
             .args(args)
+            .envs(env.iter().copied())
             .current_dir(&self.dir)
             .env("RUST_LOG", "info")
             .stdin(Stdio::null())
