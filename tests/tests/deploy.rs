@@ -100,8 +100,9 @@ fn units_share_the_root_and_read_the_config() {
             cfg.ipc.root,
             "{unit}: RuntimeDirectory is ipc.root"
         );
+        let ty = if binary == "ppmd" { "notify" } else { "simple" };
         for (key, want) in [
-            ("Type", "simple"),
+            ("Type", ty),
             ("User", "ppm"),
             ("Restart", "always"),
             ("RestartSec", "1"),
@@ -111,7 +112,7 @@ fn units_share_the_root_and_read_the_config() {
         ] {
             assert_eq!(value(&d, key), want, "{unit}: {key}");
         }
-        for key in ["PrivateDevices", "PrivateIPC", "DynamicUser"] {
+        for key in ["PrivateDevices", "PrivateIPC", "DynamicUser", "RemoveIPC"] {
             assert!(
                 d.iter().all(|(k, _)| k != key),
                 "{unit}: {key} would split the shared memory"
@@ -120,6 +121,8 @@ fn units_share_the_root_and_read_the_config() {
     }
 
     let d = directives("ppmd.service");
+    assert_eq!(value(&d, "WatchdogSec"), "2s", "ppmd pets its watchdog");
+    assert_eq!(value(&d, "NotifyAccess"), "main");
     assert_eq!(value(&d, "LimitRTPRIO"), "99");
     assert_eq!(value(&d, "LimitMEMLOCK"), "infinity");
     let (lo, hi) = value(&d, "CPUAffinity").split_once('-').unwrap();
