@@ -10,6 +10,7 @@
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
 //! - [`files`]: bounded reads of the configuration, key and seq files.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
+//! - [`logging`]: log lines for a terminal or for systemd's journal.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
@@ -22,6 +23,7 @@ pub mod decode;
 pub mod files;
 pub mod frame;
 pub mod ipc;
+pub mod logging;
 pub mod protocol;
 pub mod receiver;
 pub mod sched;

@@ -437,9 +437,15 @@ fn readme_python_signed_sender_is_accepted() {
     let code = code
         .replace("/etc/ppm/auth.key", key_path.to_str().unwrap())
         .replace("5005", &sb.port.to_string());
+    // The snippet imports the package from the source tree (`import ppm`).
     let status = std::process::Command::new("python3")
         .arg("-c")
         .arg(&code)
+        .env(
+            "PYTHONPATH",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/python"),
+        )
+        .env("PYTHONDONTWRITEBYTECODE", "1")
         .status()
         .expect("python3 is needed for this test (apt-get install python3)");
     assert!(status.success());

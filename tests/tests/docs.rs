@@ -74,9 +74,12 @@ fn readme_python_sender_flies_the_line() {
     let trace = sb.dir.join("line.trace");
     let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
     let _ingress = sb.start_ingress(&cfg, &[]);
+    // The snippet imports the package from the source tree (`import ppm`).
     let status = std::process::Command::new("python3")
         .arg("-c")
         .arg(&code)
+        .env("PYTHONPATH", format!("{ROOT}/tools/python"))
+        .env("PYTHONDONTWRITEBYTECODE", "1")
         .status()
         .expect("python3 is needed for this test (apt-get install python3)");
     assert!(status.success());

@@ -2,6 +2,8 @@
 
 pub mod analysis;
 pub mod cyclic;
+/// SVG pictures of latency: histograms with percentile marks, percentile curves.
+pub mod plot;
 pub mod send;
 pub mod status;
 

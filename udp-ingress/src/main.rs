@@ -35,6 +35,11 @@ struct Cli {
     /// Configuration file (TOML); every key has a default.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// Log lines: `journal` (`<N>` priority prefixes, no timestamp),
+    /// `plain` (timestamped), or `auto`: journal when standard error is
+    /// systemd's journal (JOURNAL_STREAM), else plain.
+    #[arg(long, value_enum, default_value_t = ppm_shared::logging::LogFormat::Auto, value_name = "FORMAT")]
+    log_format: ppm_shared::logging::LogFormat,
     /// Output name; must match ppmd's. Overrides `name`; with `[[outputs]]`
     /// in the configuration, picks that output (its listen address, channels
     /// and units).
@@ -124,11 +129,10 @@ type StatsSubscriber =
     iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, TimingSnapshot, ()>;
 
 fn main() {
-    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("info"))
-        .format_timestamp_millis()
-        .init();
+    let cli = Cli::parse();
+    ppm_shared::logging::init(cli.log_format);
     ipc::init_ipc_logging();
-    if let Err(e) = run(Cli::parse()) {
+    if let Err(e) = run(cli) {
         log::error!("{e:#}");
         std::process::exit(1);
     }

@@ -16,15 +16,14 @@ use ppm_shared::ipc::{self, TimingSnapshot, HIST_BUCKETS};
 use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder};
 use ppm_shared::trace::Trace;
 use ppm_tools::analysis::{analyse_trace, Percentiles};
-use ppm_tools::cyclic::LatencyStats;
-use ppm_tools::parse_duration;
+use ppm_tools::cyclic::{self, parse_cyclictest_duration, JsonThread, LatencyStats};
 use ppmd::clock::{self, EdgeTimer, Margin};
 use ppmd::rt::{RtSetup, RT_STACK_BYTES};
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, Instant};
 
 /// Timing measurements for ppm: cyclictest-style tests of this machine with
 /// ppmd's own timer, a running ppmd's edge error, sim traces, captured edges.
@@ -53,15 +52,56 @@ struct Cli {
     /// Number of loops (0: until Ctrl-C or --duration). With --attach: snapshots.
     #[arg(short = 'l', long = "loops", default_value_t = 0, value_name = "LOOPS")]
     loops: u64,
-    /// Pin the measuring thread to this CPU.
-    #[arg(short = 'a', long = "affinity", value_name = "CPU")]
-    cpu: Option<usize>,
+    /// Pin the measuring threads: to the CPUs of CPUSET in round-robin
+    /// order (`2`, `0-3`, `3-5,0`), or without CPUSET thread N to CPU N.
+    #[arg(short = 'a', long = "affinity", value_name = "CPUSET", num_args = 0..=1, default_missing_value = "")]
+    affinity: Option<String>,
+    /// Number of measuring threads; without NUM, one per online CPU.
+    #[arg(short = 't', long = "threads", value_name = "NUM", num_args = 0..=1, default_missing_value = "0")]
+    threads: Option<usize>,
+    /// Standard SMP testing: one thread per CPU, each pinned to its CPU
+    /// (cyclictest's -a -t).
+    #[arg(short = 'S', long = "smp")]
+    smp: bool,
+    /// Interval added for each further thread, microseconds (not with -h/-H:
+    /// then every thread has the same interval, as in cyclictest).
+    #[arg(
+        short = 'd',
+        long = "distance",
+        default_value_t = 500,
+        value_name = "US"
+    )]
+    distance_us: u64,
+    /// Stop when a latency exceeds US (as cyclictest's break trace, without
+    /// the kernel tracing): prints the thread ids, the thread and the value.
+    #[arg(short = 'b', long = "breaktrace", value_name = "US")]
+    breaktrace: Option<u64>,
+    /// Accepted for cyclictest's command lines: jitter always sleeps with
+    /// clock_nanosleep.
+    #[arg(short = 'n', long = "nanosleep")]
+    nanosleep: bool,
+    /// Accepted for cyclictest's command lines: every line is flushed as
+    /// it is printed.
+    #[arg(short = 'u', long = "unbuffered")]
+    unbuffered: bool,
+    /// cyclictest's sys_nanosleep and sys_setitimer: not applicable,
+    /// ignored (jitter always sleeps with clock_nanosleep).
+    #[arg(short = 's', long = "system")]
+    system: bool,
     /// Print only the summary at the end.
     #[arg(short = 'q', long = "quiet")]
     quiet: bool,
     /// Print a histogram of latencies up to US (one bucket per unit) at the end.
-    #[arg(short = 'h', long = "histogram", value_name = "US")]
+    #[arg(
+        short = 'h',
+        long = "histogram",
+        value_name = "US",
+        conflicts_with = "histofall"
+    )]
     histogram: Option<usize>,
+    /// As -h, with a column summing every thread.
+    #[arg(short = 'H', long = "histofall", value_name = "US")]
+    histofall: Option<usize>,
     /// Write cyclictest's JSON summary to FILE.
     #[arg(long = "json", value_name = "FILE")]
     json: Option<PathBuf>,
@@ -71,8 +111,9 @@ struct Cli {
     /// Latencies in nanoseconds instead of microseconds.
     #[arg(short = 'N', long = "nsecs")]
     nsecs: bool,
-    /// Stop after this long (e.g. 10s, 500ms).
-    #[arg(short = 'D', long = "duration", value_parser = parse_duration, value_name = "TIME")]
+    /// Stop after this long: seconds, or with s, m (minutes), h, d as in
+    /// cyclictest (10, 30s, 5m, 1h), or ms.
+    #[arg(short = 'D', long = "duration", value_parser = parse_cyclictest_duration, value_name = "TIME")]
     duration: Option<Duration>,
     /// Spin margin before each wake-up: `auto` (ppmd's default), microseconds,
     /// or 0 for a plain absolute sleep (what cyclictest measures).
@@ -141,16 +182,10 @@ fn unit_ns(cli: &Cli) -> u64 {
     }
 }
 
-fn timestamp() -> String {
-    let t = SystemTime::now()
-        .duration_since(SystemTime::UNIX_EPOCH)
-        .unwrap_or_default();
-    format!("{}.{:03}", t.as_secs(), t.subsec_millis())
-}
-
-/// Counters the measuring thread shares with the printing one.
+/// Counters a measuring thread shares with the printing one.
 #[derive(Default)]
 struct Live {
+    tid: AtomicU64,
     cycles: AtomicU64,
     min: AtomicU64,
     max: AtomicU64,
@@ -158,130 +193,366 @@ struct Live {
     sum: AtomicU64,
 }
 
+/// The first latency over `-b`: which thread, and the value.
+#[derive(Default)]
+struct Break {
+    hit: AtomicBool,
+    tid: AtomicU64,
+    value: AtomicU64,
+}
+
+/// One measuring thread's settings.
+struct ThreadPlan {
+    interval_us: u64,
+    cpu: Option<usize>,
+    setup: RtSetup,
+}
+
+/// What a measuring thread hands back.
+struct ThreadResult {
+    stats: LatencyStats,
+    hist: hdrhistogram::Histogram<u64>,
+    missed: u64,
+    cpu: i64,
+}
+
+/// The measuring threads cyclictest's options ask for: how many, their
+/// intervals and CPUs.
+fn plan_threads(cli: &Cli) -> Result<Vec<ThreadPlan>> {
+    let online = ppm_shared::sched::online_cpus();
+    let cpus = online.len().max(1);
+    let n = match (cli.smp, cli.threads) {
+        (true, _) | (_, Some(0)) => cpus,
+        (false, Some(n)) => n,
+        (false, None) => 1,
+    };
+    if n > 256 {
+        bail!("-t {n}: at most 256 threads");
+    }
+    let set = match cli.affinity.as_deref() {
+        Some("") | None => None,
+        Some(s) => Some(cyclic::parse_cpuset(s).map_err(|e| anyhow::anyhow!("-a: {e}"))?),
+    };
+    let pinned = cli.smp || cli.affinity.is_some();
+    // /dev/cpu_dma_latency, when this user may hold it (cyclictest's
+    // latency target), by the first thread.
+    let dma = nix::unistd::access("/dev/cpu_dma_latency", nix::unistd::AccessFlags::W_OK).is_ok();
+    let same_interval = cli.histogram.is_some() || cli.histofall.is_some();
+    Ok((0..n)
+        .map(|i| {
+            let cpu = pinned.then(|| cyclic::cpu_for_thread(i, set.as_deref(), cpus));
+            ThreadPlan {
+                interval_us: cli.interval_us
+                    + if same_interval {
+                        0
+                    } else {
+                        i as u64 * cli.distance_us
+                    },
+                cpu,
+                setup: RtSetup {
+                    priority: cli.priority,
+                    cpu,
+                    mlock: cli.mlock && i == 0,
+                    cpu_dma_latency: dma && i == 0,
+                    allow_degraded: false,
+                },
+            }
+        })
+        .collect())
+}
+
+/// The `T:` line of a running thread.
+fn live_line(l: &Live, index: usize, prio: u32, interval: u64, nsecs: bool) -> String {
+    let c = l.cycles.load(Relaxed);
+    let min = if c == 0 { 0 } else { l.min.load(Relaxed) };
+    LatencyStats::new(0)
+        .with_summary(
+            c,
+            min,
+            l.max.load(Relaxed),
+            l.act.load(Relaxed),
+            l.sum.load(Relaxed) as u128,
+        )
+        .t_line(index, l.tid.load(Relaxed) as u32, prio, interval, nsecs)
+}
+
+/// cyclictest's status block (SIGUSR1 to standard error, SIGUSR2 to
+/// `/dev/shm/cyclictest<pid>`).
+fn status_block(lines: &[String]) -> String {
+    let mut s = String::from("#---------------------------\n# cyclictest current status:\n");
+    for l in lines {
+        s += l;
+        s += "\n";
+    }
+    s + "#---------------------------\n"
+}
+
+/// `policy: fifo: loadavg: ...`, the head of cyclictest's live view.
+fn policy_line(priority: u8) -> String {
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    format!(
+        "policy: {}: loadavg: {}          \n",
+        if priority > 0 { "fifo" } else { "other" },
+        load.trim_end()
+    )
+}
+
 /// The cyclictest-style test.
 fn cyclic(cli: &Cli) -> Result<()> {
     if cli.interval_us == 0 {
         bail!("-i must be at least 1 microsecond");
     }
-    let margin = match cli.spin.as_str() {
-        // Half the interval at most, so every period has a sleep in it.
-        "auto" => Margin::Auto {
-            min_ns: 20_000.min(cli.interval_us * 250),
-            max_ns: 1_000_000.min(cli.interval_us * 500),
-        },
-        us => Margin::Fixed(
-            us.parse::<u64>()
-                .ok()
-                .filter(|v| *v <= 5_000)
-                .with_context(|| format!("--spin `{us}`: use auto or 0..=5000 microseconds"))?
-                * 1_000,
-        ),
-    };
-    let setup = RtSetup {
-        priority: cli.priority,
-        cpu: cli.cpu,
-        mlock: cli.mlock,
-        cpu_dma_latency: cli.priority > 0,
-        allow_degraded: false,
-    };
-    let stop = stop_flag()?;
-    let unit = unit_ns(cli);
-    let buckets = cli.histogram.unwrap_or(0);
-    let (loops, interval_ns) = (cli.loops, cli.interval_us * 1_000);
-    let deadline = cli.duration.map(|d| clock::now_ns() + d.as_nanos() as u64);
-    let live = Arc::new(Live {
-        min: AtomicU64::new(u64::MAX),
-        ..Live::default()
-    });
-    let start = timestamp();
-    let (stop2, live2) = (stop.clone(), live.clone());
-    let worker = std::thread::Builder::new()
-        .name("jitter".into())
-        .stack_size(RT_STACK_BYTES)
-        .spawn(
-            move || -> Result<(LatencyStats, hdrhistogram::Histogram<u64>, u64, bool)> {
-                let obtained = setup.apply()?;
-                let mut stats = LatencyStats::new(buckets);
-                let mut hist = ppmd::meter::histogram();
-                let mut timer = EdgeTimer::new(margin);
-                let mut next = clock::now_ns() + interval_ns;
-                let (mut cycle, mut missed) = (0u64, 0u64);
-                while !stop2.load(Relaxed)
-                    && (loops == 0 || cycle < loops)
-                    && deadline.is_none_or(|d| next <= d)
-                {
-                    let w = timer.wait(next);
-                    let lat = w.now_ns - next;
-                    stats.record(lat / unit, cycle);
-                    hist.saturating_record(lat);
-                    live2.cycles.store(cycle + 1, Relaxed);
-                    live2.min.fetch_min(lat / unit, Relaxed);
-                    live2.max.fetch_max(lat / unit, Relaxed);
-                    live2.act.store(lat / unit, Relaxed);
-                    live2.sum.fetch_add(lat / unit, Relaxed);
-                    cycle += 1;
-                    next += interval_ns;
-                    if w.now_ns > next {
-                        let n = (w.now_ns - next) / interval_ns + 1;
-                        missed += n;
-                        next += n * interval_ns;
-                    }
-                }
-                Ok((stats, hist, missed, obtained.dma_latency.is_some()))
+    if cli.system {
+        eprintln!("jitter: -s (--system): not applicable, ignored: jitter always sleeps with clock_nanosleep");
+    }
+    let (_, _) = (cli.nanosleep, cli.unbuffered); // accepted: what jitter does anyway
+    let spin = cli.spin.as_str();
+    let margin = |interval_us: u64| -> Result<Margin> {
+        Ok(match spin {
+            // Half the interval at most, so every period has a sleep in it.
+            "auto" => Margin::Auto {
+                min_ns: 20_000.min(interval_us * 250),
+                max_ns: 1_000_000.min(interval_us * 500),
             },
-        )?;
-    let tid = nix::unistd::getpid().as_raw() as u32;
-    let prio = cli.priority as u32;
-    let t_line = |l: &Live| {
-        let c = l.cycles.load(Relaxed);
-        let min = if c == 0 { 0 } else { l.min.load(Relaxed) };
-        LatencyStats::new(0)
-            .with_summary(
-                c,
-                min,
-                l.max.load(Relaxed),
-                l.act.load(Relaxed),
-                l.sum.load(Relaxed) as u128,
-            )
-            .t_line(0, tid, prio, cli.interval_us)
+            us => Margin::Fixed(
+                us.parse::<u64>()
+                    .ok()
+                    .filter(|v| *v <= 5_000)
+                    .with_context(|| format!("--spin `{us}`: use auto or 0..=5000 microseconds"))?
+                    * 1_000,
+            ),
+        })
     };
+    let plans = plan_threads(cli)?;
+    let n = plans.len();
+    let stop = stop_flag()?;
+    let usr1 = Arc::new(AtomicBool::new(false));
+    let usr2 = Arc::new(AtomicBool::new(false));
+    signal_hook::flag::register(signal_hook::consts::SIGUSR1, usr1.clone())
+        .context("installing the SIGUSR1 handler")?;
+    signal_hook::flag::register(signal_hook::consts::SIGUSR2, usr2.clone())
+        .context("installing the SIGUSR2 handler")?;
+    let unit = unit_ns(cli);
+    let buckets = cli.histogram.or(cli.histofall).unwrap_or(0);
+    let loops = cli.loops;
+    let deadline = cli.duration.map(|d| clock::now_ns() + d.as_nanos() as u64);
+    let brk = Arc::new(Break::default());
+    let lives: Arc<Vec<Live>> = Arc::new(
+        (0..n)
+            .map(|_| Live {
+                min: AtomicU64::new(u64::MAX),
+                ..Live::default()
+            })
+            .collect(),
+    );
+    let start = timestamp_rfc2822();
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<bool, String>>();
+    let mut workers = Vec::new();
+    for (i, plan) in plans.iter().enumerate() {
+        let (stop, lives, brk, ready) =
+            (stop.clone(), lives.clone(), brk.clone(), ready_tx.clone());
+        let (setup, interval_ns) = (plan.setup.clone(), plan.interval_us * 1_000);
+        let (margin, breaktrace) = (margin(plan.interval_us)?, cli.breaktrace);
+        let pinned = plan.cpu;
+        workers.push(
+            std::thread::Builder::new()
+                .name(format!("jitter-{i}"))
+                .stack_size(RT_STACK_BYTES)
+                .spawn(move || -> Option<ThreadResult> {
+                    let obtained = match setup.apply() {
+                        Ok(o) => {
+                            let _ = ready.send(Ok(o.dma_latency.is_some()));
+                            o
+                        }
+                        Err(e) => {
+                            let _ = ready.send(Err(e.to_string()));
+                            return None;
+                        }
+                    };
+                    let live = &lives[i];
+                    live.tid
+                        .store(nix::unistd::gettid().as_raw() as u64, Relaxed);
+                    let mut stats = LatencyStats::new(buckets);
+                    let mut hist = ppmd::meter::histogram();
+                    let mut timer = EdgeTimer::new(margin);
+                    let mut next = clock::now_ns() + interval_ns;
+                    let (mut cycle, mut missed) = (0u64, 0u64);
+                    while !stop.load(Relaxed)
+                        && (loops == 0 || cycle < loops)
+                        && deadline.is_none_or(|d| next <= d)
+                    {
+                        let w = timer.wait(next);
+                        let lat = w.now_ns - next;
+                        let v = lat / unit;
+                        stats.record(v, cycle);
+                        hist.saturating_record(lat);
+                        live.cycles.store(cycle + 1, Relaxed);
+                        live.min.fetch_min(v, Relaxed);
+                        live.max.fetch_max(v, Relaxed);
+                        live.act.store(v, Relaxed);
+                        live.sum.fetch_add(v, Relaxed);
+                        cycle += 1;
+                        if breaktrace.is_some_and(|b| v > b) && !brk.hit.swap(true, Relaxed) {
+                            brk.tid.store(live.tid.load(Relaxed), Relaxed);
+                            brk.value.store(v, Relaxed);
+                            stop.store(true, Relaxed);
+                        }
+                        next += interval_ns;
+                        if w.now_ns > next {
+                            let k = (w.now_ns - next) / interval_ns + 1;
+                            missed += k;
+                            next += k * interval_ns;
+                        }
+                    }
+                    drop(obtained);
+                    let cpu = pinned.map_or_else(
+                        || nix::sched::sched_getcpu().map_or(-1, |c| c as i64),
+                        |c| c as i64,
+                    );
+                    Some(ThreadResult {
+                        stats,
+                        hist,
+                        missed,
+                        cpu,
+                    })
+                })?,
+        );
+    }
+    drop(ready_tx);
+    let mut dma = false;
+    for r in ready_rx.iter().take(n) {
+        match r {
+            Ok(d) => dma |= d,
+            Err(e) => {
+                stop.store(true, Relaxed);
+                for w in workers {
+                    let _ = w.join();
+                }
+                bail!("{e}");
+            }
+        }
+    }
     let mut out = std::io::stdout();
-    while !worker.is_finished() {
+    if dma {
+        writeln!(out, "# /dev/cpu_dma_latency set to 0us")?;
+    }
+    let prio = cli.priority as u32;
+    let lines = |lives: &[Live]| -> Vec<String> {
+        lives
+            .iter()
+            .zip(&plans)
+            .enumerate()
+            .map(|(i, (l, p))| live_line(l, i, prio, p.interval_us, cli.nsecs))
+            .collect()
+    };
+    let rstat = std::path::PathBuf::from(format!("/dev/shm/cyclictest{}", std::process::id()));
+    while !workers.iter().all(|w| w.is_finished()) {
         std::thread::sleep(Duration::from_millis(100));
+        if usr1.swap(false, Relaxed) {
+            eprint!("{}", status_block(&lines(&lives)));
+        }
+        if usr2.swap(false, Relaxed) {
+            if let Err(e) = std::fs::write(&rstat, status_block(&lines(&lives))) {
+                eprintln!("jitter: SIGUSR2: writing {}: {e}", rstat.display());
+            }
+        }
         if !cli.quiet {
-            write!(out, "{}\r", t_line(&live))?;
+            write!(
+                out,
+                "{}\n{}\n\x1b[{}A",
+                policy_line(cli.priority),
+                lines(&lives).join("\n"),
+                n + 2
+            )?;
             out.flush()?;
         }
     }
-    let (stats, hist, missed, dma) = worker
-        .join()
-        .map_err(|_| anyhow::anyhow!("the measuring thread panicked"))??;
-    if dma {
-        println!("# /dev/cpu_dma_latency set to 0us");
+    let _ = std::fs::remove_file(&rstat);
+    let results: Vec<ThreadResult> = workers
+        .into_iter()
+        .map(|w| {
+            w.join()
+                .map_err(|_| anyhow::anyhow!("a measuring thread panicked"))
+        })
+        .collect::<Result<Vec<_>>>()?
+        .into_iter()
+        .map(|r| r.context("a measuring thread stopped at start"))
+        .collect::<Result<_>>()?;
+    let tids: Vec<u32> = lives.iter().map(|l| l.tid.load(Relaxed) as u32).collect();
+    let final_lines: Vec<String> = results
+        .iter()
+        .zip(&plans)
+        .enumerate()
+        .map(|(i, (r, p))| r.stats.t_line(i, tids[i], prio, p.interval_us, cli.nsecs))
+        .collect();
+    if !cli.quiet {
+        write!(
+            out,
+            "{}\n{}\n",
+            policy_line(cli.priority),
+            final_lines.join("\n")
+        )?;
+    } else if buckets == 0 {
+        for l in &final_lines {
+            writeln!(out, "{l}")?;
+        }
     }
-    if cli.histogram.is_some() {
-        print!("{}", stats.histogram_block());
+    if buckets > 0 {
+        let stats: Vec<&LatencyStats> = results.iter().map(|r| &r.stats).collect();
+        write!(
+            out,
+            "{}",
+            cyclic::histogram_block(&stats, cli.histofall.is_some())
+        )?;
     }
-    println!("{}", stats.t_line(0, tid, prio, cli.interval_us));
-    let p = Percentiles::of_histogram(&hist);
-    println!(
-        "# Percentiles (us): {}; missed periods {missed}; spin {}",
-        p.line(1_000.0),
-        cli.spin
-    );
+    if cli.breaktrace.is_some() {
+        let ids: Vec<String> = tids.iter().map(|t| format!(" {t:05}")).collect();
+        writeln!(out, "# Thread Ids:{}", ids.concat())?;
+        if brk.hit.load(Relaxed) {
+            writeln!(out, "# Break thread: {}", brk.tid.load(Relaxed))?;
+            writeln!(out, "# Break value: {}", brk.value.load(Relaxed))?;
+        }
+    }
+    out.flush()?;
+    // jitter's own figures go to standard error: standard output stays
+    // cyclictest's.
+    for (i, r) in results.iter().enumerate() {
+        let p = Percentiles::of_histogram(&r.hist);
+        eprintln!(
+            "# T:{i} percentiles (us): {}; missed periods {}; spin {}",
+            p.line(1_000.0),
+            r.missed,
+            cli.spin
+        );
+    }
     if let Some(path) = &cli.json {
         let cmdline: Vec<String> = std::env::args().collect();
-        let doc = stats.json(
+        let threads: Vec<JsonThread> = results
+            .iter()
+            .map(|r| JsonThread {
+                stats: &r.stats,
+                cpu: r.cpu,
+            })
+            .collect();
+        let doc = cyclic::json(
+            &threads,
             &cmdline.join(" "),
             &start,
-            &timestamp(),
-            cli.cpu.map_or(-1, |c| c as i64),
-            if cli.nsecs { 1 } else { 0 },
+            &timestamp_rfc2822(),
+            cli.nsecs,
+            buckets > 0,
         );
         std::fs::write(path, serde_json::to_string_pretty(&doc)? + "\n")
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
+}
+
+/// Local time as cyclictest's `--json` writes it: `Mon, 23 Nov 2026 13:16:47 +0000`.
+fn timestamp_rfc2822() -> String {
+    jiff::Zoned::now()
+        .strftime("%a, %d %b %Y %H:%M:%S %z")
+        .to_string()
 }
 
 /// Live view of a running ppmd.
@@ -388,7 +659,7 @@ fn attach_line(s: &TimingSnapshot, unit: u64) -> String {
             s.last.max / unit,
             (s.total.mean / unit) as u128 * s.total.count as u128,
         )
-        .t_line(0, s.pid, s.priority, s.frame_ns / 1_000)
+        .t_line(0, s.pid, s.priority, s.frame_ns / 1_000, unit == 1)
 }
 
 /// Analysis of a sim trace.

@@ -15,8 +15,10 @@
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
+use hdrhistogram::Histogram;
 use ppm_shared::time::now_ns;
 use ppm_tools::analysis::Percentiles;
+use ppm_tools::plot;
 use serde_json::Value;
 use std::io::{BufRead, BufReader};
 use std::net::UdpSocket;
@@ -48,6 +50,113 @@ struct Cli {
     /// ppmd's (`rt.cpu = "last"`). `none` leaves out these runs.
     #[arg(long, value_name = "CPU|none")]
     pin_cpu: Option<String>,
+    /// Also draw the latency distributions measured as SVG files in DIR
+    /// (created if missing): ingress.svg, flood.svg, e2e.svg and one
+    /// histogram per end-to-end run, e2e-TIMING-HZhz.svg.
+    #[arg(long, value_name = "DIR")]
+    plot: Option<PathBuf>,
+}
+
+/// (quantile, value) points of a distribution known only by a few.
+type Points = Vec<(f64, f64)>;
+
+/// The latency distributions measured, kept for `--plot`.
+#[derive(Default)]
+struct Plots {
+    /// Per receiver: samples and (quantile, us) of its ingress latency,
+    /// known only as p50, p99 and max.
+    ingress: Vec<(String, u64, Points)>,
+    /// Per variant: the newest command's age at each frame start during the
+    /// flood, ns.
+    flood: Vec<(String, Histogram<u64>)>,
+    /// Per timing and rate: send to the line, ns.
+    e2e: Vec<(String, Histogram<u64>)>,
+}
+
+/// Makes `dir` for `--plot` and checks that files can be written in it,
+/// before anything is measured.
+fn plot_dir(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("--plot: cannot create the directory {}", dir.display()))?;
+    let probe = dir.join(format!(".ppm-bench-{}", std::process::id()));
+    std::fs::write(&probe, b"")
+        .with_context(|| format!("--plot: cannot write in the directory {}", dir.display()))?;
+    let _ = std::fs::remove_file(probe);
+    Ok(())
+}
+
+/// Writes the plots of what was measured to `dir` and prints their paths.
+fn write_plots(dir: &Path, plots: &Plots) -> Result<()> {
+    let mut written = Vec::new();
+    let ingress: Vec<plot::Summary> = plots
+        .ingress
+        .iter()
+        .filter(|(_, n, pts)| *n > 0 && pts.iter().all(|p| p.1.is_finite()))
+        .map(|(l, n, pts)| (l.as_str(), *n, pts.as_slice()))
+        .collect();
+    if !ingress.is_empty() {
+        let path = dir.join("ingress.svg");
+        plot::summaries_svg(
+            &path,
+            "1. ingress: kernel receive to command handed over (p50, p99, max)",
+            "us",
+            &ingress,
+        )?;
+        written.push(path);
+    }
+    for (name, title, unit, runs, scale) in [
+        (
+            "flood.svg",
+            "2. flood: newest command's age at ppmd's frame starts",
+            "ms",
+            &plots.flood,
+            1e6,
+        ),
+        (
+            "e2e.svg",
+            "3. end to end: send to the first frame carrying the command",
+            "ms",
+            &plots.e2e,
+            1e6,
+        ),
+    ] {
+        let refs: Vec<(&str, &Histogram<u64>, f64)> = runs
+            .iter()
+            .filter(|(_, h)| !h.is_empty())
+            .map(|(l, h)| (l.as_str(), h, scale))
+            .collect();
+        if refs.is_empty() {
+            continue;
+        }
+        let path = dir.join(name);
+        plot::distributions_svg(&path, title, unit, &refs)?;
+        written.push(path);
+    }
+    for (label, h) in plots.e2e.iter().filter(|(_, h)| !h.is_empty()) {
+        let p = Percentiles::of_histogram(h);
+        let path = dir.join(format!(
+            "e2e-{}hz.svg",
+            label.replace(", ", "-").replace(" Hz", "")
+        ));
+        plot::histogram_svg(
+            &path,
+            &format!("3. end to end, {label}: send to the first frame carrying the command"),
+            "ms",
+            h,
+            1e6,
+            &[
+                ("p50", p.p50 / 1e6),
+                ("p90", p.p90 / 1e6),
+                ("p99", p.p99 / 1e6),
+                ("max", p.max / 1e6),
+            ],
+        )?;
+        written.push(path);
+    }
+    for path in written {
+        println!("plot: {}", path.display());
+    }
+    Ok(())
 }
 
 /// How udp-ingress receives in one run.
@@ -305,7 +414,7 @@ fn ingress_run(cli: &Cli, v: &Variant) -> Result<(String, Value)> {
     ))
 }
 
-fn ingress_latency(cli: &Cli, variants: &[Variant]) -> Result<()> {
+fn ingress_latency(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result<()> {
     println!(
         "== 1. ingress: kernel receive to command handed over ({} datagrams at 1 kHz)",
         cli.latency_count
@@ -390,6 +499,24 @@ fn ingress_latency(cli: &Cli, variants: &[Variant]) -> Result<()> {
             "(superseded: commands replaced by a newer one before being handed over; their latency is not in the figures)"
         );
     }
+    let summary = |count: &Value, p50: &Value, p99: &Value, max: &Value| {
+        let points = vec![(0.5, f(p50)), (0.99, f(p99)), (1.0, f(max))];
+        (count.as_u64().unwrap_or(0), points)
+    };
+    for (label, st) in &ours {
+        let l = &st["publish_latency_us"];
+        let (n, points) = summary(&l["count"], &l["p50"], &l["p99"], &l["max"]);
+        plots.ingress.push((label.clone(), n, points));
+    }
+    let (n, points) = summary(
+        &base["count"],
+        &base["p50_us"],
+        &base["p99_us"],
+        &base["max_us"],
+    );
+    plots
+        .ingress
+        .push(("seed-style Python (blocking, pipe)".into(), n, points));
     for (label, st) in &ours {
         let l = &st["publish_latency_us"];
         println!(
@@ -438,18 +565,18 @@ fn first_frame_with(log: &Path, from_ns: u64, want: &[f64]) -> Option<u64> {
         .find(|&t| t >= from_ns)
 }
 
-fn flood(cli: &Cli, variants: &[Variant]) -> Result<()> {
+fn flood(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result<()> {
     println!(
         "== 2. flood: one sender as fast as it can for {} s, changing values",
         cli.flood_seconds
     );
     for v in variants {
-        flood_run(cli, v)?;
+        flood_run(cli, v, plots)?;
     }
     Ok(())
 }
 
-fn flood_run(cli: &Cli, v: &Variant) -> Result<()> {
+fn flood_run(cli: &Cli, v: &Variant, plots: &mut Plots) -> Result<()> {
     let setup = Setup::new("flood", &v.ingress)?;
     let log = setup.dir.join("frames.jsonl");
     let ppmd = setup.spawn(
@@ -507,6 +634,9 @@ fn flood_run(cli: &Cli, v: &Variant) -> Result<()> {
         .saturating_sub(calm_sent.len() as u64);
     let sent = sent.load(Relaxed);
     let mut ages = frame_ages(&log, flood_start + 50_000_000, flood_end);
+    plots
+        .flood
+        .push((v.label.clone(), plot::histogram_of(&ages)));
     let age = Percentiles::of(&mut ages);
     println!(
         "sent {sent} ({:.0}/s), drained by udp-ingress {received} ({:.0}/s), lost in the socket {} ({:.1}%)",
@@ -553,6 +683,8 @@ struct E2e {
     /// one sent at least 1 ms before the frame started.
     frames: usize,
     stale_frames: usize,
+    /// The latencies, ns.
+    hist: Histogram<u64>,
 }
 
 /// Sends `count` commands at `hz` to udp-ingress and a ppmd in `timing`,
@@ -614,6 +746,7 @@ fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
     Ok(E2e {
         ingress_superseded: status["datagrams"]["superseded"].as_u64().unwrap_or(0),
         missed: sent.len() - latency.len(),
+        hist: plot::histogram_of(&latency),
         latency: Percentiles::of(&mut latency),
         sent: sent.len(),
         frames: frames.len(),
@@ -621,7 +754,7 @@ fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
     })
 }
 
-fn e2e(cli: &Cli) -> Result<()> {
+fn e2e(cli: &Cli, plots: &mut Plots) -> Result<()> {
     println!(
         "== 3. end to end: send to the first edge of the first frame carrying each command, grid and follow timing ({} commands at 50 Hz, {} at 100 Hz)",
         cli.e2e_count,
@@ -645,6 +778,9 @@ fn e2e(cli: &Cli) -> Result<()> {
         let mut rows = Vec::new();
         for timing in ["grid", "follow"] {
             let r = e2e_run(timing, hz, count)?;
+            plots
+                .e2e
+                .push((format!("{timing}, {hz} Hz"), r.hist.clone()));
             let l = &r.latency;
             println!(
                 "{timing:<8} {hz:>5} {:>6} {:>8} {:>10} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8}",
@@ -717,22 +853,29 @@ fn main() -> Result<()> {
             bail!("--only takes ingress, flood, e2e or resources");
         }
     }
+    if let Some(dir) = &cli.plot {
+        plot_dir(dir)?;
+    }
     println!(
         "ppm-bench: the real binaries on loopback ({} CPUs)",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     let variants = variants(&cli)?;
+    let mut plots = Plots::default();
     if only.is_none_or(|o| o == "ingress") {
-        ingress_latency(&cli, &variants)?;
+        ingress_latency(&cli, &variants, &mut plots)?;
     }
     if only.is_none_or(|o| o == "flood") {
-        flood(&cli, &variants)?;
+        flood(&cli, &variants, &mut plots)?;
     }
     if only.is_none_or(|o| o == "e2e") {
-        e2e(&cli)?;
+        e2e(&cli, &mut plots)?;
     }
     if only.is_none_or(|o| o == "resources") {
         resources()?;
+    }
+    if let Some(dir) = &cli.plot {
+        write_plots(dir, &plots)?;
     }
     Ok(())
 }

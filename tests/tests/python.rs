@@ -1,0 +1,445 @@
+//! The Python groundstation package (`tools/python`, `import ppm`) against
+//! the real udp-ingress and ppmd: every command form lands exactly on the
+//! simulated line, signed commands are accepted (also from a restarted
+//! groundstation) and those under another key refused as `bad_mac`, status
+//! queries get the reply also where padding matters (`status_allow = []`),
+//! the package's own unit tests and doctests pass, and `pip install` works.
+//!
+//! The scripts import the package from the source tree (`PYTHONPATH`), so
+//! nothing has to be installed for these tests but python3.
+
+use nix::sys::signal::Signal;
+use ppm_tests::{read_trace, Sandbox};
+use serde_json::{json, Value};
+use std::os::unix::fs::PermissionsExt;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+const SECOND: Duration = Duration::from_secs(1);
+const PACKAGE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/python");
+const KEY_HEX: &str = "8f2a55e0c1d94b7e3a6f0b1c2d3e4f5061728394a5b6c7d8e9f0a1b2c3d4e5f6";
+const OTHER_KEY_HEX: &str = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff";
+/// ppmd on the normal scheduler: several of these tests run at once.
+const GENTLE_RT: &str =
+    "[rt]\npriority = 0\ncpu = \"none\"\ncpu_dma_latency = false\nallow_degraded = true\n";
+
+/// python3 with the package importable from the source tree; returns its
+/// standard output (the test fails with both outputs when it fails).
+fn python_in(dir: &Path, pythonpath: &str, args: &[&str]) -> String {
+    let out = Command::new("python3")
+        .args(args)
+        .env("PYTHONPATH", pythonpath)
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .current_dir(dir)
+        .output()
+        .expect("python3 is needed for this test (apt-get install python3)");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "python3 {args:?} failed ({}):\n{stdout}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+/// Runs `code` (with `args` in `sys.argv[1:]`) and parses the last line it
+/// prints as JSON.
+fn python(sb: &Sandbox, code: &str, args: &[&str]) -> Value {
+    let mut all = vec!["-c", code];
+    all.extend_from_slice(args);
+    let out = python_in(&sb.dir, PACKAGE, &all);
+    let last = out.lines().last().unwrap_or_default();
+    serde_json::from_str(last).unwrap_or_else(|e| panic!("{e}: the script printed:\n{out}"))
+}
+
+fn rejected_total(status: &Value) -> u64 {
+    status["datagrams"]["rejected"]
+        .as_object()
+        .unwrap_or_else(|| panic!("no datagrams.rejected: {status}"))
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum()
+}
+
+fn now_us() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .unwrap()
+        .as_micros() as u64
+}
+
+/// Which of `patterns` (channel values in us) each frame of the trace
+/// carries, as runs: `(pattern index, frames)`; a frame matching none fails.
+fn runs(trace: &Path, patterns: &[[f64; 8]]) -> Vec<(usize, usize)> {
+    let ns: Vec<Vec<u64>> = patterns
+        .iter()
+        .map(|p| p.iter().map(|us| (us * 1e3).round() as u64).collect())
+        .collect();
+    let mut runs: Vec<(usize, usize)> = vec![];
+    for f in read_trace(trace).decode(false) {
+        let k = ns
+            .iter()
+            .position(|p| *p == f.channels_ns)
+            .unwrap_or_else(|| {
+                panic!(
+                    "frame at {} ns carries {:?}, none of {patterns:?}",
+                    f.start_ns, f.channels_ns
+                )
+            });
+        match runs.last_mut() {
+            Some((last, n)) if *last == k => *n += 1,
+            _ => runs.push((k, 1)),
+        }
+    }
+    runs
+}
+
+/// Four phases of 25 commands at 50 Hz, one per form, all numbered; then
+/// the status reply and the last seq.
+const FORMS: &str = r#"
+import json, sys, time
+import ppm
+
+s = ppm.Sender(sys.argv[1])
+phases = [
+    lambda: s.send([1100, 1200.5, 1300, 1400]),
+    lambda: s.send(ail=1600, ele=1700.25, thr=1250, rud=1450, aux1=1800),
+    lambda: s.send_norm(ail=0.2, ele=-0.5, thr=-1, aux2=1),
+    lambda: s.send_units(ail=-7.5, ele=5),
+]
+first = None
+start, n = time.monotonic(), 0
+for phase in phases:
+    for _ in range(25):
+        phase()
+        first = first or s.last_seq
+        n += 1
+        time.sleep(max(0.0, start + 0.02 * n - time.monotonic()))
+# Refused before sending: nothing of these reaches udp-ingress.
+for bad in [
+    lambda: s.send([1500], ail=1500),
+    lambda: s.send([float("nan")]),
+    lambda: s.send(["1500"]),
+    lambda: s.send_norm(thr=float("inf")),
+    lambda: s.send(yaw=1500),
+]:
+    try:
+        bad()
+        raise SystemExit(f"accepted: {bad}")
+    except ValueError as e:
+        print(e)
+print(json.dumps({"first_seq": first, "last_seq": s.last_seq, "status": s.status()}))
+"#;
+
+/// Every form, numbered, lands exactly on the line, and the counters say
+/// every command was applied and none rejected.
+#[test]
+fn every_form_lands_exactly_on_the_line() {
+    let sb = Sandbox::new("pyforms");
+    // Unit ranges for `send_units`: ail -15..15, ele -20..20 (on 1000..2000 us).
+    let units = "[ppm.channel.ail]\nunit_min = -15.0\nunit_max = 15.0\n\
+                 [ppm.channel.ele]\nunit_min = -20.0\nunit_max = 20.0\n";
+    let cfg = sb.config(&format!("{GENTLE_RT}{units}"));
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    let before = now_us();
+    let out = python(&sb, FORMS, &[&sb.addr().to_string()]);
+    std::thread::sleep(Duration::from_millis(100));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    assert!(ingress
+        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
+        .success());
+
+    // seq: from the time in microseconds, one more per command.
+    let (first, last) = (
+        out["first_seq"].as_u64().unwrap(),
+        out["last_seq"].as_u64().unwrap(),
+    );
+    assert!(before <= first && first <= now_us(), "{out}");
+    assert!(last >= first + 99, "{out}");
+    let s = &out["status"];
+    let d = &s["datagrams"];
+    assert_eq!(d["received"], json!(100), "{s}");
+    assert_eq!(
+        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
+        100,
+        "{s}"
+    );
+    assert_eq!(d["stale"], json!(0), "{s}");
+    assert_eq!(d["clamped"], json!(0), "{s}");
+    assert_eq!(rejected_total(s), 0, "{s}");
+    assert_eq!(s["newest_seq"], json!(last), "{s}");
+
+    // What each form defines (us, 8 channels AETR, throttle default 1000):
+    // norm -1..1 on 1000..2000, units -15..15 and -20..20 on 1000..2000.
+    let patterns = [
+        [
+            1100.0, 1200.5, 1300.0, 1400.0, 1500.0, 1500.0, 1500.0, 1500.0,
+        ],
+        [
+            1600.0, 1700.25, 1250.0, 1450.0, 1800.0, 1500.0, 1500.0, 1500.0,
+        ],
+        [
+            1600.0, 1250.0, 1000.0, 1500.0, 1500.0, 2000.0, 1500.0, 1500.0,
+        ],
+        [
+            1250.0, 1625.0, 1000.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0,
+        ],
+    ];
+    let runs = runs(&sb.dir.join("line.trace"), &patterns);
+    let order: Vec<usize> = runs.iter().map(|r| r.0).collect();
+    assert_eq!(order, [0, 1, 2, 3], "{runs:?}");
+    assert!(runs.iter().all(|r| r.1 >= 10), "{runs:?}");
+}
+
+fn write_key(sb: &Sandbox, name: &str, hex: &str, mode: u32) -> PathBuf {
+    let path = sb.dir.join(name);
+    std::fs::write(&path, format!("{hex}\n")).unwrap();
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode)).unwrap();
+    path
+}
+
+/// One groundstation run: 25 signed commands (`ch` 1 at VALUE) at 50 Hz and,
+/// every fifth, one signed with another key; then the status reply.
+const SIGNED: &str = r#"
+import json, sys, time
+import ppm
+
+target, key, other, value = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+good = ppm.Sender(target, key_file=key)
+forger = ppm.Sender(target, key_file=other)
+start = time.monotonic()
+for i in range(25):
+    good.send([value, 1500])
+    if i % 5 == 0:
+        forger.send([1900, 1500])
+    time.sleep(max(0.0, start + 0.02 * (i + 1) - time.monotonic()))
+print(json.dumps({"last_seq": good.last_seq, "status": good.status()}))
+"#;
+
+/// Signed commands from the key file apply, also from a restarted
+/// groundstation (its seq keeps growing); those signed with another key are
+/// refused as `bad_mac`; a key file others can read is refused by the
+/// package as by udp-ingress.
+#[test]
+fn signed_commands_apply_and_another_key_is_bad_mac() {
+    let sb = Sandbox::new("pysigned");
+    let key = write_key(&sb, "auth.key", KEY_HEX, 0o600);
+    let other = write_key(&sb, "other.key", OTHER_KEY_HEX, 0o600);
+    let open = write_key(&sb, "open.key", KEY_HEX, 0o644);
+    let cfg = sb.config_with_ingress(&format!("auth_key = {key:?}"), GENTLE_RT);
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let ingress = sb.start_ingress(&cfg, &[]);
+    assert!(ingress.log_text().contains("commands must be signed"));
+    let target = sb.addr().to_string();
+    let (key, other) = (key.to_str().unwrap(), other.to_str().unwrap());
+
+    let first = python(&sb, SIGNED, &[&target, key, other, "1100"]);
+    let s = &first["status"];
+    assert_eq!(
+        s["datagrams"]["rejected"]["bad_mac"],
+        json!(5),
+        "another key: {s}"
+    );
+    assert_eq!(rejected_total(s), 5, "{s}");
+    assert_eq!(s["newest_seq"], first["last_seq"], "{s}");
+
+    // The groundstation restarts: a new process, a new Sender; not a replay.
+    let second = python(&sb, SIGNED, &[&target, key, other, "1300"]);
+    let s = &second["status"];
+    let d = &s["datagrams"];
+    assert_eq!(d["received"], json!(60), "{s}");
+    assert_eq!(
+        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
+        50,
+        "{s}"
+    );
+    assert_eq!(d["rejected"]["bad_mac"], json!(10), "{s}");
+    assert_eq!(rejected_total(s), 10, "no replay, unsigned, no_seq: {s}");
+    assert!(
+        second["last_seq"].as_u64() > first["last_seq"].as_u64(),
+        "{first} {second}"
+    );
+    assert_eq!(s["newest_seq"], second["last_seq"], "{s}");
+
+    // The package refuses what udp-ingress refuses, before sending anything.
+    let refused = python(
+        &sb,
+        r#"
+import json, sys
+import ppm
+errors = []
+for call in [
+    lambda: ppm.Sender(sys.argv[1], key_file=sys.argv[2]),
+    lambda: ppm.Sender(sys.argv[1], key_file=sys.argv[3], seq=False),
+]:
+    try:
+        call()
+        errors.append(None)
+    except (ppm.KeyFileError, ValueError) as e:
+        errors.append(str(e))
+print(json.dumps(errors))
+"#,
+        &[&target, open.to_str().unwrap(), key],
+    );
+    let open_err = refused[0].as_str().unwrap_or_default();
+    assert!(
+        open_err.contains("chmod 600") && open_err.contains("open.key"),
+        "{refused}"
+    );
+    assert!(
+        refused[1].as_str().unwrap_or_default().contains("seq=True"),
+        "{refused}"
+    );
+
+    std::thread::sleep(Duration::from_millis(100));
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
+    let patterns = [
+        [
+            1100.0, 1500.0, 1000.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0,
+        ],
+        [
+            1300.0, 1500.0, 1000.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0,
+        ],
+    ];
+    let runs = runs(&sb.dir.join("line.trace"), &patterns);
+    assert_eq!(
+        runs.iter().map(|r| r.0).collect::<Vec<_>>(),
+        [0, 1],
+        "{runs:?}"
+    );
+    assert!(runs.iter().all(|r| r.1 >= 10), "{runs:?}");
+}
+
+/// Two targets, one sender each: `status()` returns each one's reply as a
+/// dict, also from an ingress with `status_allow = []`, where an unpadded
+/// query gets only `{"pad_to": N}`.
+#[test]
+fn status_returns_the_reply_also_where_padding_matters() {
+    let strict = Sandbox::new("pystatus");
+    let open = Sandbox::new("pystatus2");
+    let strict_cfg = strict.config_with_ingress("status_allow = []", GENTLE_RT);
+    let open_cfg = open.config(GENTLE_RT);
+    let _a = strict.start_ingress(&strict_cfg, &[]);
+    let _b = open.start_ingress(&open_cfg, &[]);
+    let out = python(
+        &strict,
+        r#"
+import json, socket, sys
+import ppm
+
+targets = sys.argv[1:]
+host, port = ppm.parse_target(targets[0])
+with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+    raw.settimeout(5)
+    raw.sendto(b'{"get":"status"}', (host, port))
+    short = json.loads(raw.recv(65536))
+senders = [ppm.Sender(t) for t in targets]
+for i, s in enumerate(senders):
+    for _ in range(3 + 2 * i):
+        s.send([1200])
+print(json.dumps({"short": short, "replies": [s.status(timeout=5) for s in senders]}))
+"#,
+        &[&strict.addr().to_string(), &open.addr().to_string()],
+    );
+    let pad_to = out["short"]["pad_to"].as_u64();
+    assert!(
+        pad_to.is_some_and(|n| (100..=600).contains(&n)),
+        "the unpadded query: {out}"
+    );
+    for (i, want) in [3, 5].into_iter().enumerate() {
+        let s = &out["replies"][i];
+        let d = &s["datagrams"];
+        assert!(s.is_object() && d.is_object(), "{s}");
+        assert_eq!(d["received"], json!(want), "{s}");
+        assert_eq!(
+            d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
+            want,
+            "{s}"
+        );
+        assert_eq!(rejected_total(s), 0, "{s}");
+        assert!(
+            s["uptime_s"].as_f64().is_some() && s.get("ppmd").is_some(),
+            "{s}"
+        );
+    }
+    let strict_reply = &out["replies"][0];
+    assert_eq!(strict_reply["status_requests"], json!(2), "{strict_reply}");
+    assert_eq!(
+        strict_reply["status_short"],
+        json!(1),
+        "only the unpadded query was short: {strict_reply}"
+    );
+}
+
+/// The package's own tests: its unit tests (stand-in servers, key files,
+/// input checks) and its doctests (the README's test vector).
+#[test]
+fn the_packages_unit_tests_and_doctests_pass() {
+    let dir = Path::new(PACKAGE);
+    python_in(dir, PACKAGE, &["-m", "unittest", "discover", "-s", "tests"]);
+    python_in(dir, PACKAGE, &["-m", "doctest", "ppm/__init__.py"]);
+}
+
+/// `pip install tools/python` installs a package that imports. pip builds in
+/// the source directory (it leaves `build/` and `*.egg-info` there), so it
+/// installs from a copy, into a directory of its own.
+#[test]
+fn pip_installs_the_package() {
+    let pip = Command::new("python3")
+        .args(["-m", "pip", "--version"])
+        .output();
+    if !pip.as_ref().is_ok_and(|o| o.status.success()) {
+        let why = "python3 -m pip is not available (apt-get install python3-pip)";
+        assert!(std::env::var_os("CI").is_none(), "{why}: needed in CI");
+        println!("skipped: {why}");
+        return;
+    }
+    let sb = Sandbox::new("pypip");
+    let src = sb.dir.join("src");
+    std::fs::create_dir_all(src.join("ppm")).unwrap();
+    std::fs::copy(
+        format!("{PACKAGE}/pyproject.toml"),
+        src.join("pyproject.toml"),
+    )
+    .unwrap();
+    for entry in std::fs::read_dir(format!("{PACKAGE}/ppm")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, src.join("ppm").join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let site = sb.dir.join("site");
+    let out = Command::new("python3")
+        .args(["-m", "pip", "install", "--quiet", "--target"])
+        .arg(&site)
+        .arg(&src)
+        .env("PIP_DISABLE_PIP_VERSION_CHECK", "1")
+        .env("PIP_ROOT_USER_ACTION", "ignore")
+        .env("PIP_NO_INPUT", "1")
+        .current_dir(&sb.dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "pip install failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(site.join("ppm/py.typed").is_file(), "the type-hint marker");
+    let site = site.to_str().unwrap();
+    let printed = python_in(
+        &sb.dir,
+        site,
+        &[
+            "-c",
+            "import ppm; print(ppm.__file__); print(ppm.sign(bytes(range(32)), 'x'))",
+        ],
+    );
+    assert!(
+        printed.starts_with(site),
+        "imported from elsewhere: {printed}"
+    );
+}

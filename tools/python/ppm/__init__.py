@@ -1,0 +1,385 @@
+"""A groundstation's client for ppm's udp-ingress: channel commands over UDP.
+
+One :class:`Sender` talks to one udp-ingress (``"host:port"``, or
+``"[::1]:5005"`` for IPv6). It builds the JSON of each command form, numbers
+it with ``seq`` (microseconds since the epoch, so a restarted groundstation
+is never taken for a replay), signs it when given the ingress's key file,
+and checks every value before anything is sent. Several vehicles: one
+sender each. Pure standard library, Python 3.9 or newer.
+
+Example::
+
+    import time
+    import ppm
+
+    s = ppm.Sender("127.0.0.1:5005")            # key_file="/etc/ppm/auth.key" to sign
+    for i in range(250):                        # 5 s at 50 Hz
+        s.send([1500, 1500, 1000 + 2 * i, 1500])  # us, in the transmitter's order
+        time.sleep(0.02)
+    s.send(ail=1600, thr=1100)                  # named channels, us
+    s.send_norm(ail=0.2, thr=-1)                # -1..1 on every channel
+    s.send_units(ail=3.0)                       # a channel's unit range (ppm.channel.ail)
+    print(s.status()["datagrams"]["applied"])
+
+The wire protocol, the signature and the status reply are described in the
+project's README ("The wire protocol", "Authenticated commands", "Status
+queries").
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import math
+import numbers
+import os
+import re
+import socket
+import stat
+import time
+from collections.abc import Iterable, Mapping
+from typing import Any, Callable, Dict, List, Optional, Tuple, Union
+
+__all__ = [
+    "Sender",
+    "PpmError",
+    "StatusTimeout",
+    "KeyFileError",
+    "load_key",
+    "sign",
+    "envelope",
+    "status_query",
+    "VALUE_MIN_US",
+    "VALUE_MAX_US",
+]
+
+__version__ = "0.1.0"
+
+#: Lowest microsecond value a command may carry (udp-ingress rejects lower as out_of_range).
+VALUE_MIN_US = 500.0
+#: Highest microsecond value a command may carry.
+VALUE_MAX_US = 2500.0
+#: Most channels a frame has.
+MAX_CHANNELS = 16
+#: The status query as udp-ingress recognises it.
+STATUS_QUERY = b'{"get":"status"}'
+#: The size status queries are padded to: the reply (600 to 900 bytes) is never
+#: more than 3 times the query, so any source gets it.
+STATUS_QUERY_PADDED_LEN = 600
+#: The largest key file read, like udp-ingress (64 hex characters and whitespace).
+KEY_MAX_BYTES = 4096
+
+_NAME = re.compile(r"(ail|ele|thr|rud|aux([1-9]|1[0-2]))\Z")
+_HEX = frozenset("0123456789abcdefABCDEF")
+
+Number = Union[int, float]
+
+
+class PpmError(Exception):
+    """An error of this package (besides :class:`ValueError` for bad input)."""
+
+
+class StatusTimeout(PpmError, TimeoutError):
+    """No status reply came in time."""
+
+
+class KeyFileError(PpmError, ValueError):
+    """The key file is refused, for the same reasons udp-ingress refuses it."""
+
+
+def load_key(path: Union[str, "os.PathLike[str]"]) -> bytes:
+    """Reads a key file: 32 bytes as 64 hex characters, whitespace around them.
+
+    Refused, as udp-ingress refuses it, when it is not a regular file of at
+    most 4096 bytes, when group or others may read or write it (POSIX), when
+    it cannot be read, or when it is not 64 hex characters.
+    """
+    shown = os.fspath(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+    try:
+        fd = os.open(shown, flags)  # not blocking: a FIFO is refused, not waited on
+    except OSError as e:
+        raise KeyFileError(f"cannot read auth key file {shown}: {e.strerror}") from e
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise KeyFileError(
+                f"cannot read auth key file {shown}: it is {_kind(st.st_mode)}, not a regular file"
+            )
+        if st.st_size > KEY_MAX_BYTES:
+            raise KeyFileError(
+                f"cannot read auth key file {shown}: it holds {st.st_size} bytes or more, "
+                f"and this file is never larger than {KEY_MAX_BYTES}"
+            )
+        mode = stat.S_IMODE(st.st_mode)
+        if os.name == "posix" and mode & 0o077:
+            raise KeyFileError(
+                f"auth key file {shown} is accessible by group or others (mode {mode:04o}): "
+                f"run `chmod 600 {shown}`"
+            )
+        data = os.read(fd, KEY_MAX_BYTES + 1)
+    finally:
+        os.close(fd)
+    if len(data) > KEY_MAX_BYTES:
+        raise KeyFileError(
+            f"cannot read auth key file {shown}: it holds {len(data)} bytes or more, "
+            f"and this file is never larger than {KEY_MAX_BYTES}"
+        )
+    text = data.decode("utf-8", errors="replace").strip()
+    hint = (
+        f"auth key file {shown} must hold the key as 64 hex characters "
+        "(32 bytes, e.g. from `openssl rand -hex 32`)"
+    )
+    if len(text) != 64:
+        raise KeyFileError(f"{hint}: found {len(text)} characters (whitespace around them aside)")
+    if not set(text) <= _HEX:
+        raise KeyFileError(f"{hint}: not hex")
+    return bytes.fromhex(text)
+
+
+def _kind(mode: int) -> str:
+    for test, what in (
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return what
+    return "not a regular file"
+
+
+def sign(key: bytes, msg: str) -> str:
+    """HMAC-SHA256 of the UTF-8 bytes of ``msg`` under ``key``, lowercase hex.
+
+    >>> sign(bytes(range(32)), '{"ch":[1500,1500,1000,1500],"seq":1}')
+    'f3046abbe0b0d2ea2350d5e1c6835b82219c0f2bed8ba66cea13f82f14bb5519'
+    """
+    return hmac.new(key, msg.encode("utf-8"), hashlib.sha256).hexdigest()
+
+
+def envelope(key: bytes, msg: str) -> str:
+    """The signed datagram carrying the command text ``msg``.
+
+    >>> print(envelope(bytes(range(32)), '{"ch":[1500,1500,1000,1500],"seq":1}'))
+    {"msg":"{\\"ch\\":[1500,1500,1000,1500],\\"seq\\":1}","mac":"f3046abbe0b0d2ea2350d5e1c6835b82219c0f2bed8ba66cea13f82f14bb5519"}
+    """
+    return _dumps({"msg": msg, "mac": sign(key, msg)})
+
+
+def status_query(size: int = STATUS_QUERY_PADDED_LEN) -> bytes:
+    """``{"get":"status"}`` padded with trailing spaces to ``size`` bytes.
+
+    >>> len(status_query()), status_query().rstrip()
+    (600, b'{"get":"status"}')
+    """
+    return STATUS_QUERY.ljust(size, b" ")
+
+
+def parse_target(target: str) -> Tuple[str, int]:
+    """Splits ``"host:port"`` or ``"[v6 address]:port"`` into host and port.
+
+    >>> parse_target("[::1]:5005")
+    ('::1', 5005)
+    >>> parse_target("rover.local:5006")
+    ('rover.local', 5006)
+    """
+    if not isinstance(target, str):
+        raise ValueError(f"target must be a string \"host:port\", got {target!r}")
+    host, sep, port = target.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    elif ":" in host:
+        raise ValueError(
+            f"target {target!r}: write an IPv6 address in brackets, e.g. \"[::1]:5005\""
+        )
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(
+            f"target {target!r} is not \"host:port\" (e.g. \"127.0.0.1:5005\", \"[::1]:5005\")"
+        )
+    return host, int(port)
+
+
+def _dumps(obj: Any) -> str:
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+
+
+def _number(what: str, v: Any) -> Number:
+    """``v`` as a finite JSON number, or a ValueError naming ``what``."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        raise ValueError(f"{what} is {v!r}, not a number")
+    x: Number = int(v) if isinstance(v, numbers.Integral) else float(v)
+    if not math.isfinite(x):
+        raise ValueError(f"{what} is {x}, not a finite number")
+    return x
+
+
+def _us(what: str, v: Any) -> Number:
+    x = _number(what, v)
+    if not VALUE_MIN_US <= x <= VALUE_MAX_US:
+        raise ValueError(f"{what} = {x} us is outside {VALUE_MIN_US:g}..{VALUE_MAX_US:g}")
+    return x
+
+
+def _named(channels: Dict[str, Any], check: Callable[[str, Any], Number]) -> Dict[str, Number]:
+    if not channels:
+        raise ValueError("no channel given")
+    out = {}
+    for name, v in channels.items():
+        if name == "seq":
+            raise ValueError("`seq` is not a channel: the Sender numbers commands itself (seq=True)")
+        if not _NAME.match(name):
+            raise ValueError(f"no channel `{name}`: channels are ail, ele, thr, rud, aux1 .. aux12")
+        out[name] = check(name, v)
+    return out
+
+
+class Sender:
+    """Sends channel commands to one udp-ingress, and asks it for its status.
+
+    ``target`` is ``"host:port"`` (``"[::1]:5005"`` for IPv6). With
+    ``key_file`` (the ingress's ``ingress.auth_key``: 64 hex characters,
+    mode 600) every command is signed. With ``seq`` (the default; a key
+    needs it) every command carries a ``seq``: the time in microseconds, or
+    one more than the last, whichever is greater, so it keeps growing across
+    restarts. One sender per target; each numbers its own commands.
+
+    Each ``send*`` method checks its values first (:class:`ValueError` naming
+    the problem, and nothing is sent), then sends one datagram and returns
+    it. udp-ingress does not answer commands: ask :meth:`status` for its
+    counters.
+    """
+
+    def __init__(
+        self,
+        target: str,
+        key_file: Optional[Union[str, "os.PathLike[str]"]] = None,
+        seq: bool = True,
+    ) -> None:
+        host, port = parse_target(target)
+        if key_file is not None and not seq:
+            raise ValueError(
+                "a key needs seq=True: udp-ingress refuses signed commands without a seq (no_seq)"
+            )
+        self.target = target
+        self._key = load_key(key_file) if key_file is not None else None
+        self._numbered = seq
+        self._seq = 0
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+        if not infos:
+            raise PpmError(f"{target} resolves to no address")
+        self._family, _, _, _, self.address = infos[0]
+        self._socket = socket.socket(self._family, socket.SOCK_DGRAM)
+
+    @property
+    def last_seq(self) -> Optional[int]:
+        """The ``seq`` of the last command sent, ``None`` before the first (or without seq)."""
+        return self._seq or None
+
+    def send(self, values: Optional[Iterable[Number]] = None, **channels: Number) -> bytes:
+        """Sends microsecond values: a list in the transmitter's channel order,
+        or named channels (``ail=1500, thr=1000, aux1=1800``).
+
+        Values may be fractional; each must lie in 500..2500 us (udp-ingress
+        clamps it to its channel's ``min_us..max_us``). Channels left out
+        take their configured default.
+        """
+        if values is not None and channels:
+            raise ValueError("give either a list of values or named channels, not both")
+        if values is None:
+            return self._send(_named(channels, lambda k, v: _us(f"channel `{k}`", v)))
+        if isinstance(values, (str, bytes, Mapping)) or not isinstance(values, Iterable):
+            raise ValueError(f"values must be a list of microseconds, got {type(values).__name__}")
+        values = list(values)  # a tuple, a numpy array, ...
+        if not 1 <= len(values) <= MAX_CHANNELS:
+            raise ValueError(f"{len(values)} values: a command gives 1 to {MAX_CHANNELS} channels")
+        us: List[Number] = [_us(f"channel {i + 1}", v) for i, v in enumerate(values)]
+        return self._send(us)
+
+    def send_norm(self, **channels: Number) -> bytes:
+        """Sends named channels normalised to -1..1 (-1 is the channel's
+        minimum, 1 its maximum; values beyond are clamped by udp-ingress)."""
+        return self._send({"norm": _named(channels, lambda k, v: _number(f"norm `{k}`", v))})
+
+    def send_units(self, **channels: Number) -> bytes:
+        """Sends named channels in the engineering units of their unit range
+        (``ppm.channel.NAME.unit_min``/``unit_max``; udp-ingress rejects a
+        channel without one as unknown_channel)."""
+        return self._send({"units": _named(channels, lambda k, v: _number(f"units `{k}`", v))})
+
+    def _send(self, command: Union[List[Number], Dict[str, Any]]) -> bytes:
+        if self._numbered:
+            self._seq = max(self._seq + 1, time.time_ns() // 1000)
+            if isinstance(command, list):
+                command = {"ch": command, "seq": self._seq}
+            else:
+                command = {**command, "seq": self._seq}
+        text = _dumps(command)
+        datagram = (envelope(self._key, text) if self._key is not None else text).encode("utf-8")
+        self._socket.sendto(datagram, self.address)
+        return datagram
+
+    def status(self, timeout: float = 1.0) -> Dict[str, Any]:
+        """Asks udp-ingress for its status and returns the reply (a dict with
+        ``datagrams``, ``ppmd``, ...: see the README's "Status queries").
+
+        The query is padded to 600 bytes, so any source gets the reply (no
+        reply is more than 3 times its query, unless the source is in
+        ``ingress.status_allow``); when the answer is ``{"pad_to": N}`` the
+        query is sent once more, padded to N. Raises :class:`StatusTimeout`
+        when no reply comes within ``timeout`` seconds.
+        """
+        if not timeout > 0:
+            raise ValueError(f"timeout must be more than 0 s, got {timeout!r}")
+        with socket.socket(self._family, socket.SOCK_DGRAM) as s:
+            s.settimeout(timeout)
+            s.connect(self.address)  # only the target's reply; "nothing listens" is reported
+            reply = self._ask(s, STATUS_QUERY_PADDED_LEN, timeout)
+            if set(reply) == {"pad_to"}:
+                n = reply["pad_to"]
+                if isinstance(n, bool) or not isinstance(n, int) or not len(STATUS_QUERY) <= n <= 65_000:
+                    raise PpmError(f"{self.target} asked for a status query of {n!r} bytes")
+                reply = self._ask(s, max(n, STATUS_QUERY_PADDED_LEN), timeout)
+                if set(reply) == {"pad_to"}:
+                    raise PpmError(f"{self.target} still answers {reply} to a query of {n} bytes")
+            return reply
+
+    def _ask(self, s: socket.socket, size: int, timeout: float) -> Dict[str, Any]:
+        try:
+            s.send(status_query(size))
+            data = s.recv(65_536)
+        except socket.timeout:
+            raise StatusTimeout(
+                f"no status reply from {self.target} within {timeout:g} s: is udp-ingress running and "
+                "listening there (ingress.listen)? A firewall, or an ingress.allow without this "
+                "machine, may also drop the datagrams"
+            ) from None
+        except ConnectionRefusedError as e:
+            raise ConnectionRefusedError(
+                e.errno,
+                f"{self.target} refused the status query (port unreachable): nothing listens there; "
+                "is udp-ingress running, with this ingress.listen?",
+            ) from None
+        try:
+            reply = json.loads(data)
+        except ValueError:
+            reply = None
+        if not isinstance(reply, dict):
+            raise PpmError(f"the status reply from {self.target} is not a JSON object: {data[:200]!r}")
+        return reply
+
+    def close(self) -> None:
+        """Closes the socket."""
+        self._socket.close()
+
+    def __enter__(self) -> "Sender":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        signed = ", signed" if self._key is not None else ""
+        return f"Sender({self.target!r}{signed}, seq={self._numbered})"
