@@ -329,6 +329,9 @@ fn run(cli: Cli) -> Result<()> {
             },
         ));
     }
+    if let Some(first) = monitors.first_mut() {
+        first.hdr_untagged = true;
+    }
     let progress = || -> u64 { setups.iter().map(|s| s.stats.decisions.load(Relaxed)).sum() };
     let mut watchdog = Watchdog::from_env(progress(), Instant::now());
     if let Some(w) = &watchdog {
@@ -574,6 +577,8 @@ struct Monitor {
     wake_errors: u64,
     /// `NAME.` before the HdrHistogram log's tags, with several outputs.
     tag_prefix: String,
+    /// Writes its edge error untagged too (the first output's).
+    hdr_untagged: bool,
 }
 
 impl Monitor {
@@ -614,6 +619,7 @@ impl Monitor {
             failsafe_after_ms,
             wake_errors: 0,
             tag_prefix,
+            hdr_untagged: false,
         }
     }
 
@@ -625,12 +631,13 @@ impl Monitor {
     ) -> Option<TimingSnapshot> {
         let mut intervals = 0;
         let (mut last, mut hdr_failed) = (None, None);
-        let (total_error, total_write, snap, start_ns, prefix) = (
+        let (total_error, total_write, snap, start_ns, prefix, untagged) = (
             &mut self.total_error,
             &mut self.total_write,
             &mut self.snapshot,
             self.start_ns,
             &self.tag_prefix,
+            self.hdr_untagged,
         );
         self.reader.drain(|iv: &Interval| {
             intervals += 1;
@@ -645,7 +652,7 @@ impl Monitor {
             }
             last = Some(summarize(&iv.edge_error));
             if let Some(h) = hdr.as_mut() {
-                if let Err(e) = h.write(iv, start_ns, prefix) {
+                if let Err(e) = h.write(iv, start_ns, prefix, untagged) {
                     hdr_failed = Some(e);
                 }
             }
@@ -797,22 +804,40 @@ impl HdrLog {
         })
     }
 
-    fn write(&mut self, iv: &Interval, start_ns: u64, prefix: &str) -> Result<()> {
+    /// Appends one interval: the edge error untagged when `untagged` (the
+    /// first output's: what HdrHistogram's log processor reads without
+    /// `-tag`, written even when empty so that every interval has one), and
+    /// `[NAME.]edge_error` and `[NAME.]write` tagged when not empty. The
+    /// first write of a run starts with the headers Java's reader expects:
+    /// the format version, start and base time, and the column legend.
+    fn write(&mut self, iv: &Interval, start_ns: u64, prefix: &str, untagged: bool) -> Result<()> {
         use hdrhistogram::serialization::interval_log::{IntervalLogWriterBuilder, Tag};
-        let mut builder = IntervalLogWriterBuilder::new();
+        use std::io::Write;
         if !self.started {
             let now = SystemTime::now();
-            builder
+            IntervalLogWriterBuilder::new()
                 .add_comment("ppmd edge error and write duration, nanoseconds")
+                .add_comment("[Histogram log format version 1.3]")
                 .with_start_time(now)
-                .with_base_time(now);
+                .with_base_time(now)
+                .begin_log_with(&mut self.file, &mut self.serializer)
+                .context("starting the log")?;
+            self.file
+                .write_all(
+                    b"\"StartTimestamp\",\"Interval_Length\",\"Interval_Max\",\"Interval_Compressed_Histogram\"\n",
+                )
+                .context("writing the legend")?;
             self.started = true;
         }
-        let mut w = builder
+        let mut w = IntervalLogWriterBuilder::new()
             .begin_log_with(&mut self.file, &mut self.serializer)
-            .context("starting the log")?;
+            .context("writing to the log")?;
         let from = Duration::from_nanos(iv.start_ns.saturating_sub(start_ns));
         let length = Duration::from_nanos(iv.end_ns.saturating_sub(iv.start_ns));
+        if untagged {
+            w.write_histogram(&iv.edge_error, from, length, None)
+                .map_err(|e| anyhow!("{e:?}"))?;
+        }
         for (h, tag) in [(&iv.edge_error, "edge_error"), (&iv.write, "write")] {
             if !h.is_empty() {
                 let tag = format!("{prefix}{tag}");
