@@ -94,12 +94,15 @@ fn trace_analysis_matches_the_trace_and_attach_shows_the_daemon() {
     );
     let _ingress = sb.spawn("udp-ingress", &["--config", cfg], "ingress");
     ppmd.wait_for_log("commands from", Duration::from_secs(30));
+    let attach_svg = sb.dir.join("attach.svg");
     let attach = std::thread::spawn({
         let (cfg, name) = (cfg.to_string(), sb.name.clone());
+        let svg = attach_svg.to_str().unwrap().to_string();
         move || {
             let out = Command::new(bin("jitter"))
                 .args([
-                    "--attach", &name, "--config", &cfg, "-l", "2", "-q", "-h", "50",
+                    "--attach", &name, "--config", &cfg, "-l", "2", "-q", "-h", "50", "--plot",
+                    &svg,
                 ])
                 .output()
                 .unwrap();
@@ -130,8 +133,16 @@ fn trace_analysis_matches_the_trace_and_attach_shows_the_daemon() {
     assert!(t.contains("I:22500 C:"), "{t}");
     assert!(live.contains("edge error p50"), "{live}");
 
+    check_svg(&attach_svg, "edge error of");
+
     // --trace: percentiles equal those computed here from the raw lines.
-    let out = run(&["--trace", trace.to_str().unwrap()]);
+    let trace_svg = sb.dir.join("trace.svg");
+    let out = run(&[
+        "--trace",
+        trace.to_str().unwrap(),
+        "--plot",
+        trace_svg.to_str().unwrap(),
+    ]);
     let mut errors: Vec<i64> = std::fs::read_to_string(&trace)
         .unwrap()
         .lines()
@@ -158,6 +169,58 @@ fn trace_analysis_matches_the_trace_and_attach_shows_the_daemon() {
         "{out}"
     );
     assert!(out.contains("channel period error us: min "), "{out}");
+    check_svg(&trace_svg, &format!("edge error of {} edges", errors.len()));
+    // The p99 mark is the trace's p99, to the 3 digits it shows.
+    let svg = std::fs::read_to_string(&trace_svg).unwrap();
+    let shown: f64 = svg
+        .split("p99 = ")
+        .nth(1)
+        .and_then(|t| t.split(" us").next())
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no p99 mark:\n{svg}"));
+    let p99 = rank(&errors, 0.99) as f64 / 1e3;
+    assert!(
+        (shown - p99).abs() <= p99.abs() * 0.005 + 0.001,
+        "p99 mark {shown} vs {p99}"
+    );
+}
+
+/// A written SVG: the whole document, its title, the four marks.
+fn check_svg(path: &std::path::Path, title: &str) {
+    let svg = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    assert!(svg.trim_start().starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+    assert!(svg.contains(title), "title `{title}`:\n{svg}");
+    for mark in ["p50 = ", "p99 = ", "p99.9 = ", "max = "] {
+        assert!(svg.contains(mark), "{mark}:\n{svg}");
+    }
+}
+
+#[test]
+fn the_latency_test_plots_its_histogram() {
+    let sb = Sandbox::new("jplot");
+    let svg = sb.dir.join("latency.svg");
+    run(&[
+        "-q",
+        "-t",
+        "2",
+        "-l",
+        "300",
+        "-i",
+        "500",
+        "--plot",
+        svg.to_str().unwrap(),
+    ]);
+    check_svg(&svg, "jitter: wake-up latency, 2 threads, -i 500 us");
+    // A directory that does not exist: a clear error naming the file.
+    let bad = Command::new(bin("jitter"))
+        .args(["-q", "-l", "10", "--plot", "/nonexistent/dir/x.svg"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad.stderr).contains("/nonexistent/dir/x.svg"),
+        "{bad:?}"
+    );
 }
 
 /// A line's shape: every run of digits and spaces that holds a digit

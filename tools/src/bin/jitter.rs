@@ -20,7 +20,7 @@ use ppm_tools::cyclic::{self, parse_cyclictest_duration, JsonThread, LatencyStat
 use ppmd::clock::{self, EdgeTimer, Margin};
 use ppmd::rt::{RtSetup, RT_STACK_BYTES};
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -137,6 +137,11 @@ struct Cli {
     /// --capture: the idle level and the receiver).
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// Write an SVG histogram with its percentiles marked to FILE: of the
+    /// wake-up latency (all threads), of --attach's edge error, of
+    /// --trace's edge error, or of --capture's channel-period error.
+    #[arg(long, value_name = "FILE.svg")]
+    plot: Option<PathBuf>,
     /// With --trace or --capture: count the frames this receiver hands on,
     /// decoding as its firmware does: edgetx, opentx, betaflight or
     /// ardupilot (default: the one the trace or --config names, edgetx for
@@ -150,7 +155,7 @@ fn main() {
     let r = if let Some(name) = &cli.attach {
         attach(&cli, name)
     } else if let Some(path) = &cli.trace {
-        trace(path, cli.receiver)
+        trace(path, cli.receiver, cli.plot.as_deref())
     } else if let Some(spec) = &cli.capture {
         capture(&cli, spec)
     } else {
@@ -525,6 +530,22 @@ fn cyclic(cli: &Cli) -> Result<()> {
             cli.spin
         );
     }
+    if let Some(out) = &cli.plot {
+        let mut all = ppmd::meter::histogram();
+        for r in &results {
+            let _ = all.add(&r.hist);
+        }
+        plot_histogram(
+            out,
+            &format!(
+                "jitter: wake-up latency, {n} thread{}, -i {} us, spin {}",
+                if n == 1 { "" } else { "s" },
+                cli.interval_us,
+                cli.spin
+            ),
+            &all,
+        )?;
+    }
     if let Some(path) = &cli.json {
         let cmdline: Vec<String> = std::env::args().collect();
         let threads: Vec<JsonThread> = results
@@ -647,6 +668,34 @@ fn attach(cli: &Cli, name: &str) -> Result<()> {
         s.spin_share_ppm as f64 / 1e4,
         if s.degraded != 0 { "; DEGRADED RUN" } else { "" }
     );
+    if let Some(out) = &cli.plot {
+        // The snapshot's whole-run histogram: 1 us buckets, each drawn at
+        // its middle; the marks are the snapshot's exact percentiles.
+        let mut h = ppmd::meter::histogram();
+        for (us, c) in s.hist_us.iter().enumerate().filter(|(_, c)| **c > 0) {
+            h.saturating_record_n(us as u64 * 1_000 + 500, *c);
+        }
+        if s.hist_overflow > 0 {
+            h.saturating_record_n(s.total.max, s.hist_overflow);
+        }
+        ppm_tools::plot::histogram_svg(
+            out,
+            &format!(
+                "jitter --attach {name}: edge error of {} edges",
+                s.total.count
+            ),
+            "us",
+            &h,
+            1_000.0,
+            &[
+                ("p50", s.total.p50 as f64 / 1e3),
+                ("p99", s.total.p99 as f64 / 1e3),
+                ("p99.9", s.total.p999 as f64 / 1e3),
+                ("max", s.total.max as f64 / 1e3),
+            ],
+        )?;
+        eprintln!("plot: {}", out.display());
+    }
     Ok(())
 }
 
@@ -663,7 +712,7 @@ fn attach_line(s: &TimingSnapshot, unit: u64) -> String {
 }
 
 /// Analysis of a sim trace.
-fn trace(path: &PathBuf, receiver: Option<Receiver>) -> Result<()> {
+fn trace(path: &PathBuf, receiver: Option<Receiver>, plot: Option<&Path>) -> Result<()> {
     let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
     let t = Trace::read(std::io::BufReader::new(file))?;
     let receiver = receiver.unwrap_or(t.default_receiver());
@@ -684,7 +733,42 @@ fn trace(path: &PathBuf, receiver: Option<Receiver>) -> Result<()> {
         receiver.name(),
         r.frames_read
     );
+    if let Some(out) = plot {
+        let errors: Vec<f64> = t.edges.iter().map(|e| e.error_ns() as f64).collect();
+        plot_values(
+            out,
+            &format!("jitter --trace: edge error of {} edges", r.edges),
+            &errors,
+        )?;
+    }
     Ok(())
+}
+
+/// An SVG histogram of `hist` (ns) in microseconds, p50, p99, p99.9 and
+/// the maximum marked.
+fn plot_histogram(path: &Path, title: &str, hist: &hdrhistogram::Histogram<u64>) -> Result<()> {
+    let p = Percentiles::of_histogram(hist);
+    ppm_tools::plot::histogram_svg(
+        path,
+        title,
+        "us",
+        hist,
+        1_000.0,
+        &[
+            ("p50", p.p50 / 1e3),
+            ("p99", p.p99 / 1e3),
+            ("p99.9", p.p999 / 1e3),
+            ("max", p.max / 1e3),
+        ],
+    )?;
+    eprintln!("plot: {}", path.display());
+    Ok(())
+}
+
+/// [`plot_histogram`] of values in ns (negative ones, early edges, are
+/// left out of the picture).
+fn plot_values(path: &Path, title: &str, values_ns: &[f64]) -> Result<()> {
+    plot_histogram(path, title, &ppm_tools::plot::histogram_of(values_ns))
 }
 
 /// Capture of a real line's edges with kernel timestamps.
@@ -798,5 +882,15 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
             "--expect"
         }
     );
+    if let Some(out) = &cli.plot {
+        plot_values(
+            out,
+            &format!(
+                "jitter --capture: channel-period error of {} periods",
+                all_err.len()
+            ),
+            &all_err,
+        )?;
+    }
     Ok(())
 }
