@@ -18,12 +18,14 @@
 use crate::clock::{self, EdgeTimer, Margin, Readable, Wake};
 use crate::framelog::{self, CommandInfo, Record};
 use crate::meter::Meter;
-use crate::output::{Bank, Output};
+use crate::output::{Bank, FrameEdge, Output};
 use crate::source::CommandSource;
 use ppm_shared::config::{
     FailsafeAction, Timing, FOLLOW_SYNC_CEILING_US, SYNC_MAX_US, SYNC_MIN_US,
 };
-use ppm_shared::frame::{us_to_ns, Channels, EdgeSchedule, FrameModel, Level, MAX_CHANNELS};
+use ppm_shared::frame::{
+    us_to_ns, Channels, EdgeSchedule, FrameModel, Level, MAX_CHANNELS, MAX_EDGES,
+};
 use ppm_shared::ipc::CommandSample;
 use ppm_shared::trace::TraceEdge;
 use std::os::fd::RawFd;
@@ -237,16 +239,18 @@ impl Frame {
         self.pre() + self.schedule.edges().len()
     }
 
-    /// The next edge: when and to which level. The lead-in pulse is the
-    /// frame's first pulse, `lead_in_ns` earlier.
+    /// The next edge: when and to which level.
     fn edge(&self) -> (u64, Level) {
+        self.edge_at(self.next)
+    }
+
+    /// Edge `k`: when and to which level. The lead-in pulse is the frame's
+    /// first pulse, `lead_in_ns` earlier.
+    fn edge_at(&self, k: usize) -> (u64, Level) {
         let e = self.schedule.edges();
-        match self.next.checked_sub(self.pre()) {
+        match k.checked_sub(self.pre()) {
             Some(i) => (self.start + e[i].at_ns, e[i].level),
-            None => (
-                self.start - self.lead_in_ns + e[self.next].at_ns,
-                e[self.next].level,
-            ),
+            None => (self.start - self.lead_in_ns + e[k].at_ns, e[k].level),
         }
     }
 
@@ -760,6 +764,8 @@ fn emit_due(
     let is_due = |i: usize| now_due & (1 << i) != 0;
     let mut bank_mask = [0u64; MAX_LANES];
     let mut bank_levels = [0u64; MAX_LANES];
+    // Lanes whose output took the whole frame at this edge.
+    let mut whole = 0u32;
     let mut before = w.now_ns;
     for (i, (lane, p)) in lanes.iter_mut().zip(prog.iter()).enumerate() {
         let Some(f) = p.frame.filter(|_| is_due(i)) else {
@@ -767,6 +773,32 @@ fn emit_due(
         };
         let level = f.edge().1;
         match &mut lane.sink {
+            Sink::Line(out) if out.whole_frames() => {
+                // The frame's first edge: every edge goes in one transfer,
+                // timed by the output's clock from here.
+                let mut edges = [FrameEdge {
+                    at_ns: 0,
+                    level: Level::Low,
+                }; MAX_EDGES + 2];
+                let n = f.len() - f.next;
+                for (k, e) in edges.iter_mut().enumerate().take(n) {
+                    let (at, level) = f.edge_at(f.next + k);
+                    *e = FrameEdge {
+                        at_ns: at - due,
+                        level,
+                    };
+                }
+                if out.write_frame(&edges[..n]).is_err() {
+                    add(&lane.stats.write_errors, 1);
+                }
+                let written = clock::now_ns();
+                // The frame's start error and how long the transfer took:
+                // what can be known of an output timed by its own clock.
+                record(lane, before - due, written - before);
+                add(&lane.stats.edges, n as u64 - 1);
+                whole |= 1 << i;
+                before = written;
+            }
             Sink::Line(out) => {
                 let edge = TraceEdge {
                     scheduled_ns: due,
@@ -818,7 +850,11 @@ fn emit_due(
         let Some(f) = p.frame.as_mut().filter(|_| is_due(i)) else {
             continue;
         };
-        f.next += 1;
+        f.next = if whole & (1 << i) != 0 {
+            f.len()
+        } else {
+            f.next + 1
+        };
         if f.next == f.len() {
             finish_frame(lane, p, timer.margin_ns());
         }
@@ -961,6 +997,81 @@ mod tests {
             &mut out,
         );
         (out.0, stats)
+    }
+
+    /// An output that takes frames whole (as the SPI output does): each
+    /// call's edges, and when it came (the frame's first edge due).
+    #[derive(Default)]
+    struct WholeFrames {
+        frames: Vec<(u64, Vec<FrameEdge>)>,
+        single_writes: usize,
+    }
+
+    impl Output for WholeFrames {
+        fn write(&mut self, _: &TraceEdge) -> Result<(), OutputError> {
+            self.single_writes += 1;
+            Ok(())
+        }
+        fn park(&mut self, _: Level) -> Result<(), OutputError> {
+            Ok(())
+        }
+        fn whole_frames(&self) -> bool {
+            true
+        }
+        fn write_frame(&mut self, edges: &[FrameEdge]) -> Result<(), OutputError> {
+            self.frames.push((clock::now_ns(), edges.to_vec()));
+            Ok(())
+        }
+    }
+
+    /// A whole-frame output gets each frame once, at its first edge, with
+    /// every edge relative to it (the first frame's lead-in pulse included),
+    /// and no single edge; the counters count every edge.
+    #[test]
+    fn whole_frame_outputs_get_each_frame_in_one_call() {
+        let mut out = WholeFrames::default();
+        let stats = run_on(
+            Some(b"[1100, 1200, 1300, 1400]"),
+            12,
+            100_000,
+            100_000_000,
+            FailsafeAction::Silence,
+            &mut out,
+        );
+        assert_eq!(out.single_writes, 0);
+        let n = stats.frames.load(Relaxed);
+        assert_eq!(out.frames.len() as u64, n);
+        assert_eq!(
+            stats.edges.load(Relaxed),
+            n * 18 + 2,
+            "every edge counted, the lead-in's too"
+        );
+        let want = [1100, 1200, 1300, 1400, 1500, 1500, 1500, 1500];
+        for (k, (_, edges)) in out.frames.iter().enumerate() {
+            assert_eq!(edges[0].at_ns, 0);
+            assert_eq!(edges[0].level, Level::High);
+            let lead = if k == 0 { 2 } else { 0 };
+            assert_eq!(edges.len(), 18 + lead, "frame {k}");
+            if k == 0 {
+                assert_eq!(edges[2].at_ns, LEAD_IN_NS, "the lead-in pulse first");
+            }
+            // Pulse starts in the frame give the channels exactly.
+            let starts: Vec<u64> = edges[lead..]
+                .iter()
+                .filter(|e| e.level == Level::High)
+                .map(|e| e.at_ns)
+                .collect();
+            let got: Vec<u64> = starts.windows(2).map(|w| (w[1] - w[0]) / 1_000).collect();
+            assert_eq!(got, want, "frame {k}");
+        }
+        // One transfer per frame, a frame period apart (or later when moved).
+        for w in out.frames.windows(2) {
+            assert!(
+                w[1].0 - w[0].0 >= 22_000_000,
+                "{} ns apart",
+                w[1].0 - w[0].0
+            );
+        }
     }
 
     #[test]

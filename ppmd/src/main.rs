@@ -467,6 +467,24 @@ fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
             OutputSpec::Sim { path } => {
                 each[i] = Some(Line::Own(open_sim(cfg, model, path)?));
             }
+            OutputSpec::Spi { device } => {
+                // The longest frame: the lead-in pulse after silence, every
+                // channel at its maximum, the last pulse.
+                let longest = emitter::LEAD_IN_NS
+                    + (0..model.channels())
+                        .map(|c| model.max_ns(c) as u64)
+                        .sum::<u64>()
+                    + model.pulse_ns();
+                let out = ppmd::output::spi::SpiOutput::open(&device, cfg.ppmd.spi_hz, longest)
+                    .with_context(|| format!("output `{}`: spi:{}", cfg.name, device.display()))?;
+                log::info!(
+                    "output `{}`: spi {} (each frame one transfer, edges to {} ns)",
+                    cfg.name,
+                    out.description(),
+                    1_000_000_000 / cfg.ppmd.spi_hz as u64
+                );
+                each[i] = Some(Line::Own(Box::new(out)));
+            }
             OutputSpec::Gpio { chip, line } => {
                 let (_, summary, _) = ppmd::output::gpio::resolve_line(&chip, &line)
                     .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;

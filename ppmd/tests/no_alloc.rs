@@ -5,11 +5,13 @@
 //! frames are out.
 
 use ppm_shared::config::{Config, FailsafeAction, Timing};
+use ppm_shared::frame::Level;
 use ppm_shared::ipc::{self, CommandSample};
 use ppm_shared::protocol::parse;
+use ppm_shared::trace::TraceEdge;
 use ppmd::clock::{self, Margin};
 use ppmd::emitter::{self, EmitterConfig, Stats};
-use ppmd::output::SimOutput;
+use ppmd::output::{spi, FrameEdge, Output, OutputError, SimOutput};
 use ppmd::source::{CommandSource, IpcSource};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -87,11 +89,38 @@ impl CommandSource for Counted {
 fn the_timing_loop_does_not_allocate_after_start() {
     // Grid: commands faster than frames. Follow: slower, so the loop sleeps
     // on the wake-up between frames and is woken by each command.
-    run_without_allocating(Timing::Grid, 5);
-    run_without_allocating(Timing::Follow, 25);
+    run_without_allocating(Timing::Grid, 5, false);
+    run_without_allocating(Timing::Follow, 25, false);
+    // An output that takes whole frames, encoding each as the SPI output
+    // does into its preallocated buffer.
+    run_without_allocating(Timing::Grid, 5, true);
 }
 
-fn run_without_allocating(timing: Timing, every_ms: u64) {
+/// The SPI output without the device: each frame encoded into the buffer
+/// sized at start, as [`ppmd::output::spi::SpiOutput`] does before its ioctl.
+struct SpiStandIn {
+    buf: Vec<u8>,
+    bytes: u64,
+}
+
+impl Output for SpiStandIn {
+    fn write(&mut self, _: &TraceEdge) -> Result<(), OutputError> {
+        Err(OutputError::FrameTooLong)
+    }
+    fn park(&mut self, _: Level) -> Result<(), OutputError> {
+        Ok(())
+    }
+    fn whole_frames(&self) -> bool {
+        true
+    }
+    fn write_frame(&mut self, edges: &[FrameEdge]) -> Result<(), OutputError> {
+        let n = spi::encode(edges, 1_000_000, &mut self.buf).ok_or(OutputError::FrameTooLong)?;
+        self.bytes += n as u64;
+        Ok(())
+    }
+}
+
+fn run_without_allocating(timing: Timing, every_ms: u64, whole_frames: bool) {
     ALLOCATIONS.store(0, Relaxed);
     let dir = std::env::temp_dir().join(format!(
         "ppmd-noalloc-{}-{}",
@@ -100,7 +129,12 @@ fn run_without_allocating(timing: Timing, every_ms: u64) {
     ));
     std::fs::create_dir_all(&dir).unwrap();
     let root = dir.join("ipc");
-    let name = format!("noalloc{}{}", std::process::id(), timing.name());
+    let name = format!(
+        "noalloc{}{}{}",
+        std::process::id(),
+        timing.name(),
+        whole_frames as u8
+    );
     let mut cfg = Config::default();
     cfg.ppm.timing = timing;
     let model = cfg.validate().unwrap();
@@ -159,7 +193,14 @@ fn run_without_allocating(timing: Timing, every_ms: u64) {
                 frames: 60,
                 stop: stop.clone(),
             };
-            let mut out = SimOutput::create(&trace, &["idle_level 0".into()], u64::MAX).unwrap();
+            let mut out: Box<dyn Output> = if whole_frames {
+                Box::new(SpiStandIn {
+                    buf: vec![0; 8192],
+                    bytes: 0,
+                })
+            } else {
+                Box::new(SimOutput::create(&trace, &["idle_level 0".into()], u64::MAX).unwrap())
+            };
             let cfg = EmitterConfig {
                 margin: Margin::Auto {
                     min_ns: 20_000,
@@ -173,7 +214,7 @@ fn run_without_allocating(timing: Timing, every_ms: u64) {
                 &model,
                 &cfg,
                 &mut source,
-                &mut out,
+                out.as_mut(),
                 &stop,
                 &stats,
                 &mut meter,
@@ -198,9 +239,13 @@ fn run_without_allocating(timing: Timing, every_ms: u64) {
     assert_eq!(
         ALLOCATIONS.load(Relaxed),
         0,
-        "the timing loop allocated after its first frames ({} timing)",
-        timing.name()
+        "the timing loop allocated after its first frames ({} timing{})",
+        timing.name(),
+        if whole_frames { ", whole frames" } else { "" }
     );
+    if whole_frames {
+        assert_eq!(stats.write_errors.load(Relaxed), 0, "every frame encoded");
+    }
     let _ = std::fs::remove_dir_all(dir);
 }
 

@@ -310,7 +310,9 @@ impl Default for IngressSection {
 #[serde(deny_unknown_fields, default)]
 pub struct PpmdSection {
     /// Where the signal goes: `"sim"` (simulated line, trace in
-    /// `ppm-NAME.trace`), `"sim:PATH"`, or `"gpio:CHIP:LINE"`. Default `"sim"`.
+    /// `ppm-NAME.trace`), `"sim:PATH"`, `"gpio:CHIP:LINE"`, or
+    /// `"spi:DEVICE"` (a spidev device, e.g. `/dev/spidev0.0`: each frame
+    /// one transfer on MOSI, its edges exact to the bit clock). Default `"sim"`.
     pub output: String,
     /// Frame log: one JSON line per emitted frame and per line-state change,
     /// appended to this file. Default: none (also `ppmd --frame-log FILE`).
@@ -321,6 +323,10 @@ pub struct PpmdSection {
     /// Size at which a sim trace is rotated (FILE.1 is kept), in MiB,
     /// 1..=65536. Default 256 (about 2.5 h of 8 channels at 50 Hz).
     pub trace_max_mb: u64,
+    /// Bit rate of an `spi:` output, Hz, 50000..=20000000: one bit is the
+    /// resolution of every edge inside a frame (1 us at the default
+    /// 1000000, 0.5 us at 2000000, EdgeTX's capture tick).
+    pub spi_hz: u32,
 }
 
 impl Default for PpmdSection {
@@ -330,6 +336,7 @@ impl Default for PpmdSection {
             frame_log: None,
             frame_log_max_mb: 64,
             trace_max_mb: 256,
+            spi_hz: 1_000_000,
         }
     }
 }
@@ -534,6 +541,8 @@ pub enum OutputSpec {
     Sim { path: Option<PathBuf> },
     /// A GPIO line through the GPIO character device.
     Gpio { chip: String, line: String },
+    /// A spidev device: each frame is one SPI transfer on MOSI.
+    Spi { device: PathBuf },
 }
 
 impl std::str::FromStr for OutputSpec {
@@ -545,6 +554,12 @@ impl std::str::FromStr for OutputSpec {
             Some(("sim", path)) if !path.is_empty() => Ok(OutputSpec::Sim {
                 path: Some(PathBuf::from(path)),
             }),
+            Some(("spi", device)) if !device.is_empty() => Ok(OutputSpec::Spi {
+                device: PathBuf::from(device),
+            }),
+            Some(("spi", _)) => Err(format!(
+                "`{s}`: an spi output is spi:DEVICE, e.g. spi:/dev/spidev0.0"
+            )),
             Some(("gpio", rest)) => match rest.rsplit_once(':') {
                 Some((chip, line)) if !chip.is_empty() && !line.is_empty() => {
                     Ok(OutputSpec::Gpio {
@@ -557,7 +572,7 @@ impl std::str::FromStr for OutputSpec {
                 )),
             },
             _ => Err(format!(
-                "`{s}` is not an output: use sim, sim:PATH or gpio:CHIP:LINE"
+                "`{s}` is not an output: use sim, sim:PATH, gpio:CHIP:LINE or spi:DEVICE"
             )),
         }
     }
@@ -652,7 +667,7 @@ impl Config {
                     }
                     _ => {
                         return Err(parse_error(format!(
-                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log and the sections [outputs.ppm], [outputs.ingress] and [outputs.failsafe] (rt, ipc, frame_log_max_mb and trace_max_mb are shared: set them at the top level)"
+                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log and the sections [outputs.ppm], [outputs.ingress] and [outputs.failsafe] (rt, ipc, frame_log_max_mb, trace_max_mb and spi_hz are shared: set them at the top level)"
                         )))
                     }
                 }
@@ -704,7 +719,25 @@ impl Config {
             CpuChoice::Index(r) => Some(r),
             _ => None,
         })?;
-        self.output()?;
+        let spi = matches!(self.output()?, OutputSpec::Spi { .. });
+        if !(50_000..=20_000_000).contains(&self.ppmd.spi_hz) {
+            return Err(ConfigError::invalid(
+                "ppmd.spi_hz",
+                format!(
+                    "{} Hz is outside 50000..=20000000 (1000000: edges to 1 us)",
+                    self.ppmd.spi_hz
+                ),
+            ));
+        }
+        if spi && self.ppm.idle_level == Level::High {
+            return Err(ConfigError::invalid(
+                "ppm.idle_level",
+                format!(
+                    "\"high\" cannot be sent through `{}`: between transfers an SPI controller leaves MOSI low (or at the last bit), which would add an edge to every sync; use idle_level = \"low\" (an inverter in the cable gives a transmitter that wants high), or a gpio: output",
+                    self.ppmd.output
+                ),
+            ));
+        }
         for (key, mb) in [
             ("ppmd.frame_log_max_mb", self.ppmd.frame_log_max_mb),
             ("ppmd.trace_max_mb", self.ppmd.trace_max_mb),
@@ -887,9 +920,22 @@ impl Config {
                 ),
             ));
         }
+        let several = list.len() > 1;
         let mut done: Vec<(Config, FrameModel)> = Vec::new();
         for (i, c) in list.into_iter().enumerate() {
             let model = c.validate().map_err(|e| self.locate(i, e))?;
+            if several && matches!(c.output(), Ok(OutputSpec::Spi { .. })) {
+                return Err(self.locate(
+                    i,
+                    ConfigError::invalid(
+                        "ppmd.output",
+                        format!(
+                            "`{}` with other outputs: an spi output's transfer holds the timing thread for the frame, so it runs alone (start one ppmd per spi output)",
+                            c.ppmd.output
+                        ),
+                    ),
+                ));
+            }
             for (j, (other, _)) in done.iter().enumerate() {
                 let clash = |key: &str, what: String| {
                     Err(self.locate(
@@ -1703,9 +1749,57 @@ mod tests {
                 line: "GPIO18".into()
             })
         );
-        for bad in ["", "sim:", "gpio:", "gpio:chip", "gpio::3", "pwm:1"] {
+        assert_eq!(
+            "spi:/dev/spidev0.0".parse(),
+            Ok(OutputSpec::Spi {
+                device: "/dev/spidev0.0".into()
+            })
+        );
+        for bad in ["", "sim:", "gpio:", "gpio:chip", "gpio::3", "pwm:1", "spi:"] {
             assert!(bad.parse::<OutputSpec>().is_err(), "{bad}");
         }
+    }
+
+    /// An spi output: its rate within bounds, only with idle_level low (the
+    /// gap between transfers is low), and alone on its ppmd.
+    #[test]
+    fn spi_outputs_are_checked() {
+        let spi = "[ppmd]\noutput = 'spi:/dev/spidev0.0'\n";
+        assert!(Config::parse(spi).unwrap().validate().is_ok());
+        let key = |text: &str| {
+            let c = Config::parse(text).unwrap();
+            let e = c.validate_outputs().unwrap_err();
+            (e.key().map(str::to_string), e.to_string())
+        };
+        for (hz, ok) in [
+            (49_999, false),
+            (50_000, true),
+            (20_000_000, true),
+            (20_000_001, false),
+        ] {
+            let c = Config::parse(&format!("{spi}spi_hz = {hz}")).unwrap();
+            assert_eq!(c.validate().is_ok(), ok, "{hz}");
+            if !ok {
+                assert_eq!(c.validate().unwrap_err().key(), Some("ppmd.spi_hz"));
+            }
+        }
+        let (k, e) = key(&format!("[ppm]\nidle_level = 'high'\n{spi}"));
+        assert_eq!(k.as_deref(), Some("ppm.idle_level"));
+        assert!(
+            e.contains("idle_level = \"low\"") && e.contains("inverter"),
+            "{e}"
+        );
+        // The same is fine on a gpio line.
+        assert!(
+            Config::parse("[ppm]\nidle_level = 'high'\n[ppmd]\noutput = 'gpio:0:18'")
+                .unwrap()
+                .validate()
+                .is_ok()
+        );
+        let two = "[[outputs]]\nname = 'a'\noutput = 'spi:/dev/spidev0.0'\n[outputs.ingress]\nlisten = '127.0.0.1:5005'\n[[outputs]]\nname = 'b'\noutput = 'sim'\n[outputs.ingress]\nlisten = '127.0.0.1:5006'\n";
+        let (k, e) = key(two);
+        assert_eq!(k.as_deref(), Some("outputs[0].output"), "{e}");
+        assert!(e.contains("runs alone"), "{e}");
     }
 
     #[test]

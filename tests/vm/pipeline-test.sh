@@ -125,7 +125,7 @@ wait "$fing" || true
 # from outside by pull-ppm (ppmd's timing loop writing gpio-sim's pull
 # attribute); the kernel timestamps each edge.
 jitter --capture "$chip:GPIO17" -D 2s --expect 1000,1200,1700,2000,1500,1500,1500,1500 \
-    > /out/capture.txt 2> /out/capture.log &
+    --plot /out/capture.svg > /out/capture.txt 2> /out/capture.log &
 capture=$!
 sleep 0.3
 pull-ppm "$(sim_attr_dir "$chip" 0)/pull" 60 1000,1200,1700,2000 2> /out/pull-ppm.log

@@ -3,6 +3,7 @@
 //! or take a lock there.
 
 pub mod gpio;
+pub mod spi;
 
 use ppm_shared::frame::Level;
 use ppm_shared::trace::TraceEdge;
@@ -23,6 +24,19 @@ pub enum OutputError {
     /// The line could not be written.
     #[error("line write failed: {0}")]
     Write(nix::errno::Errno),
+    /// A frame longer than the output was opened for (not sent).
+    #[error("frame longer than the transfer buffer, not sent")]
+    FrameTooLong,
+}
+
+/// One edge of a whole frame handed to [`Output::write_frame`]: its time
+/// after the frame's first edge, and the level after it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameEdge {
+    /// Time after the first edge (which is at 0), ns.
+    pub at_ns: u64,
+    /// The level after the edge.
+    pub level: Level,
 }
 
 /// One output line.
@@ -33,6 +47,20 @@ pub trait Output: Send {
 
     /// Leaves the line at `level` (at start and at exit, outside the loop).
     fn park(&mut self, level: Level) -> Result<(), OutputError>;
+
+    /// True for an output that sends each frame whole, timed by its own
+    /// clock ([`spi::SpiOutput`]): the loop then calls
+    /// [`Output::write_frame`] at the frame's first edge instead of
+    /// [`Output::write`] for each.
+    fn whole_frames(&self) -> bool {
+        false
+    }
+
+    /// Sends one frame, every edge (the lead-in pulse's included), returning
+    /// when it is out.
+    fn write_frame(&mut self, _edges: &[FrameEdge]) -> Result<(), OutputError> {
+        Err(OutputError::Write(nix::errno::Errno::ENOTSUP))
+    }
 }
 
 /// Several lines written together: bit `i` of a mask is the bank's line
