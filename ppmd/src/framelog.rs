@@ -7,9 +7,9 @@
 //! of waiting. The file is rotated at a size cap: `FILE` becomes `FILE.1`,
 //! `FILE.1` becomes `FILE.2`, and so on, keeping [`KEEP`] old files.
 
-use crate::emitter::LineState;
 use ppm_shared::config::Timing;
 use ppm_shared::frame::MAX_CHANNELS;
+use ppm_shared::line::LineState;
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -73,14 +73,6 @@ pub struct CommandInfo {
     pub recv_real_ns: u64,
 }
 
-fn state_name(s: LineState) -> &'static str {
-    match s {
-        LineState::Silent => "silent",
-        LineState::Active => "active",
-        LineState::Failsafe => "failsafe",
-    }
-}
-
 impl Record {
     /// The JSON line (without the newline).
     pub fn to_json(&self) -> String {
@@ -105,7 +97,7 @@ impl Record {
                     "frame": frame,
                     "mono_ns": start_mono_ns,
                     "real_ns": start_real_ns,
-                    "state": state_name(*state),
+                    "state": state.name(),
                     "timing": timing.name(),
                     "seq": c.and_then(|c| c.seq),
                     "ingress_seq": c.map(|c| c.ingress_seq),
@@ -124,8 +116,8 @@ impl Record {
                 "type": "transition",
                 "mono_ns": mono_ns,
                 "real_ns": real_ns,
-                "from": state_name(*from),
-                "to": state_name(*to),
+                "from": from.name(),
+                "to": to.name(),
             })
             .to_string(),
         }

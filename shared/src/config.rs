@@ -5,8 +5,12 @@
 //! default. [`Config::load`] parses, [`Config::validate`] validates the PPM
 //! settings against what real transmitters accept; both errors name the key.
 
-use crate::frame::{FrameModel, Level, UnitMapping, MAX_CHANNELS};
+use crate::frame::{
+    us_to_ns, ChannelSpec, FrameModel, Level, ModelSpec, UnitMapping, MAX_CHANNELS, PULSE_MIN_US,
+};
 use crate::receiver::ReceiverChoice;
+use crate::receiver::{Rules, CHANNEL_MARGIN_US, SYNC_MARGIN_US};
+pub use crate::signal::Timing;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -154,41 +158,6 @@ pub struct PpmSection {
     /// 18500 (EdgeTX's 19000 us less a margin), and not below
     /// `follow_sync_min_us`. Default 18000.
     pub follow_sync_max_us: f64,
-}
-
-/// When ppmd starts a frame.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Timing {
-    /// On a fixed grid, one frame every `ppm.frame_us`; a command waits for
-    /// the next grid start.
-    Grid,
-    /// Frames follow the commands: a fresh command starts its frame as soon
-    /// as the previous frame's last pulse is `ppm.follow_sync_min_us` old;
-    /// without one, the last frame repeats when it is
-    /// `ppm.follow_sync_max_us` old. `ppm.frame_us` is not used.
-    Follow,
-}
-
-impl Timing {
-    /// `"grid"` or `"follow"`, as in the configuration.
-    pub fn name(self) -> &'static str {
-        match self {
-            Timing::Grid => "grid",
-            Timing::Follow => "follow",
-        }
-    }
-}
-
-impl std::str::FromStr for Timing {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "grid" => Ok(Timing::Grid),
-            "follow" => Ok(Timing::Follow),
-            _ => Err(format!("`{s}` is not a timing: use grid or follow")),
-        }
-    }
 }
 
 impl Default for PpmSection {
@@ -792,7 +761,7 @@ impl Config {
                 ),
             ));
         }
-        FrameModel::from_config(&self.ppm)
+        frame_model(&self.ppm)
     }
 
     /// The outputs this configuration describes: its `[[outputs]]` entries,
@@ -1087,6 +1056,189 @@ impl Config {
     }
 }
 
+/// Checks `[ppm]` against what transmitters accept (the receivers of
+/// `ppm.receiver`) and builds the frame model; errors name the key.
+pub fn frame_model(ppm: &PpmSection) -> Result<FrameModel, ConfigError> {
+    let (names, limits) = resolve_channels(ppm)?;
+    let mut m = ModelSpec {
+        names,
+        channels: Vec::new(),
+        frame_ns: 0,
+        pulse_ns: 0,
+        idle: ppm.idle_level,
+        timing: ppm.timing,
+        follow_sync_ns: (0, 0),
+        receiver: ppm.receiver,
+    };
+    let rules = ppm.receiver.rules();
+    let (fewest, most) = (rules.min_channels, rules.max_channels);
+    if !(fewest.0..=most.0).contains(&limits.len()) {
+        let rule = if limits.len() < fewest.0 {
+            fewest.1
+        } else {
+            most.1
+        };
+        return Err(invalid(
+            "ppm.channels",
+            format!(
+                "{} channels: {rule}; under {}: use {}..={} channels, or set ppm.receiver to the one receiver you use",
+                limits.len(),
+                receiver_key(ppm.receiver),
+                fewest.0,
+                most.0
+            ),
+        ));
+    }
+    for l in &limits {
+        let (lo, hi) = (rules.channel_min_us, rules.channel_max_us);
+        let (key, v, bound, rule, nearest) = if l.min_us < lo.0 {
+            (&l.min_key, l.min_us, lo, "raise", lo.0)
+        } else if l.max_us > hi.0 {
+            (&l.max_key, l.max_us, hi, "lower", hi.0)
+        } else {
+            continue;
+        };
+        return Err(invalid(
+            key,
+            format!(
+                "{v} us: {}, less {} us for edge error, so {}..={} us under {}: {rule} {key} to {nearest} us",
+                bound.1,
+                CHANNEL_MARGIN_US,
+                lo.0,
+                hi.0,
+                receiver_key(ppm.receiver),
+            ),
+        ));
+    }
+    m.channels = limits
+        .iter()
+        .map(|l| ChannelSpec {
+            default_ns: us_to_ns(l.default_us) as u32,
+            min_ns: us_to_ns(l.min_us) as u32,
+            max_ns: us_to_ns(l.max_us) as u32,
+            mapping: l.mapping,
+        })
+        .collect();
+    let smallest_min = m.channels.iter().map(|c| c.min_ns).min().unwrap_or(0) as u64;
+    if !ppm.pulse_us.is_finite()
+        || ppm.pulse_us < PULSE_MIN_US
+        || us_to_ns(ppm.pulse_us) >= smallest_min
+    {
+        return Err(invalid(
+            "ppm.pulse_us",
+            format!(
+                "{} us must be at least {PULSE_MIN_US} us and shorter than the smallest channel minimum, {} us",
+                ppm.pulse_us,
+                smallest_min as f64 / 1e3
+            ),
+        ));
+    }
+    m.pulse_ns = us_to_ns(ppm.pulse_us);
+    if !ppm.frame_us.is_finite() || ppm.frame_us <= 0.0 {
+        return Err(invalid(
+            "ppm.frame_us",
+            format!("{} us is not a frame length", ppm.frame_us),
+        ));
+    }
+    let frame_ns = us_to_ns(ppm.frame_us);
+    m.follow_sync_ns = follow_sync(ppm, &rules)?;
+    m.frame_ns = frame_ns;
+    if ppm.timing == Timing::Follow {
+        // Frames follow the commands: the sync gaps are the follow
+        // limits, whatever the channel values; frame_us is not used.
+        return Ok(FrameModel::new(m));
+    }
+    let sum_max: u64 = m.channels.iter().map(|c| c.max_ns as u64).sum();
+    let sum_min: u64 = m.channels.iter().map(|c| c.min_ns as u64).sum();
+    let n = m.channels.len();
+    let (sync_min, sync_max) = (rules.sync_min_us, rules.sync_max_us);
+    let sync_min_ns = us_to_ns(sync_min.0);
+    if frame_ns < sum_max + sync_min_ns {
+        return Err(invalid(
+            "ppm.frame_us",
+            format!(
+                "{} us leaves a sync gap of {} us when all {} channels are at their maximum (sum {} us); {}, and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: the gap must be at least {} us under {}: raise ppm.frame_us to at least {} us or lower the channel maximums",
+                ppm.frame_us,
+                (frame_ns as f64 - sum_max as f64) / 1e3,
+                n,
+                sum_max as f64 / 1e3,
+                sync_min.1,
+                sync_min.0,
+                receiver_key(ppm.receiver),
+                (sum_max + sync_min_ns) as f64 / 1e3
+            ),
+        ));
+    }
+    if frame_ns > sum_min + us_to_ns(sync_max.0) {
+        let sync_max_ns = us_to_ns(sync_max.0);
+        return Err(invalid(
+            "ppm.frame_us",
+            format!(
+                "{} us leaves a sync gap of {} us when all {} channels are at their minimum (sum {} us); {} (a longer gap is signal loss), and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: the gap must be at most {} us under {}: lower ppm.frame_us to at most {} us or add channels",
+                ppm.frame_us,
+                (frame_ns - sum_min) as f64 / 1e3,
+                n,
+                sum_min as f64 / 1e3,
+                sync_max.1,
+                sync_max.0,
+                receiver_key(ppm.receiver),
+                (sum_min + sync_max_ns) as f64 / 1e3
+            ),
+        ));
+    }
+    Ok(FrameModel::new(m))
+}
+
+/// `ppm.receiver = "NAME"`, for messages.
+fn receiver_key(r: ReceiverChoice) -> String {
+    match r {
+        ReceiverChoice::Any => "ppm.receiver = \"any\" (every supported receiver)".into(),
+        ReceiverChoice::One(r) => format!("ppm.receiver = \"{}\"", r.name()),
+    }
+}
+
+/// `ppm.follow_sync_min_us` and `ppm.follow_sync_max_us` in ns, checked
+/// against the sync window of the receiver (checked in either timing, so a
+/// file stays valid when its timing is switched).
+fn follow_sync(ppm: &PpmSection, rules: &Rules) -> Result<(u64, u64), ConfigError> {
+    let (min, max) = (ppm.follow_sync_min_us, ppm.follow_sync_max_us);
+    let floor = rules.sync_min_us;
+    let ceiling = rules.sync_max_us.0.min(FOLLOW_SYNC_CEILING_US);
+    if !min.is_finite() || min < floor.0 {
+        return Err(invalid(
+            "ppm.follow_sync_min_us",
+            format!(
+                "{min} us: {}, and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: at least {} us under {}",
+                floor.1,
+                floor.0,
+                receiver_key(ppm.receiver)
+            ),
+        ));
+    }
+    if !max.is_finite() || max > ceiling {
+        return Err(invalid(
+            "ppm.follow_sync_max_us",
+            format!(
+                "{max} us is above {ceiling} us: EdgeTX and OpenTX read a sync only below 19000 us, and a late frame must not take it there ({SYNC_MARGIN_US} us kept; the most for every receiver)"
+            ),
+        ));
+    }
+    if max < min {
+        return Err(invalid(
+            "ppm.follow_sync_max_us",
+            format!("{max} us is below ppm.follow_sync_min_us = {min} us"),
+        ));
+    }
+    Ok((us_to_ns(min), us_to_ns(max)))
+}
+
+fn invalid(key: &str, message: String) -> ConfigError {
+    ConfigError::Invalid {
+        key: key.into(),
+        message,
+    }
+}
+
 /// Most outputs one ppmd drives.
 pub const MAX_OUTPUTS: usize = 8;
 
@@ -1182,7 +1334,7 @@ pub(crate) struct ChannelLimits {
 }
 
 /// Resolves names and limits of every channel and checks them; used by
-/// [`FrameModel::from_config`].
+/// [`frame_model`].
 pub(crate) fn resolve_channels(
     ppm: &PpmSection,
 ) -> Result<(Vec<String>, Vec<ChannelLimits>), ConfigError> {

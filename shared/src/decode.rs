@@ -6,7 +6,7 @@
 //! channel; anything else loses synchronisation until the next sync. Pulse
 //! width and polarity do not matter beyond choosing which edges to time.
 
-use crate::frame::{Level, MAX_CHANNELS};
+use crate::signal::{Level, MAX_CHANNELS};
 
 /// The ranges the decoder accepts, in nanoseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

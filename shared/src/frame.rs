@@ -7,51 +7,11 @@
 //! at its idle level until the next frame starts; that gap is the sync period
 //! `frame - sum(values)`.
 
-use crate::config::{self, ConfigError, PpmSection, Timing, FOLLOW_SYNC_CEILING_US};
-use crate::receiver::{ReceiverChoice, Rules, SYNC_MARGIN_US};
-use serde::Deserialize;
+use crate::receiver::ReceiverChoice;
+pub use crate::signal::{Level, Timing, MAX_CHANNELS, MAX_EDGES};
 
-/// Most channels one frame carries (the transmitters' limit).
-pub const MAX_CHANNELS: usize = 16;
-/// Most edges one frame has: a rising and a falling edge for each of the
-/// `MAX_CHANNELS + 1` pulses.
-pub const MAX_EDGES: usize = 2 * (MAX_CHANNELS + 1);
 /// Shortest separator pulse accepted in the configuration, in microseconds.
 pub const PULSE_MIN_US: f64 = 50.0;
-
-/// A logic level of the output line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Level {
-    /// 0
-    Low,
-    /// 1
-    High,
-}
-
-impl Level {
-    /// The other level.
-    pub fn opposite(self) -> Level {
-        match self {
-            Level::Low => Level::High,
-            Level::High => Level::Low,
-        }
-    }
-
-    /// 0 or 1.
-    pub fn as_u8(self) -> u8 {
-        self as u8
-    }
-
-    /// `Low` for 0, `High` for anything else.
-    pub fn from_bit(bit: bool) -> Level {
-        if bit {
-            Level::High
-        } else {
-            Level::Low
-        }
-    }
-}
 
 /// One edge of a frame: at `at_ns` after the frame start the line goes to `level`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -116,8 +76,43 @@ pub fn us_to_ns(us: f64) -> u64 {
     (us * 1_000.0).round() as u64
 }
 
+/// One channel of a [`FrameModel`]: its default and limits in ns and its
+/// unit mapping.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChannelSpec {
+    /// Value when a command does not give it, ns.
+    pub default_ns: u32,
+    /// Lowest value sent, ns.
+    pub min_ns: u32,
+    /// Highest value sent, ns.
+    pub max_ns: u32,
+    /// Its engineering units, if any.
+    pub mapping: UnitMapping,
+}
+
+/// What a [`FrameModel`] is made of, as the configuration checked it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelSpec {
+    /// Channel names, in transmitter order.
+    pub names: Vec<String>,
+    /// The channels, in the same order.
+    pub channels: Vec<ChannelSpec>,
+    /// Grid timing's frame length, ns.
+    pub frame_ns: u64,
+    /// Separator pulse, ns.
+    pub pulse_ns: u64,
+    /// The level between pulses.
+    pub idle: Level,
+    /// When frames start.
+    pub timing: Timing,
+    /// Follow timing's shortest and longest sync, ns.
+    pub follow_sync_ns: (u64, u64),
+    /// The receivers the signal must suit.
+    pub receiver: ReceiverChoice,
+}
+
 /// The validated PPM signal: channel count, names, limits, timing, idle level.
-/// Built once at start by [`FrameModel::from_config`]; encoding with it never
+/// Built once at start from the checked configuration ([`FrameModel::new`]); encoding with it never
 /// allocates.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameModel {
@@ -136,136 +131,34 @@ pub struct FrameModel {
 }
 
 impl FrameModel {
-    /// Validates `[ppm]` against what transmitters accept and builds the model.
-    pub fn from_config(ppm: &PpmSection) -> Result<FrameModel, ConfigError> {
-        let (names, limits) = config::resolve_channels(ppm)?;
+    /// The model of a checked configuration ([`crate::config`] checks
+    /// `[ppm]` against what transmitters accept and builds it with this).
+    pub fn new(spec: ModelSpec) -> FrameModel {
+        assert!(
+            spec.channels.len() <= MAX_CHANNELS && spec.channels.len() == spec.names.len(),
+            "a model of at most {MAX_CHANNELS} named channels"
+        );
         let mut m = FrameModel {
-            names,
+            names: spec.names,
             default_ns: [0; MAX_CHANNELS],
             min_ns: [0; MAX_CHANNELS],
             max_ns: [0; MAX_CHANNELS],
             mapping: [UnitMapping::default(); MAX_CHANNELS],
-            channels: limits.len(),
-            frame_ns: 0,
-            pulse_ns: 0,
-            idle: ppm.idle_level,
-            timing: ppm.timing,
-            follow_sync_ns: (0, 0),
-            receiver: ppm.receiver,
+            channels: spec.channels.len(),
+            frame_ns: spec.frame_ns,
+            pulse_ns: spec.pulse_ns,
+            idle: spec.idle,
+            timing: spec.timing,
+            follow_sync_ns: spec.follow_sync_ns,
+            receiver: spec.receiver,
         };
-        let rules = ppm.receiver.rules();
-        let (fewest, most) = (rules.min_channels, rules.max_channels);
-        if !(fewest.0..=most.0).contains(&limits.len()) {
-            let rule = if limits.len() < fewest.0 {
-                fewest.1
-            } else {
-                most.1
-            };
-            return Err(invalid(
-                "ppm.channels",
-                format!(
-                    "{} channels: {rule}; under {}: use {}..={} channels, or set ppm.receiver to the one receiver you use",
-                    limits.len(),
-                    receiver_key(ppm.receiver),
-                    fewest.0,
-                    most.0
-                ),
-            ));
+        for (i, c) in spec.channels.iter().enumerate() {
+            m.default_ns[i] = c.default_ns;
+            m.min_ns[i] = c.min_ns;
+            m.max_ns[i] = c.max_ns;
+            m.mapping[i] = c.mapping;
         }
-        for l in &limits {
-            let (lo, hi) = (rules.channel_min_us, rules.channel_max_us);
-            let (key, v, bound, rule, nearest) = if l.min_us < lo.0 {
-                (&l.min_key, l.min_us, lo, "raise", lo.0)
-            } else if l.max_us > hi.0 {
-                (&l.max_key, l.max_us, hi, "lower", hi.0)
-            } else {
-                continue;
-            };
-            return Err(invalid(
-                key,
-                format!(
-                    "{v} us: {}, less {} us for edge error, so {}..={} us under {}: {rule} {key} to {nearest} us",
-                    bound.1,
-                    crate::receiver::CHANNEL_MARGIN_US,
-                    lo.0,
-                    hi.0,
-                    receiver_key(ppm.receiver),
-                ),
-            ));
-        }
-        for (i, l) in limits.iter().enumerate() {
-            m.default_ns[i] = us_to_ns(l.default_us) as u32;
-            m.min_ns[i] = us_to_ns(l.min_us) as u32;
-            m.max_ns[i] = us_to_ns(l.max_us) as u32;
-            m.mapping[i] = l.mapping;
-        }
-        let smallest_min = m.min_ns[..m.channels].iter().copied().min().unwrap_or(0) as u64;
-        if !ppm.pulse_us.is_finite()
-            || ppm.pulse_us < PULSE_MIN_US
-            || us_to_ns(ppm.pulse_us) >= smallest_min
-        {
-            return Err(invalid(
-                "ppm.pulse_us",
-                format!(
-                    "{} us must be at least {PULSE_MIN_US} us and shorter than the smallest channel minimum, {} us",
-                    ppm.pulse_us,
-                    smallest_min as f64 / 1e3
-                ),
-            ));
-        }
-        m.pulse_ns = us_to_ns(ppm.pulse_us);
-        if !ppm.frame_us.is_finite() || ppm.frame_us <= 0.0 {
-            return Err(invalid(
-                "ppm.frame_us",
-                format!("{} us is not a frame length", ppm.frame_us),
-            ));
-        }
-        let frame_ns = us_to_ns(ppm.frame_us);
-        m.follow_sync_ns = follow_sync(ppm, &rules)?;
-        m.frame_ns = frame_ns;
-        if ppm.timing == Timing::Follow {
-            // Frames follow the commands: the sync gaps are the follow
-            // limits, whatever the channel values; frame_us is not used.
-            return Ok(m);
-        }
-        let sum_max: u64 = m.max_ns[..m.channels].iter().map(|&v| v as u64).sum();
-        let sum_min: u64 = m.min_ns[..m.channels].iter().map(|&v| v as u64).sum();
-        let (sync_min, sync_max) = (rules.sync_min_us, rules.sync_max_us);
-        let sync_min_ns = us_to_ns(sync_min.0);
-        if frame_ns < sum_max + sync_min_ns {
-            return Err(invalid(
-                "ppm.frame_us",
-                format!(
-                    "{} us leaves a sync gap of {} us when all {} channels are at their maximum (sum {} us); {}, and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: the gap must be at least {} us under {}: raise ppm.frame_us to at least {} us or lower the channel maximums",
-                    ppm.frame_us,
-                    (frame_ns as f64 - sum_max as f64) / 1e3,
-                    m.channels,
-                    sum_max as f64 / 1e3,
-                    sync_min.1,
-                    sync_min.0,
-                    receiver_key(ppm.receiver),
-                    (sum_max + sync_min_ns) as f64 / 1e3
-                ),
-            ));
-        }
-        if frame_ns > sum_min + us_to_ns(sync_max.0) {
-            let sync_max_ns = us_to_ns(sync_max.0);
-            return Err(invalid(
-                "ppm.frame_us",
-                format!(
-                    "{} us leaves a sync gap of {} us when all {} channels are at their minimum (sum {} us); {} (a longer gap is signal loss), and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: the gap must be at most {} us under {}: lower ppm.frame_us to at most {} us or add channels",
-                    ppm.frame_us,
-                    (frame_ns - sum_min) as f64 / 1e3,
-                    m.channels,
-                    sum_min as f64 / 1e3,
-                    sync_max.1,
-                    sync_max.0,
-                    receiver_key(ppm.receiver),
-                    (sum_min + sync_max_ns) as f64 / 1e3
-                ),
-            ));
-        }
-        Ok(m)
+        m
     }
 
     /// When frames start.
@@ -510,56 +403,6 @@ impl FrameModel {
         let ns = (us * 1e3).round();
         let c = ns.clamp(self.min_ns[i] as f64, self.max_ns[i] as f64);
         (c as u32, c != ns)
-    }
-}
-
-/// `ppm.receiver = "NAME"`, for messages.
-fn receiver_key(r: ReceiverChoice) -> String {
-    match r {
-        ReceiverChoice::Any => "ppm.receiver = \"any\" (every supported receiver)".into(),
-        ReceiverChoice::One(r) => format!("ppm.receiver = \"{}\"", r.name()),
-    }
-}
-
-/// `ppm.follow_sync_min_us` and `ppm.follow_sync_max_us` in ns, checked
-/// against the sync window of the receiver (checked in either timing, so a
-/// file stays valid when its timing is switched).
-fn follow_sync(ppm: &PpmSection, rules: &Rules) -> Result<(u64, u64), ConfigError> {
-    let (min, max) = (ppm.follow_sync_min_us, ppm.follow_sync_max_us);
-    let floor = rules.sync_min_us;
-    let ceiling = rules.sync_max_us.0.min(FOLLOW_SYNC_CEILING_US);
-    if !min.is_finite() || min < floor.0 {
-        return Err(invalid(
-            "ppm.follow_sync_min_us",
-            format!(
-                "{min} us: {}, and ppm keeps {SYNC_MARGIN_US} us inside that for a late edge: at least {} us under {}",
-                floor.1,
-                floor.0,
-                receiver_key(ppm.receiver)
-            ),
-        ));
-    }
-    if !max.is_finite() || max > ceiling {
-        return Err(invalid(
-            "ppm.follow_sync_max_us",
-            format!(
-                "{max} us is above {ceiling} us: EdgeTX and OpenTX read a sync only below 19000 us, and a late frame must not take it there ({SYNC_MARGIN_US} us kept; the most for every receiver)"
-            ),
-        ));
-    }
-    if max < min {
-        return Err(invalid(
-            "ppm.follow_sync_max_us",
-            format!("{max} us is below ppm.follow_sync_min_us = {min} us"),
-        ));
-    }
-    Ok((us_to_ns(min), us_to_ns(max)))
-}
-
-fn invalid(key: &str, message: String) -> ConfigError {
-    ConfigError::Invalid {
-        key: key.into(),
-        message,
     }
 }
 

@@ -2,6 +2,7 @@
 //! configuration file, and [`sched`]'s scheduling of the calling thread.
 //!
 //! - [`config`]: the TOML configuration both binaries read, and its validation.
+//! - [`signal`]: line levels, channel and edge limits, frame timing.
 //! - [`frame`]: the PPM frame model built from that configuration, and the
 //!   encoder that turns channel values into one frame's edge schedule.
 //! - [`decode`]: a decoder with transmitter semantics that reads any waveform back.
@@ -11,6 +12,7 @@
 //! - [`files`]: bounded reads of the configuration, key and seq files.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
 //! - [`logging`]: log lines for a terminal or for systemd's journal.
+//! - [`line`]: the line's state and its names.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
@@ -23,10 +25,12 @@ pub mod decode;
 pub mod files;
 pub mod frame;
 pub mod ipc;
+pub mod line;
 pub mod logging;
 pub mod protocol;
 pub mod receiver;
 pub mod sched;
+pub mod signal;
 pub mod time;
 pub mod trace;
 

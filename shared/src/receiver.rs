@@ -13,7 +13,7 @@
 //! waveform that decodes here decodes there.
 
 use crate::decode::{DecodedFrame, LeadingEdges};
-use crate::frame::Level;
+use crate::signal::Level;
 use serde::Deserialize;
 
 /// A receiver whose PPM decoding is modelled.

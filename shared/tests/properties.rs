@@ -106,7 +106,7 @@ fn ppm_section() -> impl Strategy<Value = PpmSection> {
 /// A model and values for every channel within its limits (ns).
 fn model_and_values() -> impl Strategy<Value = (FrameModel, Vec<u32>)> {
     ppm_section()
-        .prop_map(|s| FrameModel::from_config(&s).expect("generated config is valid"))
+        .prop_map(|s| ppm_shared::config::frame_model(&s).expect("generated config is valid"))
         .prop_flat_map(|m| {
             let ranges: Vec<_> = (0..m.channels())
                 .map(|i| m.min_ns(i)..=m.max_ns(i))
@@ -277,7 +277,7 @@ fn units_model() -> impl Strategy<Value = (FrameModel, f64, f64)> {
                 receiver: ReceiverChoice::One(Receiver::EdgeTx),
                 ..PpmSection::default()
             };
-            let m = FrameModel::from_config(&ppm).expect("generated config is valid");
+            let m = ppm_shared::config::frame_model(&ppm).expect("generated config is valid");
             (m, lo, lo + span)
         })
 }

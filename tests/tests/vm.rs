@@ -5,6 +5,9 @@
 //! value ppmd set. The host decodes that trace with an independent decoder
 //! (written here, not the project's) and with the project's, and checks the
 //! frames, the line's release at its idle level, and the start-up errors.
+//! In the same boot ppmd's `spi:` output drives the kernel's spi-gpio master
+//! on three gpio-sim lines through spidev; the host rebuilds every transfer
+//! from the traced SCK, MOSI and CS and reads its frame in bit time.
 //!
 //! Needs the host packages tests/vm/prepare.sh names (qemu-system-x86,
 //! busybox-static, ...) and Debian's package archive; without them the test
@@ -356,6 +359,7 @@ fn check(flavor: &str) {
 
     check_two_outputs(&out, base, flavor);
     check_follow(&out, gpio18, flavor);
+    check_spi(&out, flavor);
 
     let ppmd = read(&out, "ppmd.log");
     assert!(ppmd.contains("policy SCHED_FIFO priority 80"), "{ppmd}");
@@ -511,3 +515,473 @@ fn real_gpio_on_the_standard_kernel() {
 fn real_gpio_on_the_preempt_rt_kernel() {
     check("rt");
 }
+
+// ---------------------------------------------------------------- spi output
+//
+// ppmd's `spi:` output drives the kernel's spi-gpio master, which bit-banges
+// SCK, MOSI and CS (lines of a second gpio-sim chip) through gpiolib, so the
+// gpio_value tracepoint records every bit. The host rebuilds each transfer
+// (CS low) from the trace, MOSI sampled at each rising SCK edge (mode 0),
+// and reads the frame in it in bit time: bit k is the line during
+// [k/hz, (k+1)/hz) after the transfer's start. spi-gpio clocks as fast as
+// gpiolib goes whatever the rate, so real time says nothing about the bits;
+// between transfers it is real time (the sync), where only the line's
+// silence and a sync's minimum length are checked.
+
+/// The SPI bus of spi_lines.txt: global GPIO numbers as the trace shows
+/// them (chip base + offset), the bit rate ppmd was given, the SPI mode.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct SpiLines {
+    sck: u32,
+    mosi: u32,
+    cs: u32,
+    hz: u32,
+    mode: u32,
+}
+
+fn parse_spi_lines(text: &str) -> SpiLines {
+    let get = |key: &str| -> u32 {
+        text.lines()
+            .find_map(|l| l.strip_prefix(key)?.strip_prefix(' ')?.trim().parse().ok())
+            .unwrap_or_else(|| panic!("no `{key} N` in spi_lines.txt:\n{text}"))
+    };
+    SpiLines {
+        sck: get("sck"),
+        mosi: get("mosi"),
+        cs: get("cs"),
+        hz: get("hz"),
+        mode: get("mode"),
+    }
+}
+
+/// `(time_us, gpio, value)` of every value set on one of `gpios`, in trace
+/// order (the text trace's microsecond times are enough here).
+fn trace_sets(text: &str, gpios: &[u32]) -> Vec<(u64, u32, u8)> {
+    text.lines()
+        .filter_map(|l| {
+            let (head, rest) = l.split_once(": gpio_value: ")?;
+            let mut f = rest.split_whitespace();
+            let gpio: u32 = f.next()?.parse().ok()?;
+            if f.next()? != "set" || !gpios.contains(&gpio) {
+                return None;
+            }
+            let value: u8 = f.next()?.parse().ok()?;
+            let (s, us) = head.rsplit(' ').next()?.split_once('.')?;
+            let t = s.parse::<u64>().ok()? * 1_000_000 + us.parse::<u64>().ok()?;
+            Some((t, gpio, value))
+        })
+        .collect()
+}
+
+/// One transfer: CS low from `start_us` to `end_us` (trace time), `bits`
+/// the MOSI level at each rising SCK edge in between.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct SpiTransfer {
+    start_us: u64,
+    end_us: u64,
+    bits: Vec<u8>,
+}
+
+/// The bus as the trace shows it: the transfers, and what the lines did
+/// where mode 0 wants them quiet.
+#[derive(Debug, Default)]
+struct SpiBus {
+    transfers: Vec<SpiTransfer>,
+    /// MOSI's level at the end of each transfer (it stays there until the next).
+    mosi_after: Vec<Option<u8>>,
+    /// Times MOSI changed while CS was high.
+    mosi_changes_outside: Vec<u64>,
+    /// Rising SCK edges while CS was high.
+    sck_rises_outside: usize,
+    /// CS changes while SCK was high (mode 0: SCK idles low).
+    cs_with_sck_high: usize,
+}
+
+/// Rebuilds the transfers of a mode 0 bus from its lines' value changes.
+/// A line's level is unknown until its first event; CS counts as high then.
+fn spi_transfers(sets: &[(u64, u32, u8)], lines: &SpiLines) -> SpiBus {
+    assert_eq!(lines.mode, 0, "only SPI mode 0 is checked");
+    let mut bus = SpiBus::default();
+    let (mut sck, mut mosi, mut cs) = (None::<u8>, None::<u8>, None::<u8>);
+    let mut current: Option<SpiTransfer> = None;
+    for &(t, gpio, v) in sets {
+        if gpio == lines.cs {
+            let asserted = cs == Some(0);
+            if (v == 0) != asserted {
+                if sck == Some(1) {
+                    bus.cs_with_sck_high += 1;
+                }
+                if v == 0 {
+                    current = Some(SpiTransfer {
+                        start_us: t,
+                        end_us: t,
+                        bits: Vec::new(),
+                    });
+                } else if let Some(mut x) = current.take() {
+                    x.end_us = t;
+                    bus.transfers.push(x);
+                    bus.mosi_after.push(mosi);
+                }
+            }
+            cs = Some(v);
+        } else if gpio == lines.sck {
+            if v == 1 && sck != Some(1) {
+                match current.as_mut() {
+                    Some(x) => {
+                        x.bits.push(mosi.unwrap_or_else(|| {
+                            panic!("SCK rose at {t} us before MOSI was ever set")
+                        }))
+                    }
+                    None => bus.sck_rises_outside += 1,
+                }
+            }
+            sck = Some(v);
+        } else if gpio == lines.mosi {
+            if current.is_none() && mosi.is_some_and(|m| m != v) {
+                bus.mosi_changes_outside.push(t);
+            }
+            mosi = Some(v);
+        }
+    }
+    bus
+}
+
+/// A transfer's pulses (runs of 1 bits) as `(rise, fall)` bit indices; the
+/// line is low before bit 0. A pulse still high at the end has fall = len.
+fn bit_pulses(bits: &[u8]) -> Vec<(usize, usize)> {
+    let mut pulses = Vec::new();
+    let mut rise = None;
+    for (k, &b) in bits.iter().enumerate() {
+        match (b, rise) {
+            (1, None) => rise = Some(k),
+            (0, Some(r)) => {
+                pulses.push((r, k));
+                rise = None;
+            }
+            _ => {}
+        }
+    }
+    if let Some(r) = rise {
+        pulses.push((r, bits.len()));
+    }
+    pulses
+}
+
+/// A transfer read as one PPM frame, in bit time (us).
+#[derive(Debug, Clone, PartialEq)]
+struct SpiFrame {
+    /// Rise-to-rise time of a lead-in pulse before the frame (a sync), if any.
+    lead_in_us: Option<f64>,
+    /// Rise-to-rise times after the frame's first pulse.
+    channels_us: Vec<f64>,
+    /// Every pulse's width, the lead-in's included.
+    widths_us: Vec<f64>,
+    /// 0 bits after the last pulse's end.
+    tail_bits: usize,
+}
+
+/// Reads the frame of a transfer (`None`: no pulse, e.g. ppmd parking the
+/// line with a zero byte). A first rise-to-rise time of 4 ms or more (a
+/// sync to a receiver) is a lead-in pulse's.
+fn spi_frame(bits: &[u8], hz: u32) -> Option<SpiFrame> {
+    let pulses = bit_pulses(bits);
+    let last = pulses.last()?;
+    let us = |n: usize| n as f64 * 1e6 / hz as f64;
+    let mut rises: Vec<usize> = pulses.iter().map(|p| p.0).collect();
+    let lead_in_us = match rises[..] {
+        [a, b, ..] if us(b - a) >= 4_000.0 => {
+            rises.remove(0);
+            Some(us(b - a))
+        }
+        _ => None,
+    };
+    Some(SpiFrame {
+        lead_in_us,
+        channels_us: rises.windows(2).map(|w| us(w[1] - w[0])).collect(),
+        widths_us: pulses.iter().map(|&(r, f)| us(f - r)).collect(),
+        tail_bits: bits.len() - last.1,
+    })
+}
+
+/// The spi output in the guest: ppmd on /dev/spidev0.0 (spi-gpio on
+/// gpio-sim lines, see tests/vm/ppm_spi_board.c) at spi_lines.txt's rate,
+/// fed the example command at 50 Hz. Every frame transfer must carry the
+/// command exactly (to one bit), 300 us pulses, 8-bit words, MOSI low and
+/// quiet between transfers; the first after silence with its 5 ms lead-in.
+fn check_spi(out: &Path, flavor: &str) {
+    let log = read(out, "spi_ppmd.log");
+    assert_eq!(read(out, "spi_ppmd_exit.txt").trim(), "0", "{log}");
+    let lines = parse_spi_lines(&read(out, "spi_lines.txt"));
+    assert!(
+        log.contains(&format!("spi /dev/spidev0.0 at {} Hz", lines.hz)),
+        "{log}"
+    );
+    assert!(log.contains(" 0 write errors"), "{log}");
+    let trace = read(out, "spi_trace.txt");
+    let sets = trace_sets(&trace, &[lines.sck, lines.mosi, lines.cs]);
+    let bus = spi_transfers(&sets, &lines);
+    let hz = lines.hz;
+    let bit_us = 1e6 / hz as f64;
+    let pulse_us = 300.0;
+    let what = |k: usize| format!("transfer {k} of the spi output on {flavor}");
+
+    // Mode 0 on the wires: SCK low whenever CS changes and never clocking
+    // outside a transfer; MOSI still between transfers.
+    assert_eq!(
+        bus.sck_rises_outside, 0,
+        "SCK clocked with CS high on {flavor}"
+    );
+    assert_eq!(
+        bus.cs_with_sck_high, 0,
+        "CS changed with SCK high on {flavor}"
+    );
+    assert!(
+        bus.mosi_changes_outside.is_empty(),
+        "MOSI changed between transfers on {flavor} at {:?} us",
+        bus.mosi_changes_outside
+    );
+
+    let mut frames: Vec<(usize, SpiFrame)> = Vec::new();
+    let mut parks = Vec::new();
+    for (k, x) in bus.transfers.iter().enumerate() {
+        assert!(
+            !x.bits.is_empty() && x.bits.len() % 8 == 0,
+            "{}: {} bits, not whole bytes",
+            what(k),
+            x.bits.len()
+        );
+        match spi_frame(&x.bits, hz) {
+            Some(f) => frames.push((k, f)),
+            None => parks.push(k),
+        }
+    }
+    assert!(
+        frames.len() >= 40,
+        "{} frame transfers (of {}) on {flavor}",
+        frames.len(),
+        bus.transfers.len()
+    );
+    // Zero-byte transfers (ppmd parks the line low when it opens the device)
+    // only before the first frame or after the last.
+    let (first, last) = (frames[0].0, frames[frames.len() - 1].0);
+    assert!(
+        parks.iter().all(|&k| k < first || k > last),
+        "pulse-less transfers {parks:?} among the frames {first}..={last} on {flavor}"
+    );
+    let near = |got: f64, want: f64| (got - want).abs() <= bit_us + 1e-9;
+    for (i, (k, f)) in frames.iter().enumerate() {
+        let x = &bus.transfers[*k];
+        let ok = f.channels_us.len() == COMMAND_US.len()
+            && f.channels_us
+                .iter()
+                .zip(COMMAND_US)
+                .all(|(g, w)| near(*g, w as f64))
+            && f.widths_us.iter().all(|w| near(*w, pulse_us))
+            && x.bits[0] == 1
+            && (1..=8).contains(&f.tail_bits);
+        assert!(ok, "{}: {f:?}, want {COMMAND_US:?} us, {pulse_us} us pulses, starting with a pulse, 1..=8 zero bits after the last", what(*k));
+        // The lead-in: on the first frame (after silence), 5 ms before it;
+        // on another only after skipped frames, reported below.
+        match f.lead_in_us {
+            Some(l) => assert!(near(l, 5_000.0), "{}: lead-in {l} us", what(*k)),
+            None => assert!(i > 0, "{}: the first frame has no lead-in: {f:?}", what(*k)),
+        }
+        assert_eq!(
+            bus.mosi_after[*k],
+            Some(0),
+            "{}: MOSI not low after it",
+            what(*k)
+        );
+    }
+    // One transfer per frame ppmd logged.
+    let logged = read(out, "spi_frames.jsonl")
+        .lines()
+        .filter(|l| l.contains(r#""type":"frame""#))
+        .count();
+    assert_eq!(
+        logged,
+        frames.len(),
+        "{logged} frames logged, {} frame transfers on {flavor}",
+        frames.len()
+    );
+    // Between frames, in real time: at least the shortest sync ppmd keeps
+    // (follow_sync_min_us, 5000) less 500 us. The bits take no real time to
+    // speak of (spi-gpio clocks as fast as gpiolib goes: ~1.6 us a bit
+    // under TCG), so only a transfer started far too soon fails this.
+    let gaps: Vec<u64> = frames
+        .windows(2)
+        .map(|w| bus.transfers[w[1].0].start_us - bus.transfers[w[0].0].end_us)
+        .collect();
+    let min_gap = *gaps.iter().min().unwrap();
+    assert!(
+        min_gap >= 4_500,
+        "a sync of {min_gap} us between transfers on {flavor}: {gaps:?}"
+    );
+
+    // The project's decoder on the same line: each transfer's edges in bit
+    // time from its real start, the syncs in real time.
+    let mut edges: Vec<(u64, Level)> = Vec::new();
+    for (k, _) in &frames {
+        let x = &bus.transfers[*k];
+        let at = |bit: usize| x.start_us * 1_000 + bit as u64 * 1_000_000_000 / hz as u64;
+        for (r, f) in bit_pulses(&x.bits) {
+            edges.push((at(r), Level::High));
+            edges.push((at(f), Level::Low));
+        }
+    }
+    let ours = decode(edges, Level::High, DecoderLimits::default());
+    let (complete, open): (Vec<_>, Vec<_>) = ours.iter().partition(|f| f.complete);
+    assert_eq!(
+        complete.len() + open.len(),
+        frames.len(),
+        "the project's decoder read {} frames (of {}) on {flavor}",
+        ours.len(),
+        frames.len()
+    );
+    assert!(open.len() <= 1 && complete.len() + 1 >= frames.len());
+    for f in &ours {
+        assert_eq!(
+            f.channels_us(),
+            COMMAND_US,
+            "the project's decoder on {flavor}"
+        );
+    }
+
+    // Reported, not asserted: how the bus ran in real (guest) time.
+    let mut took: Vec<u64> = frames
+        .iter()
+        .map(|(k, _)| bus.transfers[*k].end_us - bus.transfers[*k].start_us)
+        .collect();
+    took.sort_unstable();
+    let bits: Vec<usize> = frames
+        .iter()
+        .map(|(k, _)| bus.transfers[*k].bits.len())
+        .collect();
+    let lead_ins = frames
+        .iter()
+        .filter(|(_, f)| f.lead_in_us.is_some())
+        .count();
+    eprintln!(
+        "spi output on {flavor}: {} frame transfers at {hz} Hz ({}..={} bits), {} lead-in, {} pulse-less (park) transfers; CS low for {}..{} us (median {}) of guest time a transfer, syncs {}..{} us",
+        frames.len(),
+        bits.iter().min().unwrap(),
+        bits.iter().max().unwrap(),
+        lead_ins,
+        parks.len(),
+        took[0],
+        took[took.len() - 1],
+        took[took.len() / 2],
+        min_gap,
+        gaps.iter().max().unwrap()
+    );
+}
+
+/// The bit reconstruction on a real trace: spidev's write of the two bytes
+/// 0xa5 0x0f on the std kernel (tests/vm/spi-demo-test.sh), as spi-gpio
+/// bit-bangs it: SCK to idle, CS low, MOSI set high (the line's direction),
+/// then per bit MOSI (when it changes, and at each byte's first bit) and an
+/// SCK pulse; CS high.
+#[test]
+fn spi_bits_from_a_kernel_trace() {
+    let lines = SpiLines {
+        sck: 1021,
+        mosi: 1022,
+        cs: 1023,
+        hz: 100_000,
+        mode: 0,
+    };
+    let sets = trace_sets(SPI_DEMO_TRACE, &[1021, 1022, 1023]);
+    assert_eq!(sets.len(), 45);
+    let bus = spi_transfers(&sets, &lines);
+    let bytes: Vec<u8> = bus.transfers[0]
+        .bits
+        .chunks(8)
+        .map(|b| b.iter().fold(0, |acc, &bit| acc << 1 | bit))
+        .collect();
+    assert_eq!(bus.transfers.len(), 1);
+    assert_eq!(bytes, [0xa5, 0x0f]);
+    assert_eq!(
+        (bus.transfers[0].start_us, bus.transfers[0].end_us),
+        (1_104_854, 1_104_887)
+    );
+    assert_eq!(bus.mosi_after, [Some(1)]);
+    assert!(bus.mosi_changes_outside.is_empty());
+    assert_eq!((bus.sck_rises_outside, bus.cs_with_sck_high), (0, 0));
+    // Read as PPM at 100 kHz: pulses of 10, 10, 10, 10 and 40 us; no lead-in.
+    let f = spi_frame(&bus.transfers[0].bits, 100_000).unwrap();
+    assert_eq!(f.widths_us, [10.0, 10.0, 10.0, 10.0, 40.0]);
+    assert_eq!(f.channels_us, [20.0, 30.0, 20.0, 50.0]);
+    assert_eq!((f.lead_in_us, f.tail_bits), (None, 0));
+}
+
+/// A PPM frame with a lead-in, in bits at 100 kHz, read back.
+#[test]
+fn spi_frame_reads_a_lead_in_and_the_channels() {
+    let mut bits = Vec::new();
+    let pulse = |bits: &mut Vec<u8>, period_us: usize| {
+        bits.extend([1; 30]);
+        bits.extend(std::iter::repeat_n(0, period_us / 10 - 30));
+    };
+    pulse(&mut bits, 5_000);
+    for us in COMMAND_US {
+        pulse(&mut bits, us as usize);
+    }
+    bits.extend([1; 30]);
+    bits.extend([0; 8]);
+    assert_eq!(bits.len() % 8, 0);
+    let f = spi_frame(&bits, 100_000).unwrap();
+    assert_eq!(f.lead_in_us, Some(5_000.0));
+    assert_eq!(f.channels_us, COMMAND_US.map(|u| u as f64));
+    assert_eq!(f.widths_us, [300.0; 10]);
+    assert_eq!(f.tail_bits, 8);
+    assert_eq!(spi_frame(&[0; 8], 100_000), None);
+}
+
+/// The first transfer of tests/vm/spi-demo-test.sh's trace (std kernel).
+const SPI_DEMO_TRACE: &str = "\
+    dd-125     [000] .....     1.104854: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104854: gpio_value: 1023 set 0\n\
+    dd-125     [000] .....     1.104856: gpio_value: 1022 set 1\n\
+    dd-125     [000] .....     1.104856: gpio_value: 1022 set 1\n\
+    dd-125     [000] .....     1.104857: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104858: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104859: gpio_value: 1022 set 0\n\
+    dd-125     [000] .....     1.104859: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104860: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104861: gpio_value: 1022 set 1\n\
+    dd-125     [000] .....     1.104862: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104862: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104863: gpio_value: 1022 set 0\n\
+    dd-125     [000] .....     1.104864: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104864: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104865: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104866: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104867: gpio_value: 1022 set 1\n\
+    dd-125     [000] .....     1.104867: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104868: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104869: gpio_value: 1022 set 0\n\
+    dd-125     [000] .....     1.104870: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104870: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104871: gpio_value: 1022 set 1\n\
+    dd-125     [000] .....     1.104872: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104872: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104873: gpio_value: 1022 set 0\n\
+    dd-125     [000] .....     1.104874: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104875: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104875: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104876: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104877: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104878: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104878: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104879: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104880: gpio_value: 1022 set 1\n\
+    dd-125     [000] .....     1.104880: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104881: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104882: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104883: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104883: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104884: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104885: gpio_value: 1021 set 1\n\
+    dd-125     [000] .....     1.104886: gpio_value: 1021 set 0\n\
+    dd-125     [000] .....     1.104887: gpio_value: 1023 set 1\n\
+";

@@ -11,6 +11,11 @@
 # Results in /out: gpio_trace.txt, *.log, chip.txt, ppmd_exit.txt,
 # debug_gpio_after.txt, frames.jsonl, two_trace.txt, two_ppmd_exit.txt,
 # follow_trace.txt, follow_frames.jsonl, follow_ppmd_exit.txt.
+#   - ppmd's spi output on the kernel's spi-gpio master (bit-banging three
+#     lines of a second gpio-sim chip, "ppm-spi") through spidev, commands
+#     from ppm-send at 50 Hz: spi_trace.txt (the gpio_value events of SCK,
+#     MOSI and CS), spi_lines.txt (their global GPIO numbers, the bit rate,
+#     the SPI mode), spi_ppmd.log, spi_ppmd_exit.txt, spi_frames.jsonl.
 set -eu
 . /lib/vmtest.sh
 
@@ -130,4 +135,46 @@ capture=$!
 sleep 0.3
 pull-ppm "$(sim_attr_dir "$chip" 0)/pull" 60 1000,1200,1700,2000 2> /out/pull-ppm.log
 wait "$capture" || vmtest_die "jitter --capture failed: $(cat /out/capture.log)"
+
+# The spi output: ppmd sends each frame as one spidev transfer on MOSI of the
+# kernel's spi-gpio master, which bit-bangs SCK, MOSI and CS (lines 0, 1, 2
+# of chip ppm-spi) through gpiolib: every bit is traced. spi-gpio ignores the
+# rate (it clocks as fast as gpiolib goes, here ~1.6 us a bit, so a 12 ms
+# frame at 100 kHz shifts out in ~2 ms); the bits are what is checked.
+spi_hz=100000
+spi_chip=$(make_sim_chip ppm-spi 3 SPI_SCK SPI_MOSI SPI_CS)
+spi_base=$(sim_chip_base "$spi_chip")
+spidev=$(spi_gpio_bus ppm-spi 0 0 1 2)
+# Global GPIO numbers, as the gpio_value tracepoint shows them (base + offset).
+printf 'sck %s\nmosi %s\ncs %s\nhz %s\nmode 0\n' \
+    "$spi_base" $((spi_base + 1)) $((spi_base + 2)) "$spi_hz" > /out/spi_lines.txt
+cat > /tmp/spi.toml <<CONF
+name = "vm-spi"
+[ingress]
+listen = "127.0.0.1:5009"
+[ipc]
+root = "/tmp/ppm-ipc"
+[ppmd]
+spi_hz = $spi_hz
+CONF
+# ~2600 events a frame (two SCK edges a bit, MOSI's changes, CS).
+VMTEST_TRACE_BUF_KB=32768 start_gpio_trace gpio_value
+udp-ingress --config /tmp/spi.toml 2> /out/spi_ingress.log &
+sing=$!
+ppmd --config /tmp/spi.toml --output "spi:$spidev" --frame-log /out/spi_frames.jsonl \
+    2> /out/spi_ppmd.log &
+sppmd=$!
+sleep 1
+ppm-send --to 127.0.0.1:5009 --rate 50 --count 50 '[1000, 1200, 1700, 2000]'
+sleep 0.5
+kill -TERM "$sppmd"
+status=0
+wait "$sppmd" || status=$?
+echo "$status" > /out/spi_ppmd_exit.txt
+stop_gpio_trace /tmp/spi_trace_all.txt
+grep -E "gpio_value: ($spi_base|$((spi_base + 1))|$((spi_base + 2))) " /tmp/spi_trace_all.txt \
+    > /out/spi_trace.txt || true
+rm -f /tmp/spi_trace_all.txt
+kill -TERM "$sing"
+wait "$sing" || true
 echo "pipeline: done"

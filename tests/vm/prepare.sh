@@ -8,12 +8,16 @@
 #     in the configured apt repositories (override: PPM_VM_KABI=NN);
 #   - `apt-get download`s the packages and unpacks them with `dpkg-deb -x`
 #     into a scratch directory (tmpfs when possible), deleted at the end;
-#   - builds gpio-sim.ko and irq_sim.ko out of tree from linux-source-6.1
-#     (Debian builds neither: CONFIG_GPIO_SIM and CONFIG_IRQ_SIM are unset);
+#   - builds gpio-sim.ko, irq_sim.ko and spi-gpio.ko out of tree from
+#     linux-source-6.1 (Debian builds none of them: CONFIG_GPIO_SIM,
+#     CONFIG_IRQ_SIM and CONFIG_SPI_GPIO are unset), and our board module
+#     ppm_spi_board.ko (tests/vm/ppm_spi_board.c: spi-gpio on gpio-sim lines);
 #   - keeps only vmlinuz (+ the uncompressed vmlinux, which boots ~5 s
 #     faster under TCG), the kernel config and the few modules the guest
 #     needs (configfs, virtio-blk for the result disk, irq_sim, gpio-sim,
-#     plus their dependencies): ~40 MB per flavour.
+#     spi-bitbang, spi-gpio, plus their dependencies; ppm_spi_board is kept
+#     but not loaded at boot, the SPI test insmods it with its parameters):
+#     ~40 MB per flavour.
 #
 # Result (cached, idempotent): $CACHE/<kernel release>/{vmlinuz,vmlinux,config,modules/}
 # and $CACHE/FLAVOR.env, which run.sh sources. CACHE defaults to
@@ -59,9 +63,12 @@ flock 9
 # configfs is =m in Debian's config (gpio-sim is configured through it);
 # virtio_blk/virtio_pci carry the result disk that run.sh reads back.
 # Dependencies are resolved from each module's .modinfo "depends=" field.
-WANTED_IMAGE_MODULES="configfs virtio_pci virtio_blk"
+# spi_bitbang (=m) is what spi-gpio (built here) uses; spidev is =y.
+WANTED_IMAGE_MODULES="configfs virtio_pci virtio_blk spi_bitbang"
 # Bump when the build recipe changes so that stale caches are rebuilt.
-RECIPE_VERSION=3
+RECIPE_VERSION=4
+# The GPL sources taken from linux-source-6.1 (shared by both flavours).
+SRC_FILES="drivers/gpio/gpio-sim.c drivers/gpio/gpiolib.h kernel/irq/irq_sim.c drivers/spi/spi-gpio.c drivers/spi/spi-bitbang-txrx.h"
 
 # ---------------------------------------------------------------- host tools
 check_tools() {
@@ -186,7 +193,7 @@ fi
 read -r NN DEBVER <<<"$sel"
 KREL=6.1.0-$NN-$VARIANT
 KDIR=$CACHE/$KREL
-STAMP="$DEBVER recipe=$RECIPE_VERSION modules=$WANTED_IMAGE_MODULES"
+STAMP="$DEBVER recipe=$RECIPE_VERSION modules=$WANTED_IMAGE_MODULES board=$(cksum < "$HERE/ppm_spi_board.c" | cut -d' ' -f1)"
 
 if [ -f "$KDIR/.stamp" ] && [ "$(cat "$KDIR/.stamp")" = "$STAMP" ]; then
     log "cached: $KREL ($DEBVER)"
@@ -208,11 +215,13 @@ else
     mkdir -p "$WORK/debs" "$WORK/root" "$WORK/build"
     trap 'rm -rf "$WORK"' EXIT
 
-    # The three GPL source files are shared by both flavours: extract them
-    # once per Debian version (the linux-source .deb is 140 MB of xz).
+    # The GPL source files are shared by both flavours: extract them once
+    # per Debian version (the linux-source .deb is 140 MB of xz). .done
+    # lists the files, so that a cache from an older list is redone.
     SRC=$CACHE/src-$DEBVER
+    src_done() { [ -f "$SRC/.done" ] && [ "$(cat "$SRC/.done")" = "$SRC_FILES" ]; }
     PKGS="linux-image-$KREL-unsigned linux-headers-$KREL linux-headers-6.1.0-$NN-common$COMMON_SUFFIX linux-kbuild-6.1"
-    [ -f "$SRC/.done" ] || PKGS="$PKGS linux-source-6.1"
+    src_done || PKGS="$PKGS linux-source-6.1"
 
     # --- download (apt-get download writes to the current directory).
     # shellcheck disable=SC2046 # one pkg=version per word
@@ -233,22 +242,21 @@ else
         die "unexpected headers Makefile layout: $(cat "$HDR/Makefile")"
 
     log "  unpacked"
-    # --- extract only the three source files we need, streaming the
-    # tarball out of the .deb instead of unpacking it.
-    if [ ! -f "$SRC/.done" ]; then
+    # --- extract only the source files we need, streaming the tarball out
+    # of the .deb instead of unpacking it.
+    if ! src_done; then
         rm -rf "$SRC.tmp"; mkdir -p "$SRC.tmp"
+        # shellcheck disable=SC2046 # one path per word
         dpkg-deb --fsys-tarfile "$(echo "$WORK"/debs/linux-source-6.1_*.deb)" |
             tar -xOf - ./usr/src/linux-source-6.1.tar.xz |
             tar -xJf - -C "$SRC.tmp" --strip-components=1 \
-                linux-source-6.1/drivers/gpio/gpio-sim.c \
-                linux-source-6.1/drivers/gpio/gpiolib.h \
-                linux-source-6.1/kernel/irq/irq_sim.c
-        touch "$SRC.tmp/.done"
+                $(for f in $SRC_FILES; do echo "linux-source-6.1/$f"; done)
+        echo "$SRC_FILES" > "$SRC.tmp/.done"
         rm -rf "$SRC"; mv "$SRC.tmp" "$SRC" 2>/dev/null || true  # a parallel run may have won
     fi
     B=$WORK/build
-    cp "$SRC/drivers/gpio/gpio-sim.c" "$SRC/drivers/gpio/gpiolib.h" \
-       "$SRC/kernel/irq/irq_sim.c" "$B/"
+    for f in $SRC_FILES; do cp "$SRC/$f" "$B/"; done
+    cp "$HERE/ppm_spi_board.c" "$B/"
 
     # irq_sim.c is normally built in and calls handle_simple_irq(irq_to_desc(n));
     # irq_to_desc is not exported to modules. generic_handle_irq(n) does the
@@ -260,11 +268,11 @@ else
     # Built-in code has no license tag; modules without one cannot use GPL symbols.
     grep -q MODULE_LICENSE "$B/irq_sim.c" || {
         printf '\n#include <linux/module.h>\nMODULE_LICENSE("GPL");\nMODULE_DESCRIPTION("Interrupt simulator (out-of-tree build for tests)");\n' >> "$B/irq_sim.c"; }
-    echo 'obj-m := irq_sim.o gpio-sim.o' > "$B/Kbuild"
-    log "  building gpio-sim.ko, irq_sim.ko"
+    echo 'obj-m := irq_sim.o gpio-sim.o spi-gpio.o ppm_spi_board.o' > "$B/Kbuild"
+    log "  building gpio-sim.ko, irq_sim.ko, spi-gpio.ko, ppm_spi_board.ko"
     make -C "$HDR" M="$B" -j2 modules >"$WORK/build.log" 2>&1 ||
         { cat "$WORK/build.log" >&2; die "module build failed (log above)"; }
-    for m in irq_sim gpio-sim; do
+    for m in irq_sim gpio-sim spi-gpio ppm_spi_board; do
         [ -f "$B/$m.ko" ] || die "$m.ko not built"
         vm=$(modinfo_field "$B/$m.ko" vermagic)
         case "$vm" in "$KREL "*) ;; *) die "$m.ko has vermagic '$vm', expected $KREL" ;; esac
@@ -307,12 +315,18 @@ else
     done < <(find "$WORK/root/lib/modules/$KREL/kernel" -name '*.ko' -print0)
     MODPATH[irq_sim]=$B/irq_sim.ko
     MODPATH[gpio_sim]=$B/gpio-sim.ko
-    for m in $WANTED_IMAGE_MODULES irq_sim gpio_sim; do add_module "$m"; done
+    MODPATH[spi_gpio]=$B/spi-gpio.ko
+    for m in $WANTED_IMAGE_MODULES irq_sim gpio_sim spi_gpio; do add_module "$m"; done
+    # Loaded by the SPI test itself (its parameters name the lines).
+    cp "$B/ppm_spi_board.ko" "$MODOUT/"
 
     # Facts worth failing early on.
     grep -q '^CONFIG_GPIO_CDEV=y' "$STAGE/config" || die "kernel lacks CONFIG_GPIO_CDEV"
     grep -q '^CONFIG_TRACING=y' "$STAGE/config" || die "kernel lacks CONFIG_TRACING"
     grep -q '^CONFIG_DEVTMPFS=y' "$STAGE/config" || die "kernel lacks CONFIG_DEVTMPFS"
+    grep -q '^CONFIG_SPI_SPIDEV=[ym]' "$STAGE/config" || die "kernel lacks CONFIG_SPI_SPIDEV"
+    grep -q '^CONFIG_SPI_SPIDEV=y' "$STAGE/config" ||
+        die "spidev is a module in this kernel (CONFIG_SPI_SPIDEV=m): add spidev to WANTED_IMAGE_MODULES"
 
     echo "$STAMP" > "$STAGE/.stamp"
     mv "$STAGE" "$KDIR"

@@ -20,6 +20,7 @@ use ipnet::IpNet;
 use ppm_shared::auth::{self, AuthKey};
 use ppm_shared::frame::FrameModel;
 use ppm_shared::ipc::TimingSnapshot;
+use ppm_shared::line::LineState;
 use ppm_shared::protocol::{self, Command, Reject, RejectReason, SeqGate, STATUS_REPLY_MAX_RATIO};
 use serde_json::{json, Value};
 use std::net::{IpAddr, SocketAddr};
@@ -596,12 +597,7 @@ impl ReceiveThread {
 fn ppmd_status(s: &TimingSnapshot, age_ns: u64) -> Value {
     let us = |ns: u64| round3(ns as f64 / 1e3);
     json!({
-        "state": match s.state {
-            0 => "silent",
-            1 => "active",
-            2 => "failsafe",
-            _ => "unknown",
-        },
+        "state": LineState::from_code(s.state).map_or("unknown", LineState::name),
         "timing": if s.timing == 1 { "follow" } else { "grid" },
         "frames": s.frames,
         "repeats": s.repeats,

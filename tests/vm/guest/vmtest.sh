@@ -103,5 +103,26 @@ stop_gpio_trace() {
     [ "$_over" = 0 ] || vmtest_die "trace buffer overran ($_over events lost); raise VMTEST_TRACE_BUF_KB"
 }
 
+# spi_gpio_bus LABEL BUS SCK MOSI CS: an SPI master (the kernel's spi-gpio,
+# bit-banging through gpiolib) on lines SCK, MOSI, CS (offsets) of the
+# gpio-sim chip LABEL (made with make_sim_chip), with one device BUS.0
+# (mode 0) bound to spidev; prints its node, /dev/spidevBUS.0. spi-bitbang
+# and spi-gpio are loaded at boot; ppm_spi_board.ko (tests/vm/
+# ppm_spi_board.c) adds the gpiod lookups, platform device spi_gpio.BUS and
+# the SPI device, which no driver claims until driver_override names spidev.
+spi_gpio_bus() {
+    [ $# -eq 5 ] || vmtest_die "usage: spi_gpio_bus LABEL BUS SCK MOSI CS"
+    insmod /lib/modules/ppm_spi_board.ko chip="$1" bus="$2" sck="$3" mosi="$4" cs="$5" ||
+        vmtest_die "insmod ppm_spi_board failed: $(dmesg | grep -E 'spi|gpio' | tail -n 5)"
+    _d=spi$2.0
+    [ -d /sys/bus/spi/devices/$_d ] || vmtest_die "no SPI device $_d"
+    echo spidev > /sys/bus/spi/devices/$_d/driver_override
+    echo "$_d" > /sys/bus/spi/drivers/spidev/bind || vmtest_die "cannot bind spidev to $_d"
+    _i=0
+    while [ ! -c "/dev/spidev$2.0" ] && [ $_i -lt 50 ]; do sleep 0.1; _i=$((_i + 1)); done
+    [ -c "/dev/spidev$2.0" ] || vmtest_die "/dev/spidev$2.0 did not appear"
+    echo "/dev/spidev$2.0"
+}
+
 # trace_mark TEXT: put a line into the trace (shows as tracing_mark_write).
 trace_mark() { echo "$*" > $VMTEST_TRACEFS/trace_marker; }
