@@ -33,8 +33,8 @@ fn imports(text: &str) -> BTreeSet<String> {
                 .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
                 .collect();
             // `crate::{a, b}` lists several.
-            if after.starts_with('{') {
-                let inner = after[1..].split('}').next().unwrap_or("");
+            if let Some(list) = after.strip_prefix('{') {
+                let inner = list.split('}').next().unwrap_or("");
                 for part in inner.split(',') {
                     let m: String = part
                         .trim()
@@ -48,7 +48,7 @@ fn imports(text: &str) -> BTreeSet<String> {
             } else if !name.is_empty() {
                 found.insert(name);
             }
-            rest = &after[..];
+            rest = after;
         }
     }
     found
