@@ -15,6 +15,7 @@
 //! datagrams from other sources are dropped before they are parsed.
 
 pub mod seqfile;
+pub mod server;
 
 use ipnet::IpNet;
 use ppm_shared::auth::{self, AuthKey};

@@ -1,0 +1,621 @@
+//! The receive loop of udp-ingress: the non-blocking socket (mio), the
+//! [`Intake`](crate::Intake), the publisher to ppmd and the status replies.
+//! The binary parses its options and calls [`Server::open`] and
+//! [`Server::run`].
+
+use crate::seqfile::SeqFile;
+use crate::{pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer};
+use anyhow::{Context, Result};
+use iceoryx2::port::update_connections::UpdateConnections;
+use mio::net::UdpSocket;
+use mio::{Events, Interest, Poll, Token};
+use ppm_shared::auth::AuthKey;
+use ppm_shared::config::{Config, IngressSection};
+use ppm_shared::frame::FrameModel;
+use ppm_shared::ipc::{self, CommandSample, TimingSnapshot};
+use ppm_shared::sched;
+use ppm_shared::time::{now_ns, realtime_ns};
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::time::{Duration, Instant};
+
+const SOCKET: Token = Token(0);
+/// Longest wait for datagrams; on each wake-up the publisher also offers its
+/// last sample to subscribers that connected since (a restarted ppmd).
+const POLL_TIMEOUT: Duration = Duration::from_millis(20);
+/// Largest UDP payload.
+const MAX_DATAGRAM: usize = 65_536;
+/// Longest a drain goes on before the newest command so far is published.
+const DRAIN_PUBLISH_EVERY: Duration = Duration::from_micros(200);
+/// How often the counters are logged while datagrams arrive.
+const REPORT_EVERY: Duration = Duration::from_secs(60);
+/// Longest interval between writes of the last accepted signed `seq` to the
+/// seq file while commands arrive: a crash forgets at most this much.
+const SEQ_SAVE_EVERY: Duration = Duration::from_millis(100);
+/// Most status queries answered per wake-up; more are counted as dropped
+/// (a flood of queries must not delay the commands).
+const MAX_STATUS_PER_WAKE: usize = 32;
+/// Status replies per second at most (and in one burst): a reply is about
+/// 40 times larger than the query, so an open port must not become a
+/// traffic amplifier. Queries beyond it are counted as dropped.
+const STATUS_REPLIES_PER_S: f64 = 50.0;
+
+/// A token bucket for status replies.
+struct ReplyBudget {
+    tokens: f64,
+    last: Instant,
+}
+
+impl ReplyBudget {
+    fn new() -> ReplyBudget {
+        ReplyBudget {
+            tokens: STATUS_REPLIES_PER_S,
+            last: Instant::now(),
+        }
+    }
+
+    fn take(&mut self) -> bool {
+        let now = Instant::now();
+        let refill = now.duration_since(self.last).as_secs_f64() * STATUS_REPLIES_PER_S;
+        self.tokens = (self.tokens + refill).min(STATUS_REPLIES_PER_S);
+        self.last = now;
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
+}
+
+type Publisher =
+    iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, CommandSample, ()>;
+type Notifier = iceoryx2::port::notifier::Notifier<iceoryx2::service::ipc::Service>;
+type StatsSubscriber =
+    iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, TimingSnapshot, ()>;
+
+/// Pins the calling thread (the receive thread) and gives it SCHED_FIFO as
+/// `[ingress]` asks. A setting that cannot be had stops the program, unless
+/// a degraded run is allowed: then each is logged as DEGRADED RUN. Returns
+/// what was obtained.
+fn schedule_receive_thread(
+    ingress: &IngressSection,
+    allow_degraded: bool,
+) -> Result<ReceiveThread> {
+    let mut shortfalls = Vec::new();
+    let mut obtained = |key: &str, r: Result<(), sched::Shortfall>| -> Result<bool> {
+        match r {
+            Ok(()) => Ok(true),
+            Err(s) if allow_degraded => {
+                shortfalls.push(s);
+                Ok(false)
+            }
+            Err(s) => Err(anyhow::Error::new(s).context(format!("receive thread ({key})"))),
+        }
+    };
+    let mut cpu = None;
+    if let Some(c) = ingress.cpu.index() {
+        if obtained(&format!("ingress.cpu = {c}"), sched::pin(c, "ingress.cpu"))? {
+            cpu = Some(c);
+        }
+    }
+    let mut priority = 0;
+    if ingress.priority > 0
+        && obtained(
+            &format!("ingress.priority = {}", ingress.priority),
+            sched::set_fifo(ingress.priority, "udp-ingress"),
+        )?
+    {
+        priority = ingress.priority;
+    }
+    for s in &shortfalls {
+        log::warn!("DEGRADED RUN: receive thread: {s}");
+    }
+    if ingress.busy_poll {
+        if cpu.is_none() {
+            log::warn!(
+                "busy_poll without a CPU of its own: the spinning thread may share ppmd's; pin it with ingress.cpu (or --cpu) to another CPU"
+            );
+        }
+        if priority > 0 {
+            log::warn!(
+                "busy_poll at SCHED_FIFO priority {priority}: normal tasks on {} run only in the time RT throttling reserves for them (/proc/sys/kernel/sched_rt_runtime_us), and the receive thread stops while they do",
+                cpu.map_or("the CPU it spins on".to_string(), |c| format!("CPU {c}"))
+            );
+        }
+    }
+    Ok(ReceiveThread {
+        busy_poll: ingress.busy_poll,
+        priority,
+        cpu,
+        degraded: !shortfalls.is_empty(),
+    })
+}
+
+/// The receive loop: the socket, the intake, the publisher.
+pub struct Server {
+    /// mio's poll, `None` when busy-polling.
+    poll: Option<Poll>,
+    name: String,
+    socket: UdpSocket,
+    publisher: Publisher,
+    notifier: Notifier,
+    _wake: ipc::WakeService,
+    stats: Option<StatsSubscriber>,
+    intake: Intake,
+    seq_file: Option<SeqFile>,
+    seq_save_failed: bool,
+    started: Instant,
+    thread: ReceiveThread,
+    buf: Vec<u8>,
+    cmsg: Vec<u8>,
+    /// Status queries of this wake-up: their sources and sizes.
+    status_to: Vec<(SocketAddr, usize)>,
+    /// `ingress.status_allow`.
+    status_allow: Vec<ipnet::IpNet>,
+    ppmd_snapshot: Option<TimingSnapshot>,
+    reply_budget: ReplyBudget,
+    ingress_seq: u64,
+    fingerprint: u64,
+    publish_errors: u64,
+    last_report: Instant,
+    reported_received: u64,
+}
+
+impl Server {
+    /// Receives everything pending, keeping the newest valid command and
+    /// noting status queries; returns how many datagrams it received.
+    fn drain(&mut self) -> usize {
+        // Drain everything pending: only the newest valid command is published.
+        // Under a flood the socket may never run dry; the newest so far is
+        // then published every DRAIN_PUBLISH_EVERY, so it never gets old.
+        let mut drain_started = Instant::now();
+        let mut n_received = 0;
+        loop {
+            if drain_started.elapsed() >= DRAIN_PUBLISH_EVERY {
+                publish(
+                    &mut self.intake,
+                    (&self.publisher, &self.notifier),
+                    self.fingerprint,
+                    &mut self.ingress_seq,
+                    &mut self.publish_errors,
+                );
+                drain_started = Instant::now();
+            }
+            let (n, from, kernel_real) = match receive(&self.socket, &mut self.buf, &mut self.cmsg)
+            {
+                Ok(Some(got)) => got,
+                Ok(None) => break,
+                Err(e) => {
+                    log::warn!("receive error: {e}");
+                    break;
+                }
+            };
+            n_received += 1;
+            // Stamped with the kernel's receive time (SO_TIMESTAMPNS, on
+            // CLOCK_REALTIME), carried over to CLOCK_MONOTONIC for ppmd.
+            let (mono_now, real_now) = (now_ns(), realtime_ns());
+            let (mono, real) = match kernel_real {
+                Some(k) => (mono_now.saturating_sub(real_now.saturating_sub(k)), k),
+                None => (mono_now, real_now),
+            };
+            match self
+                .intake
+                .offer(&self.buf[..n], from, mono, real, Instant::now())
+            {
+                Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
+                Outcome::Stale => log::debug!("stale command from {from} dropped"),
+                Outcome::Status if self.status_to.len() < MAX_STATUS_PER_WAKE => {
+                    self.status_to.push((from, n))
+                }
+                Outcome::Status => self.intake.status_dropped(),
+                _ => {}
+            }
+        }
+        n_received
+    }
+
+    /// After a drain: publishes its newest command (or offers the last one
+    /// to subscribers that connected since), answers the status queries,
+    /// saves the seq and logs the counters now and then.
+    fn settle(&mut self) {
+        if !publish(
+            &mut self.intake,
+            (&self.publisher, &self.notifier),
+            self.fingerprint,
+            &mut self.ingress_seq,
+            &mut self.publish_errors,
+        ) {
+            if let Err(e) = self.publisher.update_connections() {
+                log::debug!("updating connections: {e:?}");
+            }
+        }
+        // Answered after publishing, so the counters add up.
+        if !self.status_to.is_empty() {
+            if let Some(sub) = &self.stats {
+                newest_snapshot(sub, &mut self.ppmd_snapshot);
+            }
+            let reply = self
+                .intake
+                .status(
+                    &self.name,
+                    self.started.elapsed(),
+                    &self.thread,
+                    now_ns(),
+                    self.ppmd_snapshot.as_ref(),
+                )
+                .to_string();
+            for (to, query_len) in self.status_to.drain(..) {
+                if !self.reply_budget.take() {
+                    self.intake.status_dropped();
+                    continue;
+                }
+                let short;
+                let answer =
+                    match status_answer(reply.len(), query_len, to.ip(), &self.status_allow) {
+                        StatusAnswer::Full => reply.as_bytes(),
+                        StatusAnswer::PadTo(n) => {
+                            self.intake.status_short();
+                            short = pad_to_text(n);
+                            short.as_bytes()
+                        }
+                        StatusAnswer::Nothing => {
+                            self.intake.status_short();
+                            continue;
+                        }
+                    };
+                match self.socket.send_to(answer, to) {
+                    Ok(_) => {}
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                        self.intake.status_dropped()
+                    }
+                    Err(e) => {
+                        log::debug!("status reply to {to}: {e}");
+                        self.intake.status_dropped();
+                    }
+                }
+            }
+        }
+        if let Some(f) = &mut self.seq_file {
+            match f.note(self.intake.last_seq(), Instant::now()) {
+                Ok(_) => self.seq_save_failed = false,
+                Err(e) if !self.seq_save_failed => {
+                    self.seq_save_failed = true;
+                    log::warn!(
+                        "cannot write the seq file {}: {e}; after a restart, replays of commands accepted since could be accepted",
+                        f.path().display()
+                    );
+                }
+                Err(_) => {}
+            }
+        }
+        let received = self.intake.counters().received;
+        if self.last_report.elapsed() >= REPORT_EVERY && received != self.reported_received {
+            log::info!("{}", self.intake.counters().summary());
+            self.last_report = Instant::now();
+            self.reported_received = received;
+        }
+    }
+
+    /// At the end: saves the seq and logs the counters.
+    fn finish(mut self) {
+        if let Some(f) = &mut self.seq_file {
+            if let Err(e) = f.flush(self.intake.last_seq()) {
+                log::warn!("cannot write the seq file {}: {e}", f.path().display());
+            }
+        }
+        log::info!(
+            "stopped: {}, publish errors {}",
+            self.intake.counters().summary(),
+            self.publish_errors
+        );
+    }
+}
+
+/// Subscribes to ppmd's timing snapshots for status replies. Status is not
+/// worth stopping for: on failure, replies say `"ppmd": null`.
+fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<StatsSubscriber> {
+    let subscribed = ipc::open_stats_service(node, name)
+        .map_err(|e| e.to_string())
+        .and_then(|service| {
+            service
+                .subscriber_builder()
+                .buffer_size(1)
+                .create()
+                .map_err(|e| format!("{e:?}"))
+        });
+    match subscribed {
+        Ok(sub) => Some(sub),
+        Err(e) => {
+            log::warn!(
+                "status replies will lack ppmd's timing: subscribing to `{}` failed: {e}",
+                ipc::stats_service_name(name)
+            );
+            None
+        }
+    }
+}
+
+/// Replaces `newest` with the newest snapshot ppmd published since, if any.
+fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
+    loop {
+        match sub.receive() {
+            Ok(Some(sample)) => *newest = Some(*sample.payload()),
+            Ok(None) => break,
+            Err(e) => {
+                log::debug!("receiving ppmd's timing snapshot: {e:?}");
+                break;
+            }
+        }
+    }
+}
+
+/// Publishes the newest command taken in, if any, and wakes a ppmd in
+/// follow timing; false when there was none.
+fn publish(
+    intake: &mut Intake,
+    (publisher, notifier): (&Publisher, &Notifier),
+    fingerprint: u64,
+    ingress_seq: &mut u64,
+    errors: &mut u64,
+) -> bool {
+    let Some(r) = intake.take() else {
+        return false;
+    };
+    *ingress_seq += 1;
+    let sample = CommandSample::new(&r.command, fingerprint, *ingress_seq, r.mono_ns, r.real_ns);
+    let sent = publisher
+        .loan_uninit()
+        .map(|s| s.write_payload(sample))
+        .map_err(|e| format!("{e:?}"))
+        .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
+    let sent = sent.and_then(|_| notifier.notify().map_err(|e| format!("waking ppmd: {e:?}")));
+    match sent {
+        Ok(_) => intake.published_after(realtime_ns().saturating_sub(r.real_ns)),
+        Err(e) => {
+            *errors += 1;
+            log::warn!("publishing command failed: {e}");
+        }
+    }
+    true
+}
+
+/// Receives one datagram without blocking: its length, sender and kernel
+/// receive time (CLOCK_REALTIME ns, when the kernel gave one); `None` when
+/// nothing is pending.
+fn receive(
+    socket: &UdpSocket,
+    buf: &mut [u8],
+    cmsg: &mut [u8],
+) -> nix::Result<Option<(usize, SocketAddr, Option<u64>)>> {
+    use nix::errno::Errno;
+    use nix::sys::socket::{recvmsg, ControlMessageOwned, MsgFlags, SockaddrStorage};
+    use std::os::fd::AsRawFd;
+    loop {
+        let mut iov = [std::io::IoSliceMut::new(buf)];
+        let msg = match recvmsg::<SockaddrStorage>(
+            socket.as_raw_fd(),
+            &mut iov,
+            Some(&mut *cmsg),
+            MsgFlags::MSG_DONTWAIT,
+        ) {
+            Ok(m) => m,
+            Err(Errno::EAGAIN) => return Ok(None),
+            Err(Errno::EINTR) => continue,
+            Err(e) => return Err(e),
+        };
+        let kernel = msg.cmsgs().ok().and_then(|mut c| {
+            c.find_map(|m| match m {
+                ControlMessageOwned::ScmTimestampns(ts) => {
+                    Some(ts.tv_sec() as u64 * 1_000_000_000 + ts.tv_nsec() as u64)
+                }
+                _ => None,
+            })
+        });
+        let from = msg.address.and_then(|a: SockaddrStorage| {
+            a.as_sockaddr_in()
+                .map(|v4| SocketAddr::from(std::net::SocketAddrV4::from(*v4)))
+                .or_else(|| {
+                    a.as_sockaddr_in6()
+                        .map(|v6| SocketAddr::from(std::net::SocketAddrV6::from(*v6)))
+                })
+        });
+        let Some(from) = from else { continue };
+        return Ok(Some((msg.bytes, from, kernel)));
+    }
+}
+
+/// Sets SO_RCVBUF and returns what the kernel granted (it doubles the
+/// request and caps it at net.core.rmem_max).
+fn set_receive_buffer(socket: &std::net::UdpSocket, bytes: u32) -> Result<usize> {
+    use nix::sys::socket::{getsockopt, setsockopt, sockopt::RcvBuf};
+    setsockopt(socket, RcvBuf, &(bytes as usize)).context("setting SO_RCVBUF")?;
+    let granted = getsockopt(socket, RcvBuf).context("reading SO_RCVBUF")?;
+    if granted < bytes as usize {
+        log::warn!(
+            "receive buffer is {granted} bytes, less than the {bytes} asked for: raise net.core.rmem_max"
+        );
+    }
+    Ok(granted)
+}
+
+impl Server {
+    /// Sets up everything the receive loop needs from a checked
+    /// configuration (`cfg` and its `model`): the key and seq file, the
+    /// socket, the shared-memory publisher, the wake-up notifier and the
+    /// subscription to ppmd's snapshots, then the calling thread's priority
+    /// and CPU (it is the receive thread). Says what it set up in the log.
+    pub fn open(cfg: &Config, model: FrameModel) -> Result<Server> {
+        cfg.check_busy_poll_cpu(sched::resolve_rt_cpu(cfg.rt.cpu))?;
+        let allow = cfg.allow()?;
+        let status_allow = cfg.status_allow()?;
+        let key = cfg
+            .ingress
+            .auth_key
+            .as_deref()
+            .map(AuthKey::load)
+            .transpose()?;
+        let (seq_file, floor) = match &key {
+            Some(_) => {
+                let (file, floor) = SeqFile::open(&cfg.seq_file(), SEQ_SAVE_EVERY)?;
+                (Some(file), floor)
+            }
+            None => (None, None),
+        };
+        let listen = cfg.ingress.listen;
+
+        let std_socket = std::net::UdpSocket::bind(listen).with_context(|| {
+            format!(
+                "cannot listen on {listen} (another udp-ingress there? set ingress.listen or --listen)"
+            )
+        })?;
+        std_socket.set_nonblocking(true)?;
+        let rcvbuf = set_receive_buffer(&std_socket, cfg.ingress.recv_buffer_bytes)?;
+        nix::sys::socket::setsockopt(
+            &std_socket,
+            nix::sys::socket::sockopt::ReceiveTimestampns,
+            &true,
+        )
+        .context("enabling SO_TIMESTAMPNS")?;
+        let mut socket = UdpSocket::from_std(std_socket);
+
+        let node = ipc::create_node(&cfg.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
+        let service = ipc::open_command_service(&node, &cfg.name)?;
+        let publisher: Publisher = service.publisher_builder().create().map_err(|e| {
+            anyhow::anyhow!(
+                "creating publisher on `{}`: {e:?}",
+                ipc::command_service_name(&cfg.name)
+            )
+        })?;
+
+        // After each command, a wake-up for a ppmd in follow timing (which
+        // sleeps until one comes); nothing listens to it in grid timing.
+        let wake = ipc::open_wake_service(&node, &cfg.name)?;
+        let notifier: Notifier = wake.notifier_builder().create().map_err(|e| {
+            anyhow::anyhow!(
+                "creating notifier on `{}`: {e:?}",
+                ipc::wake_service_name(&cfg.name)
+            )
+        })?;
+
+        let stats = subscribe_stats(&node, &cfg.name);
+
+        // The busy-polling loop never waits: it needs no poll.
+        let poll = if cfg.ingress.busy_poll {
+            None
+        } else {
+            let poll = Poll::new().context("creating mio poll")?;
+            poll.registry()
+                .register(&mut socket, SOCKET, Interest::READABLE)?;
+            Some(poll)
+        };
+        // This thread receives: its priority and CPU are set here, after the
+        // start-up work.
+        let thread = schedule_receive_thread(&cfg.ingress, cfg.rt.allow_degraded)?;
+        log::info!("receive thread: {thread}");
+        log::info!(
+            "listening on {} (receive buffer {} bytes), {} channels ({}); publishing to `{}` (ipc root {})",
+            socket.local_addr()?,
+            rcvbuf,
+            model.channels(),
+            model.names().join(" "),
+            ipc::command_service_name(&cfg.name),
+            cfg.ipc.root.display()
+        );
+
+        // Stamped on every command: ppmd refuses one made under another model.
+        let fingerprint = model.fingerprint();
+        let mut intake = Intake::new(
+            model,
+            Duration::from_millis(cfg.ingress.reject_log_interval_ms),
+        )
+        .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms));
+        if let (Some(key), Some(file)) = (key, &seq_file) {
+            log::info!(
+                "commands must be signed with the key in {}; status queries need no signature; {} (the last accepted seq is kept in {})",
+                cfg.ingress.auth_key.as_ref().expect("key loaded").display(),
+                match floor {
+                    Some(f) => format!("seq {f} and below refused as replays"),
+                    None => "no seq accepted before".into(),
+                },
+                file.path().display()
+            );
+            intake = intake.with_auth(key, floor);
+        }
+        if !allow.is_empty() {
+            log::info!(
+                "taking datagrams only from {}",
+                allow
+                    .iter()
+                    .map(|n| n.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+            intake = intake.with_allowlist(allow);
+        }
+        let rx = Server {
+            poll,
+            name: cfg.name.clone(),
+            socket,
+            publisher,
+            notifier,
+            _wake: wake,
+            stats,
+            intake,
+            seq_file,
+            seq_save_failed: false,
+            started: Instant::now(),
+            thread,
+            buf: vec![0u8; MAX_DATAGRAM],
+            cmsg: nix::cmsg_space!(nix::sys::time::TimeSpec),
+            status_to: Vec::with_capacity(MAX_STATUS_PER_WAKE),
+            status_allow,
+            ppmd_snapshot: None,
+            reply_budget: ReplyBudget::new(),
+            ingress_seq: 0,
+            fingerprint,
+            publish_errors: 0,
+            last_report: Instant::now(),
+            reported_received: 0,
+        };
+        Ok(rx)
+    }
+
+    /// Receives and publishes until `stop` is set, then saves the seq and
+    /// logs the counters.
+    pub fn run(mut self, stop: &AtomicBool) -> Result<()> {
+        let rx = &mut self;
+        match rx.poll.take() {
+            Some(mut poll) => {
+                let mut events = Events::with_capacity(8);
+                while !stop.load(Relaxed) {
+                    if let Err(e) = poll.poll(&mut events, Some(POLL_TIMEOUT)) {
+                        if e.kind() == std::io::ErrorKind::Interrupted {
+                            continue;
+                        }
+                        return Err(e).context("waiting for datagrams");
+                    }
+                    rx.drain();
+                    rx.settle();
+                }
+            }
+            None => {
+                // Spin: drain, publish, repeat. What a wake-up of the sleeping
+                // loop does without datagrams (offering the last sample to a
+                // restarted ppmd, saving the seq, the counters' log line) is
+                // done every POLL_TIMEOUT while nothing arrives.
+                let mut settled = Instant::now();
+                while !stop.load(Relaxed) {
+                    if rx.drain() > 0 || settled.elapsed() >= POLL_TIMEOUT {
+                        rx.settle();
+                        settled = Instant::now();
+                    } else {
+                        std::hint::spin_loop();
+                    }
+                }
+            }
+        }
+        self.finish();
+        Ok(())
+    }
+}
