@@ -199,7 +199,7 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
                             ),
                         )
                     })?;
-                    b.set(i, k, v)?;
+                    b.set(i, Named::Key(k), v)?;
                 }
             }
             seq
@@ -222,6 +222,22 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
         channels: Channels::from_ns(&b.ns[..model.channels()]),
         clamped: b.clamped,
     })
+}
+
+/// How an error names a value: `channel 2` (an array's second) or `ail`.
+#[derive(Clone, Copy)]
+enum Named<'a> {
+    Position(usize),
+    Key(&'a str),
+}
+
+impl std::fmt::Display for Named<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Named::Position(i) => write!(f, "channel {}", i + 1),
+            Named::Key(k) => f.write_str(k),
+        }
+    }
 }
 
 struct Builder<'a> {
@@ -255,12 +271,14 @@ impl<'a> Builder<'a> {
             ));
         }
         for (i, v) in items.iter().enumerate() {
-            self.set(i, &format!("channel {}", i + 1), v)?;
+            self.set(i, Named::Position(i), v)?;
         }
         Ok(())
     }
 
-    fn set(&mut self, i: usize, what: &str, v: &Value) -> Result<(), Reject> {
+    /// Sets channel `i` from `v`, named `what` in an error (formatted only
+    /// then: the accepted path does not allocate for it).
+    fn set(&mut self, i: usize, what: Named, v: &Value) -> Result<(), Reject> {
         let us = v.as_f64().ok_or_else(|| {
             reject(
                 RejectReason::NotANumber,
