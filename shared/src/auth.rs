@@ -212,7 +212,7 @@ mod tests {
             .unwrap()
     }
 
-    /// A fixed vector for a 32-byte key (the README shows the same one).
+    /// A fixed vector for a 32-byte key (docs/security.md shows the same one).
     #[test]
     fn sign_and_verify_a_fixed_vector() {
         let k = test_key();

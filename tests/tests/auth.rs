@@ -2,8 +2,8 @@
 //! udp-ingress and ppmd: signed commands fly the line, forged, unsigned and
 //! replayed ones (also after an ingress restart or crash) never do; a key
 //! file others can read stops the ingress at start; datagrams from outside
-//! `ingress.allow` are dropped and counted. Also the README's test vector and
-//! its Python signed sender.
+//! `ingress.allow` are dropped and counted. Also the test vector and the Python
+//! signed sender of docs/security.md.
 
 use nix::sys::signal::Signal;
 use ppm_shared::auth::AuthKey;
@@ -379,11 +379,12 @@ fn allowlist_drops_other_sources_before_parsing() {
     );
 }
 
+/// Where the documentation shows signed commands.
 fn readme() -> String {
-    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap()
+    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/security.md")).unwrap()
 }
 
-/// The block right after an HTML comment marker in the README.
+/// The block right after an HTML comment marker in docs/security.md.
 fn block_after(readme: &str, marker: &str) -> String {
     readme
         .split(marker)
@@ -391,7 +392,7 @@ fn block_after(readme: &str, marker: &str) -> String {
         .and_then(|s| s.split("```").nth(1))
         .and_then(|s| s.split_once('\n'))
         .map(|(_, body)| body.to_owned())
-        .unwrap_or_else(|| panic!("README has no code block after {marker}"))
+        .unwrap_or_else(|| panic!("docs/security.md has no code block after {marker}"))
 }
 
 #[test]
@@ -415,7 +416,7 @@ fn readme_test_vector_is_what_the_code_computes() {
     assert!(env.verify(&k));
 }
 
-/// The README's Python signed sender, run as written (aimed at this test's
+/// docs/security.md's Python signed sender, run as written (aimed at this test's
 /// port and key file) against a real udp-ingress with that key.
 #[test]
 fn readme_python_signed_sender_is_accepted() {

@@ -1,6 +1,7 @@
 //! The deployment files agree with the code and with each other: the
 //! production configuration is valid, both systemd units read it and share
-//! its shared-memory root, and the README installs them where they look.
+//! its shared-memory root, and docs/deployment.md installs them where they
+//! look.
 
 use ppm_shared::config::{Config, CpuChoice, OutputSpec};
 
@@ -143,12 +144,12 @@ fn units_share_the_root_and_read_the_config() {
 
 #[test]
 fn readme_installs_what_the_units_run() {
-    let readme = read("README.md");
+    let readme = read("docs/deployment.md");
     let install = readme
         .split("## Installing as a service")
         .nth(1)
         .and_then(|s| s.split("\n## ").next())
-        .expect("README has \"## Installing as a service\"");
+        .expect("docs/deployment.md has \"## Installing as a service\"");
     for needle in [
         CONFIG_PATH,
         "/usr/local/bin",
@@ -164,7 +165,7 @@ fn readme_installs_what_the_units_run() {
     ] {
         assert!(
             install.contains(needle),
-            "the README's install section lacks `{needle}`"
+            "docs/deployment.md's install section lacks `{needle}`"
         );
     }
     let rules = read("deploy/60-ppm.rules");

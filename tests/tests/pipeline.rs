@@ -322,14 +322,15 @@ fn frame_log_rows_match_the_decoded_line() {
             w[0]["frame"].as_u64().unwrap() + 1
         );
     }
-    // The README's example rows have the keys of real rows.
+    // The documentation's example rows have the keys of real rows.
     let readme =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/programs.md"))
+            .unwrap();
     let block = readme
         .split("### The frame log")
         .nth(1)
         .and_then(|s| s.split("```\n").nth(1))
-        .expect("README's frame log example");
+        .expect("docs/programs.md's frame log example");
     let keys = |v: &serde_json::Value| {
         let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
         k.sort();

@@ -214,15 +214,15 @@ fn status_counts_every_datagram_and_reports_ppmd() {
         "exactly the documented keys: {p}"
     );
 
-    // The README's example reply has exactly these keys.
+    // The documentation's example reply has exactly these keys.
     let readme =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../docs/status.md")).unwrap();
     let example = readme
         .split("## Status queries")
         .nth(1)
         .and_then(|s| s.split("```json\n").nth(1))
         .and_then(|s| s.split("```").next())
-        .expect("README shows an example status reply");
+        .expect("docs/status.md shows an example status reply");
     let example: Value = serde_json::from_str(example).expect("the README's reply is JSON");
     assert_eq!(
         shape(&example),

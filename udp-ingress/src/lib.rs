@@ -494,7 +494,7 @@ impl Intake {
         &self.latency
     }
 
-    /// The reply to a status query: one JSON object (see the README's
+    /// The reply to a status query: one JSON object (see docs/status.md,
     /// "Status queries"). `uptime` is the ingress's, `receiver` how its
     /// receive thread runs, `now_mono_ns` the
     /// CLOCK_MONOTONIC time of the reply, `ppmd` the newest timing snapshot

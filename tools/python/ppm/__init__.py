@@ -22,8 +22,8 @@ Example::
     print(s.status()["datagrams"]["applied"])
 
 The wire protocol, the signature and the status reply are described in the
-project's README ("The wire protocol", "Authenticated commands", "Status
-queries").
+project's docs/protocol.md, docs/security.md ("Authenticated commands") and
+docs/status.md ("Status queries").
 """
 
 from __future__ import annotations
@@ -323,7 +323,7 @@ class Sender:
 
     def status(self, timeout: float = 1.0) -> Dict[str, Any]:
         """Asks udp-ingress for its status and returns the reply (a dict with
-        ``datagrams``, ``ppmd``, ...: see the README's "Status queries").
+        ``datagrams``, ``ppmd``, ...: see docs/status.md, "Status queries").
 
         The query is padded to 600 bytes, so any source gets the reply (no
         reply is more than 3 times its query, unless the source is in
