@@ -10,8 +10,8 @@ use ppm_shared::ipc::{self, CommandSample};
 use ppm_shared::protocol::parse;
 use ppm_shared::trace::TraceEdge;
 use ppmd::clock::{self, Margin};
-use ppmd::emitter::{self, EmitterConfig, Stats};
-use ppmd::output::{spi, FrameEdge, Output, OutputError, SimOutput};
+use ppmd::emitter::{self, EmitterConfig, Lane, Sink, Stats};
+use ppmd::output::{spi, Bank, FrameEdge, Output, OutputError, SimOutput};
 use ppmd::source::{CommandSource, IpcSource};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -276,4 +276,142 @@ fn filling_a_bank_value_set_does_not_allocate() {
     assert_eq!(values.get(18), Some(Value::Active));
     assert_eq!(values.get(27), Some(Value::Inactive));
     assert_eq!(values.get(3), None);
+}
+
+/// A fresh command every few ms, from a sample made before the loop runs;
+/// counts from the `warmup`-th frame of `stats` on and stops the loop at
+/// `frames`.
+struct Synthetic {
+    sample: CommandSample,
+    every_ns: u64,
+    next_ns: u64,
+    stats: Arc<Stats>,
+    warmup: u64,
+    frames: u64,
+    stop: Arc<AtomicBool>,
+}
+
+impl CommandSource for Synthetic {
+    fn newest(&mut self) -> Option<CommandSample> {
+        let emitted = self.stats.frames.load(Relaxed);
+        if emitted >= self.warmup {
+            COUNTING.with(|c| c.set(true));
+        }
+        if emitted >= self.frames {
+            self.stop.store(true, Relaxed);
+        }
+        let now = clock::now_ns();
+        (now >= self.next_ns).then(|| {
+            self.next_ns = now + self.every_ns;
+            let mut s = self.sample;
+            s.recv_mono_ns = now;
+            s
+        })
+    }
+}
+
+/// Two lines of one bank: the levels go to a preallocated word, as the GPIO
+/// bank fills its preallocated value set.
+struct BankStandIn {
+    levels: u64,
+    writes: u64,
+}
+
+impl Bank for BankStandIn {
+    fn write(&mut self, _scheduled_ns: u64, mask: u64, levels: u64) -> Result<(), OutputError> {
+        self.levels = (self.levels & !mask) | (levels & mask);
+        self.writes += 1;
+        Ok(())
+    }
+    fn park(&mut self, _bit: u32, _level: Level) -> Result<(), OutputError> {
+        Ok(())
+    }
+}
+
+/// Two lanes on one bank (one grid, one follow), each with its own source,
+/// stats and meter: the loop that serves several outputs does not allocate
+/// either.
+#[test]
+fn two_lanes_on_a_bank_do_not_allocate() {
+    let grid = Config::default().validate().unwrap();
+    let mut follow_cfg = Config::default();
+    follow_cfg.ppm.timing = Timing::Follow;
+    let follow = follow_cfg.validate().unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = [Arc::new(Stats::default()), Arc::new(Stats::default())];
+    let looper = {
+        let (stop, stats) = (stop.clone(), stats.clone());
+        std::thread::spawn(move || {
+            let source = |model: &ppm_shared::FrameModel, st: &Arc<Stats>, every_ms: u64| {
+                let cmd = parse(b"[1100, 1900, 1300]", model).unwrap();
+                Synthetic {
+                    sample: CommandSample::new(&cmd, model.fingerprint(), 1, 0, 0),
+                    every_ns: every_ms * 1_000_000,
+                    next_ns: 0,
+                    stats: st.clone(),
+                    warmup: 10,
+                    frames: 60,
+                    stop: stop.clone(),
+                }
+            };
+            let mut sources = [source(&grid, &stats[0], 5), source(&follow, &stats[1], 20)];
+            let (mut m0, _r0) = ppmd::meter::meter(100_000_000);
+            let (mut m1, _r1) = ppmd::meter::meter(100_000_000);
+            let cfg = EmitterConfig {
+                margin: Margin::Auto {
+                    min_ns: 20_000,
+                    max_ns: 1_000_000,
+                },
+                failsafe_after_ns: 200_000_000,
+                failsafe_action: FailsafeAction::Hold,
+                startup: FailsafeAction::Silence,
+            };
+            let mut bank = BankStandIn {
+                levels: 0,
+                writes: 0,
+            };
+            {
+                let [s0, s1] = &mut sources;
+                let mut lanes = [
+                    Lane {
+                        model: &grid,
+                        cfg,
+                        source: s0,
+                        sink: Sink::Bank { bank: 0, bit: 0 },
+                        stats: &stats[0],
+                        meter: &mut m0,
+                        log: None,
+                    },
+                    Lane {
+                        model: &follow,
+                        cfg,
+                        source: s1,
+                        sink: Sink::Bank { bank: 0, bit: 1 },
+                        stats: &stats[1],
+                        meter: &mut m1,
+                        log: None,
+                    },
+                ];
+                let mut banks: [&mut dyn Bank; 1] = [&mut bank];
+                emitter::run_lanes(&mut lanes, &mut banks, &stop);
+            }
+            COUNTING.with(|c| c.set(false));
+            bank.writes
+        })
+    };
+    let writes = looper.join().unwrap();
+    for (i, s) in stats.iter().enumerate() {
+        assert!(
+            s.frames.load(Relaxed) >= 10,
+            "lane {i}: {} frames",
+            s.frames.load(Relaxed)
+        );
+        assert_eq!(s.write_errors.load(Relaxed), 0);
+    }
+    assert!(writes > 0);
+    assert_eq!(
+        ALLOCATIONS.load(Relaxed),
+        0,
+        "the loop of two lanes on a bank allocated after its first frames"
+    );
 }
