@@ -5,17 +5,14 @@
 //! ring; a writer thread formats and appends them. When the writer falls
 //! behind the ring fills and the loop drops rows (and counts them) instead
 //! of waiting. The file is rotated at a size cap: `FILE` becomes `FILE.1`,
-//! `FILE.1` becomes `FILE.2`, and so on, keeping [`KEEP`] old files.
+//! `FILE.1` becomes `FILE.2`, and so on, keeping [`KEEP`] old files. The
+//! ring, the writer and the file are [`crate::rotating`]'s.
 
+use crate::rotating::{self, RotatingFile, WriterOptions};
 use ppm_shared::config::Timing;
 use ppm_shared::frame::MAX_CHANNELS;
 use ppm_shared::line::LineState;
-use std::fs::File;
-use std::io::{BufWriter, Write};
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
-use std::sync::Arc;
-use std::thread::JoinHandle;
+use std::path::Path;
 use std::time::Duration;
 
 /// Rows the ring holds: about 90 s of frames at 44 Hz.
@@ -124,215 +121,33 @@ impl Record {
     }
 }
 
-/// The loop's end of the log.
-pub struct Producer {
-    ring: rtrb::Producer<Record>,
-    dropped: Arc<AtomicU64>,
-}
+/// The loop's end of the log: [`rotating::Producer::push`] queues a row,
+/// or drops and counts it when the ring is full (never waits).
+pub type Producer = rotating::Producer<Record>;
 
-impl Producer {
-    /// Queues a row; when the ring is full the row is dropped and counted.
-    #[inline]
-    pub fn push(&mut self, r: Record) {
-        if self.ring.push(r).is_err() {
-            self.dropped.fetch_add(1, Relaxed);
-        }
-    }
-}
-
-/// The writer thread and its counters.
-pub struct Writer {
-    stop: Arc<AtomicBool>,
-    dropped: Arc<AtomicU64>,
-    written: Arc<AtomicU64>,
-    lost: Arc<AtomicU64>,
-    last_error: Arc<std::sync::Mutex<Option<String>>>,
-    thread: Option<JoinHandle<()>>,
-}
-
-impl Writer {
-    /// Rows dropped because the writer fell behind.
-    pub fn dropped(&self) -> u64 {
-        self.dropped.load(Relaxed)
-    }
-
-    /// Rows written (and flushed).
-    pub fn written(&self) -> u64 {
-        self.written.load(Relaxed)
-    }
-
-    /// Rows lost because the file could not be written (a full disk, a
-    /// device that refuses writes); the writer reopens the file and goes on.
-    pub fn lost(&self) -> u64 {
-        self.lost.load(Relaxed)
-    }
-
-    /// The last write error, if any.
-    pub fn last_error(&self) -> Option<String> {
-        self.last_error.lock().map(|e| e.clone()).unwrap_or(None)
-    }
-
-    /// Writes what is queued, flushes and stops the thread. What could not
-    /// be written is counted in [`Writer::lost`], never an error here: a
-    /// log is not worth the line.
-    pub fn finish(&mut self) {
-        self.stop.store(true, Relaxed);
-        if let Some(t) = self.thread.take() {
-            if t.join().is_err() {
-                self.set_error("the frame log writer panicked".into());
-            }
-        }
-    }
-
-    fn set_error(&self, e: String) {
-        if let Ok(mut last) = self.last_error.lock() {
-            *last = Some(e);
-        }
-    }
-}
-
-impl Drop for Writer {
-    fn drop(&mut self) {
-        self.finish();
-    }
-}
+/// The writer thread and its counters: rows `written`, `lost` (the file
+/// could not be written; the writer goes on), `dropped` (the ring was
+/// full), the `last_error`; `finish` writes what is queued, flushes and
+/// syncs.
+pub type Writer = rotating::Writer;
 
 /// Opens (appends to) the log at `path`, rotating at `max_bytes` (a regular
 /// file only). The path must be writable at start; later write errors are
-/// counted and the file reopened, never fatal.
+/// counted and the writer goes on, never fatal; a rotation that fails is
+/// said once and the file grows on.
 pub fn open(path: &Path, max_bytes: u64) -> std::io::Result<(Producer, Writer)> {
-    let mut file = Rotating::open(path, max_bytes)?;
-    let (producer, mut consumer) = rtrb::RingBuffer::<Record>::new(RING);
-    let stop = Arc::new(AtomicBool::new(false));
-    let dropped = Arc::new(AtomicU64::new(0));
-    let written = Arc::new(AtomicU64::new(0));
-    let lost = Arc::new(AtomicU64::new(0));
-    let last_error = Arc::new(std::sync::Mutex::new(None));
-    let (stop2, written2, lost2, error2) = (
-        stop.clone(),
-        written.clone(),
-        lost.clone(),
-        last_error.clone(),
-    );
-    let thread = std::thread::Builder::new()
-        .name("ppmd-frame-log".into())
-        .stack_size(256 * 1024)
-        .spawn(move || loop {
-            let stopping = stop2.load(Relaxed);
-            // Rows since the last flush: written when it succeeds, lost
-            // when it fails.
-            let mut batch = 0u64;
-            let mut failed = None;
-            while let Ok(r) = consumer.pop() {
-                batch += 1;
-                if failed.is_none() {
-                    failed = file.write_line(&r.to_json()).err();
-                }
-            }
-            if failed.is_none() {
-                failed = file.flush().err();
-            }
-            match failed {
-                None => {
-                    written2.fetch_add(batch, Relaxed);
-                }
-                Some(e) => {
-                    lost2.fetch_add(batch, Relaxed);
-                    if let Ok(mut last) = error2.lock() {
-                        *last = Some(e.to_string());
-                    }
-                    // Start over with an empty buffer: what it held is lost
-                    // (counted); the next rows try again.
-                    file.discard();
-                }
-            }
-            if stopping {
-                return;
-            }
-            std::thread::sleep(FLUSH_EVERY);
-        })?;
-    Ok((
-        Producer {
-            ring: producer,
-            dropped: dropped.clone(),
+    let file = RotatingFile::append("frame log", path, max_bytes, KEEP)?;
+    rotating::spawn(
+        file,
+        WriterOptions {
+            thread: "ppmd-frame-log",
+            capacity: RING,
+            flush_every: FLUSH_EVERY,
+            // The main thread reads `lost` and `last_error` and says them.
+            say_write_errors: false,
         },
-        Writer {
-            stop,
-            dropped,
-            written,
-            lost,
-            last_error,
-            thread: Some(thread),
-        },
-    ))
-}
-
-/// An append-only file rotated at a size cap.
-struct Rotating {
-    path: PathBuf,
-    max_bytes: u64,
-    size: u64,
-    out: BufWriter<File>,
-}
-
-impl Rotating {
-    fn open(path: &Path, max_bytes: u64) -> std::io::Result<Rotating> {
-        let f = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)?;
-        Ok(Rotating {
-            size: f.metadata()?.len(),
-            path: path.to_owned(),
-            max_bytes,
-            out: BufWriter::new(f),
-        })
-    }
-
-    fn write_line(&mut self, line: &str) -> std::io::Result<()> {
-        if self.size > 0 && self.size + line.len() as u64 + 1 > self.max_bytes && self.regular() {
-            self.rotate()?;
-        }
-        self.out.write_all(line.as_bytes())?;
-        self.out.write_all(b"\n")?;
-        self.size += line.len() as u64 + 1;
-        Ok(())
-    }
-
-    fn rotate(&mut self) -> std::io::Result<()> {
-        self.out.flush()?;
-        let numbered = |n: usize| PathBuf::from(format!("{}.{n}", self.path.display()));
-        for n in (1..KEEP).rev() {
-            if numbered(n).exists() {
-                std::fs::rename(numbered(n), numbered(n + 1))?;
-            }
-        }
-        std::fs::rename(&self.path, numbered(1))?;
-        let f = File::create(&self.path)?;
-        self.out = BufWriter::new(f);
-        self.size = 0;
-        Ok(())
-    }
-
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.out.flush()
-    }
-
-    /// Whether the log is a regular file (a device or a pipe is never
-    /// renamed).
-    fn regular(&self) -> bool {
-        std::fs::metadata(&self.path).is_ok_and(|m| m.is_file())
-    }
-
-    /// Drops what is buffered without writing it (a write failed): the
-    /// file stays open and the next rows try again.
-    fn discard(&mut self) {
-        if let Ok(f) = self.out.get_ref().try_clone() {
-            let old = std::mem::replace(&mut self.out, BufWriter::new(f));
-            // Into its parts: the buffer is dropped, not flushed.
-            drop(old.into_parts());
-        }
-    }
+        |r: &Record, line: &mut String| line.push_str(&r.to_json()),
+    )
 }
 
 #[cfg(test)]
@@ -410,6 +225,29 @@ mod tests {
             assert_eq!(lines(&dir.join(format!("frames.jsonl.{n}"))), 10);
         }
         assert!(!dir.join(format!("frames.jsonl.{}", KEEP + 1)).exists());
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn a_log_that_cannot_rotate_loses_nothing() {
+        // FILE.3 is a directory with something in it: the third rotation's
+        // first rename fails; the log grows on instead of losing rows.
+        let dir = std::env::temp_dir().join(format!("ppmd-framelog-stuck-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("frames.jsonl.3")).unwrap();
+        std::fs::write(dir.join("frames.jsonl.3/keep"), "x").unwrap();
+        let path = dir.join("frames.jsonl");
+        let line_len = frame(10).to_json().len() as u64 + 1;
+        let (mut p, mut w) = open(&path, line_len * 10).unwrap();
+        for n in 10..=64 {
+            p.push(frame(n));
+        }
+        w.finish();
+        assert_eq!((w.written(), w.lost(), w.last_error()), (55, 0, None));
+        let count = |p: &Path| std::fs::read_to_string(p).unwrap().lines().count();
+        assert_eq!(count(&dir.join("frames.jsonl.2")), 10);
+        assert_eq!(count(&dir.join("frames.jsonl.1")), 10);
+        assert_eq!(count(&path), 35, "the rest, in the current file");
         let _ = std::fs::remove_dir_all(dir);
     }
 

@@ -8,6 +8,8 @@
 //! - [`source`]: where commands come from (iceoryx2 in the daemon).
 //! - [`framelog`]: the JSON-lines log of every frame sent.
 //! - [`meter`]: histograms of the loop's timing, handed over lock-free.
+//! - [`rotating`]: the log files' type: rotated at a size cap, fed by a
+//!   lock-free ring and a writer thread.
 //! - [`rt`]: the real-time setup of the timing thread.
 //! - [`watchdog`]: systemd's watchdog, petted while the timing loop moves.
 
@@ -16,6 +18,7 @@ pub mod emitter;
 pub mod framelog;
 pub mod meter;
 pub mod output;
+pub mod rotating;
 pub mod rt;
 pub mod source;
 pub mod watchdog;

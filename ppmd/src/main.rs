@@ -802,23 +802,23 @@ fn summarize(h: &hdrhistogram::Histogram<u64>) -> Summary {
 
 /// An HdrHistogram interval log (the format of HdrHistogram's
 /// HistogramLogProcessor and plotting tools), values in nanoseconds, tags
-/// `edge_error` and `write`.
+/// `edge_error` and `write`. Appended to, never rotated (no cap is given);
+/// each interval goes to the file whole, flushed at once.
 struct HdrLog {
-    file: std::fs::File,
+    file: ppmd::rotating::RotatingFile,
     serializer: hdrhistogram::serialization::V2DeflateSerializer,
     started: bool,
+    /// One interval's text (the headers before the first).
+    buf: Vec<u8>,
 }
 
 impl HdrLog {
     fn open(path: &std::path::Path) -> std::io::Result<HdrLog> {
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)?;
         Ok(HdrLog {
-            file,
+            file: ppmd::rotating::RotatingFile::append("HdrHistogram log", path, u64::MAX, 1)?,
             serializer: hdrhistogram::serialization::V2DeflateSerializer::new(),
             started: false,
+            buf: Vec::new(),
         })
     }
 
@@ -827,10 +827,13 @@ impl HdrLog {
     /// `-tag`, written even when empty so that every interval has one), and
     /// `[NAME.]edge_error` and `[NAME.]write` tagged when not empty. The
     /// first write of a run starts with the headers Java's reader expects:
-    /// the format version, start and base time, and the column legend.
+    /// the format version, start and base time, and the column legend (also
+    /// the header of any file a rotation would start). An interval that
+    /// cannot be written is lost (the caller counts it); the headers are
+    /// tried again with the next.
     fn write(&mut self, iv: &Interval, start_ns: u64, prefix: &str, untagged: bool) -> Result<()> {
         use hdrhistogram::serialization::interval_log::{IntervalLogWriterBuilder, Tag};
-        use std::io::Write;
+        self.buf.clear();
         if !self.started {
             let now = SystemTime::now();
             IntervalLogWriterBuilder::new()
@@ -838,31 +841,34 @@ impl HdrLog {
                 .add_comment("[Histogram log format version 1.3]")
                 .with_start_time(now)
                 .with_base_time(now)
-                .begin_log_with(&mut self.file, &mut self.serializer)
+                .begin_log_with(&mut self.buf, &mut self.serializer)
                 .context("starting the log")?;
-            self.file
-                .write_all(
-                    b"\"StartTimestamp\",\"Interval_Length\",\"Interval_Max\",\"Interval_Compressed_Histogram\"\n",
-                )
-                .context("writing the legend")?;
-            self.started = true;
+            self.buf.extend_from_slice(
+                b"\"StartTimestamp\",\"Interval_Length\",\"Interval_Max\",\"Interval_Compressed_Histogram\"\n",
+            );
+            self.file.set_header(&self.buf);
         }
         let mut w = IntervalLogWriterBuilder::new()
-            .begin_log_with(&mut self.file, &mut self.serializer)
+            .begin_log_with(&mut self.buf, &mut self.serializer)
             .context("writing to the log")?;
         let from = Duration::from_nanos(iv.start_ns.saturating_sub(start_ns));
         let length = Duration::from_nanos(iv.end_ns.saturating_sub(iv.start_ns));
         if untagged {
             w.write_histogram(&iv.edge_error, from, length, None)
-                .map_err(|e| anyhow!("{e:?}"))?;
+                .context("serializing the edge error")?;
         }
         for (h, tag) in [(&iv.edge_error, "edge_error"), (&iv.write, "write")] {
             if !h.is_empty() {
                 let tag = format!("{prefix}{tag}");
                 w.write_histogram(h, from, length, Tag::new(&tag))
-                    .map_err(|e| anyhow!("{e:?}"))?;
+                    .with_context(|| format!("serializing {tag}"))?;
             }
         }
+        self.file
+            .write(&self.buf)
+            .and_then(|()| self.file.flush())
+            .context("writing to the log")?;
+        self.started = true;
         Ok(())
     }
 }

@@ -93,40 +93,21 @@ fn value_of(level: Level) -> Value {
     }
 }
 
-/// The errno of a failed `set_lone_value`, without allocating.
+/// The errno of a failed `set_lone_value` (EIO when the error carries
+/// none). Never allocates: fit for the timing loop.
 fn write_errno(e: &gpiocdev::Error) -> Errno {
-    match e {
-        gpiocdev::Error::Os(n) => Errno::from_raw(n.0),
-        // gpiocdev-uapi's error type is not reachable from here, and reading
-        // its code from Display would allocate. gpiocdev 0.8 builds this error
-        // from errno right after the failed ioctl and makes no other call
-        // before returning, so errno still holds the code.
-        gpiocdev::Error::Uapi(..) => match Errno::last() {
-            Errno::UnknownErrno => Errno::EIO,
-            n => n,
-        },
-        _ => Errno::EIO,
-    }
+    errno_of(e).unwrap_or(Errno::EIO)
 }
 
-/// The errno inside a gpiocdev error, if it carries one (outside the loop:
-/// this may allocate).
+/// The errno inside a gpiocdev error, if it carries one: an OS error's, or
+/// a failed uAPI call's (its `gpiocdev_uapi` error). Never allocates.
 fn errno_of(e: &gpiocdev::Error) -> Option<Errno> {
-    match e {
-        gpiocdev::Error::Os(n) => Some(Errno::from_raw(n.0)),
-        gpiocdev::Error::Uapi(_, src) => parse_os_error(&src.to_string()),
-        _ => None,
-    }
-}
-
-/// The code in std's `... (os error N)` rendering of an OS error.
-fn parse_os_error(s: &str) -> Option<Errno> {
-    const TAG: &str = "(os error ";
-    let rest = &s[s.rfind(TAG)? + TAG.len()..];
-    match rest.strip_suffix(')')?.parse::<i32>().ok()? {
-        0 => None,
-        n => Some(Errno::from_raw(n)),
-    }
+    let n = match e {
+        gpiocdev::Error::Os(n) | gpiocdev::Error::Uapi(_, gpiocdev_uapi::Error::Os(n)) => n.0,
+        _ => return None,
+    };
+    // 0: an io::Error that had no OS code.
+    (n != 0).then(|| Errno::from_raw(n))
 }
 
 /// One GPIO chip as found on the system, for resolving CHIP and for messages.
@@ -1016,11 +997,26 @@ mod tests {
 
     #[test]
     fn gpio_errno_mapping() {
-        assert_eq!(
-            parse_os_error(&std::io::Error::from_raw_os_error(16).to_string()),
-            Some(Errno::EBUSY)
+        let uapi = |n: Errno| {
+            gpiocdev::Error::Uapi(
+                gpiocdev::UapiCall::GetLine,
+                gpiocdev_uapi::Error::Os(gpiocdev_uapi::Errno(n as i32)),
+            )
+        };
+        assert_eq!(errno_of(&uapi(Errno::EBUSY)), Some(Errno::EBUSY));
+        assert_eq!(write_errno(&uapi(Errno::ENOTTY)), Errno::ENOTTY);
+        let under = gpiocdev::Error::Uapi(
+            gpiocdev::UapiCall::GetLineValues,
+            gpiocdev_uapi::Error::UnderRead(gpiocdev_uapi::v2::UnderReadError {
+                obj: "x",
+                expected: 8,
+                found: 0,
+            }),
         );
-        assert_eq!(parse_os_error("no code here"), None);
+        assert_eq!(errno_of(&under), None);
+        assert_eq!(write_errno(&under), Errno::EIO);
+        let no_code = gpiocdev::Error::from(std::io::Error::other("x"));
+        assert_eq!(errno_of(&no_code), None);
         let os = gpiocdev::Error::from(std::io::Error::from_raw_os_error(libc_eacces()));
         assert_eq!(errno_of(&os), Some(Errno::EACCES));
         assert_eq!(write_errno(&os), Errno::EACCES);

@@ -5,14 +5,10 @@
 pub mod gpio;
 pub mod spi;
 
+use crate::rotating::{self, RotatingFile, WriterOptions};
 use ppm_shared::frame::Level;
 use ppm_shared::trace::TraceEdge;
-use std::fs::File;
-use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::Arc;
-use std::thread::JoinHandle;
 use std::time::Duration;
 
 /// A failed write in the timing loop (counted, never logged there).
@@ -84,12 +80,11 @@ const SIM_FLUSH_EVERY: Duration = Duration::from_millis(50);
 /// The simulated line: every edge goes through a lock-free ring buffer to a
 /// writer thread that appends it to a trace file (see `ppm_shared::trace`).
 /// At a size cap the writer renames the file to `FILE.1` (replacing the one
-/// before) and starts `FILE` again, header included.
+/// before) and starts `FILE` again, header included (see
+/// [`crate::rotating`]).
 pub struct SimOutput {
-    producer: rtrb::Producer<TraceEdge>,
-    stop: Arc<AtomicBool>,
-    written: Arc<AtomicU64>,
-    writer: Option<JoinHandle<std::io::Result<()>>>,
+    producer: rotating::Producer<TraceEdge>,
+    writer: rotating::Writer,
     path: PathBuf,
 }
 
@@ -97,64 +92,28 @@ impl SimOutput {
     /// Creates (truncates) the trace file, writes `header` as `#` comment
     /// lines and starts the writer thread, which rotates the file once it
     /// would grow beyond `max_bytes`. Only a regular file is rotated (never
-    /// `/dev/null` or a pipe).
+    /// `/dev/null` or a pipe); a rotation that fails is said once and the
+    /// trace grows on; a write that fails is said, its edges are counted
+    /// lost and the writer goes on.
     pub fn create(path: &Path, header: &[String], max_bytes: u64) -> std::io::Result<SimOutput> {
-        let (mut file, header_bytes) = start_trace(path, header)?;
-        let regular = file.get_ref().metadata()?.is_file();
-        let mut max_bytes = if regular { max_bytes } else { u64::MAX };
-        let header = header.to_vec();
-        let rotated = PathBuf::from(format!("{}.1", path.display()));
-        let owned_path = path.to_owned();
-        let (producer, mut consumer) = rtrb::RingBuffer::<TraceEdge>::new(SIM_BUFFER_EDGES);
-        let stop = Arc::new(AtomicBool::new(false));
-        let written = Arc::new(AtomicU64::new(0));
-        let (stop2, written2) = (stop.clone(), written.clone());
-        let writer = std::thread::Builder::new()
-            .name("ppmd-sim-writer".into())
-            .spawn(move || -> std::io::Result<()> {
-                let mut size = header_bytes;
-                let mut line = String::with_capacity(64);
-                loop {
-                    let stopping = stop2.load(Ordering::Acquire);
-                    let mut n = 0;
-                    while let Ok(e) = consumer.pop() {
-                        line.clear();
-                        use std::fmt::Write as _;
-                        let _ = writeln!(line, "{e}");
-                        if size > header_bytes && size + line.len() as u64 > max_bytes {
-                            file.flush()?;
-                            match std::fs::rename(&owned_path, &rotated) {
-                                Ok(()) => (file, size) = start_trace(&owned_path, &header)?,
-                                Err(e) => {
-                                    // The trace goes on growing rather than stop.
-                                    log::warn!(
-                                        "sim trace {}: cannot rotate it to {} ({e}); it grows on",
-                                        owned_path.display(),
-                                        rotated.display()
-                                    );
-                                    max_bytes = u64::MAX;
-                                }
-                            }
-                        }
-                        file.write_all(line.as_bytes())?;
-                        size += line.len() as u64;
-                        n += 1;
-                    }
-                    file.flush()?;
-                    written2.fetch_add(n, Ordering::Relaxed);
-                    if stopping {
-                        let file = file.into_inner().map_err(|e| e.into_error())?;
-                        // /dev/null cannot be synced (EINVAL).
-                        return if regular { file.sync_data() } else { Ok(()) };
-                    }
-                    std::thread::sleep(SIM_FLUSH_EVERY);
-                }
-            })?;
+        let header: String = header.iter().map(|h| format!("# {h}\n")).collect();
+        let file = RotatingFile::create("sim trace", path, header.as_bytes(), max_bytes, 1)?;
+        let (producer, writer) = rotating::spawn(
+            file,
+            WriterOptions {
+                thread: "ppmd-sim-writer",
+                capacity: SIM_BUFFER_EDGES,
+                flush_every: SIM_FLUSH_EVERY,
+                say_write_errors: true,
+            },
+            |e: &TraceEdge, line: &mut String| {
+                use std::fmt::Write as _;
+                let _ = write!(line, "{e}");
+            },
+        )?;
         Ok(SimOutput {
             producer,
-            stop,
-            written,
-            writer: Some(writer),
+            writer,
             path: path.to_owned(),
         })
     }
@@ -166,32 +125,20 @@ impl SimOutput {
 
     /// Edges written to the file so far.
     pub fn written(&self) -> u64 {
-        self.written.load(Ordering::Relaxed)
+        self.writer.written()
     }
 
-    /// Writes every buffered edge, flushes and closes the file.
+    /// Edges that could not be written to the file (a full disk).
+    pub fn lost(&self) -> u64 {
+        self.writer.lost()
+    }
+
+    /// Writes every buffered edge, flushes, syncs and closes the file; an
+    /// error when some edge could not be written.
     pub fn finish(&mut self) -> std::io::Result<()> {
-        self.stop.store(true, Ordering::Release);
-        match self.writer.take() {
-            Some(h) => h
-                .join()
-                .unwrap_or_else(|_| Err(std::io::Error::other("sim writer thread panicked"))),
-            None => Ok(()),
-        }
+        self.writer.finish();
+        self.writer.check()
     }
-}
-
-/// Creates (truncates) a trace file and writes `header` as `#` lines;
-/// returns it with its size.
-fn start_trace(path: &Path, header: &[String]) -> std::io::Result<(BufWriter<File>, u64)> {
-    let mut file = BufWriter::new(File::create(path)?);
-    let mut size = 0;
-    for h in header {
-        writeln!(file, "# {h}")?;
-        size += h.len() as u64 + 3;
-    }
-    file.flush()?;
-    Ok((file, size))
 }
 
 impl Drop for SimOutput {
@@ -202,9 +149,11 @@ impl Drop for SimOutput {
 
 impl Output for SimOutput {
     fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError> {
-        self.producer
-            .push(*edge)
-            .map_err(|_| OutputError::BufferFull)
+        if self.producer.push(*edge) {
+            Ok(())
+        } else {
+            Err(OutputError::BufferFull)
+        }
     }
 
     fn park(&mut self, _level: Level) -> Result<(), OutputError> {
@@ -217,6 +166,7 @@ impl Output for SimOutput {
 mod tests {
     use super::*;
     use ppm_shared::trace::Trace;
+    use std::fs::File;
 
     #[test]
     fn sim_writes_every_edge_and_the_header() {
@@ -309,6 +259,22 @@ mod tests {
         assert_eq!(t.edges.len(), 1000, "every edge, in the one file");
         assert!(dir.join("t.trace.1/keep").exists());
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn sim_counts_the_edges_it_cannot_write_and_goes_on() {
+        // /dev/full refuses every write: the writer counts, it does not end
+        // (the loop's pushes go on succeeding).
+        let mut out = SimOutput::create(Path::new("/dev/full"), &[], u64::MAX).unwrap();
+        for i in 0..20_000 {
+            out.write(&edge(i)).unwrap();
+            if i % 5_000 == 4_999 {
+                std::thread::sleep(SIM_FLUSH_EVERY * 2);
+            }
+        }
+        let e = out.finish().unwrap_err().to_string();
+        assert!(e.contains("No space left"), "{e}");
+        assert_eq!((out.lost(), out.written()), (20_000, 0));
     }
 
     #[test]
