@@ -12,7 +12,7 @@
 //! - [`files`]: bounded reads of the configuration, key and seq files.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
 //! - [`logging`]: log lines for a terminal or for systemd's journal.
-//! - [`line`]: the line's state and its names.
+//! - [`line`](mod@line): the line's state and its names.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.

@@ -1,5 +1,5 @@
 //! The receive loop of udp-ingress: the non-blocking socket (mio), the
-//! [`Intake`](crate::Intake), the publisher to ppmd and the status replies.
+//! [`Intake`], the publisher to ppmd and the status replies.
 //! The binary parses its options and calls [`Server::open`] and
 //! [`Server::run`].
 

@@ -1,0 +1,164 @@
+//! Opening every output's line: simulated, GPIO (lines of one chip share one
+//! request, a bank), or SPI.
+
+use crate::emitter;
+use crate::output::{Output, SimOutput};
+use anyhow::{Context, Result};
+use ppm_shared::config::{Config, OutputSpec, Timing};
+use ppm_shared::frame::{FrameModel, Level};
+use std::path::PathBuf;
+
+/// One output's line, as the timing thread owns it.
+pub enum Line {
+    /// A line of its own (sim, or the only one of ours on its GPIO chip).
+    Own(Box<dyn Output>),
+    /// Line `bit` of bank `bank` of [`Lines::banks`].
+    Banked { bank: usize, bit: u32 },
+}
+
+/// Every output's line, and the banks (several lines of one GPIO chip in
+/// one request) some of them are in.
+pub struct Lines {
+    pub each: Vec<Line>,
+    pub banks: Vec<crate::output::gpio::GpioBank>,
+}
+
+/// `NAME: ` in front of a log line when there are several outputs.
+pub fn tag(several: bool, name: &str) -> String {
+    if several {
+        format!("{name}: ")
+    } else {
+        String::new()
+    }
+}
+
+/// Opens every output's line. GPIO lines on one chip (however the chip is
+/// named) share one request, a bank, so their simultaneous edges are written
+/// in one call; a chip with one of our lines gets a request of its own.
+pub fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
+    let mut each: Vec<Option<Line>> = outputs.iter().map(|_| None).collect();
+    /// A chip's path, its CHIP as first given, and its outputs (index, LINE).
+    type Chip = (PathBuf, String, Vec<(usize, String)>);
+    let mut chips: Vec<Chip> = Vec::new();
+    for (i, (cfg, model)) in outputs.iter().enumerate() {
+        match cfg.output()? {
+            OutputSpec::Sim { path } => {
+                each[i] = Some(Line::Own(open_sim(cfg, model, path)?));
+            }
+            OutputSpec::Spi { device } => {
+                // The longest frame: the lead-in pulse after silence, every
+                // channel at its maximum, the last pulse.
+                let longest = emitter::LEAD_IN_NS
+                    + (0..model.channels())
+                        .map(|c| model.max_ns(c) as u64)
+                        .sum::<u64>()
+                    + model.pulse_ns();
+                let out = crate::output::spi::SpiOutput::open(&device, cfg.ppmd.spi_hz, longest)
+                    .with_context(|| format!("output `{}`: spi:{}", cfg.name, device.display()))?;
+                log::info!(
+                    "output `{}`: spi {} (each frame one transfer, edges to {} ns)",
+                    cfg.name,
+                    out.description(),
+                    1_000_000_000 / cfg.ppmd.spi_hz as u64
+                );
+                each[i] = Some(Line::Own(Box::new(out)));
+            }
+            OutputSpec::Gpio { chip, line } => {
+                let (_, summary, _) = crate::output::gpio::resolve_line(&chip, &line)
+                    .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
+                match chips.iter_mut().find(|c| c.0 == summary.path) {
+                    Some(c) => c.2.push((i, line)),
+                    None => chips.push((summary.path, chip, vec![(i, line)])),
+                }
+            }
+        }
+    }
+    let mut banks = Vec::new();
+    for (path, chip, members) in chips {
+        if let [(i, line)] = members.as_slice() {
+            let (cfg, model) = &outputs[*i];
+            let out = crate::output::gpio::open(&chip, line, model.idle_level())
+                .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
+            log::info!("output `{}`: gpio {}", cfg.name, out.description());
+            each[*i] = Some(Line::Own(Box::new(out)));
+            continue;
+        }
+        let lines: Vec<(String, Level)> = members
+            .iter()
+            .map(|(i, line)| (line.clone(), outputs[*i].1.idle_level()))
+            .collect();
+        let names: Vec<&str> = members
+            .iter()
+            .map(|(i, _)| outputs[*i].0.name.as_str())
+            .collect();
+        let bank = crate::output::gpio::open_bank(&path.to_string_lossy(), &lines)
+            .with_context(|| format!("outputs {}: GPIO chip {chip}", names.join(", ")))?;
+        for (bit, ((i, _), d)) in members.iter().zip(bank.descriptions()).enumerate() {
+            log::info!(
+                "output `{}`: gpio {d} (one request with {})",
+                outputs[*i].0.name,
+                names.join(", ")
+            );
+            each[*i] = Some(Line::Banked {
+                bank: banks.len(),
+                bit: bit as u32,
+            });
+        }
+        banks.push(bank);
+    }
+    let each = each
+        .into_iter()
+        .map(|l| l.expect("every output got a line above"))
+        .collect();
+    Ok(Lines { each, banks })
+}
+
+pub fn open_sim(
+    cfg: &Config,
+    model: &FrameModel,
+    path: Option<PathBuf>,
+) -> Result<Box<dyn Output>> {
+    let path = path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", cfg.name)));
+    let header = [
+        "ppm simulated line: <scheduled_ns> <actual_ns> <level>, CLOCK_MONOTONIC".to_string(),
+        format!("name {}", cfg.name),
+        format!("idle_level {}", model.idle_level().as_u8()),
+        format!("channels {}", model.names().join(",")),
+        format!("frame_ns {}", model.frame_ns()),
+        format!("pulse_ns {}", model.pulse_ns()),
+        format!("receiver {}", model.receiver().name()),
+    ];
+    let sim = SimOutput::create(&path, &header, cfg.ppmd.trace_max_mb << 20)
+        .with_context(|| format!("creating sim trace {}", path.display()))?;
+    log::info!("output `{}`: sim, trace in {}", cfg.name, path.display());
+    Ok(Box::new(sim))
+}
+
+/// One output's signal and settings, for the start-up log: channels,
+/// timing, pulse, idle level, where its commands come from, failsafe and
+/// the spin margin.
+pub fn describe(c: &Config, model: &FrameModel) -> String {
+    let timing = match model.timing() {
+        Timing::Grid => format!("grid timing, frame {} us", model.frame_ns() as f64 / 1e3),
+        Timing::Follow => {
+            let (min, max) = model.follow_sync_ns();
+            format!(
+                "follow timing, sync {}..{} us",
+                min as f64 / 1e3,
+                max as f64 / 1e3
+            )
+        }
+    };
+    format!(
+        "{} channels ({}), {timing}, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
+        model.channels(),
+        model.names().join(" "),
+        model.pulse_ns() as f64 / 1e3,
+        model.idle_level(),
+        ppm_shared::ipc::command_service_name(&c.name),
+        c.ipc.root.display(),
+        c.failsafe.action,
+        c.failsafe.after_ms,
+        c.rt.spin_margin_us,
+    )
+}
