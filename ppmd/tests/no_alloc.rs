@@ -329,10 +329,13 @@ impl Bank for BankStandIn {
 }
 
 /// Two lanes on one bank (one grid, one follow), each with its own source,
-/// stats and meter: the loop that serves several outputs does not allocate
-/// either.
+/// stats and meter, the first with a frame log: the loop that serves several
+/// outputs does not allocate either, nor does queueing frame-log rows.
 #[test]
 fn two_lanes_on_a_bank_do_not_allocate() {
+    let log_path =
+        std::env::temp_dir().join(format!("ppmd-noalloc-{}-two.jsonl", std::process::id()));
+    let (mut producer, mut log_writer) = ppmd::framelog::open(&log_path, u64::MAX).unwrap();
     let grid = Config::default().validate().unwrap();
     let mut follow_cfg = Config::default();
     follow_cfg.ppm.timing = Timing::Follow;
@@ -342,6 +345,7 @@ fn two_lanes_on_a_bank_do_not_allocate() {
     let looper = {
         let (stop, stats) = (stop.clone(), stats.clone());
         std::thread::spawn(move || {
+            let producer = &mut producer;
             let source = |model: &ppm_shared::FrameModel, st: &Arc<Stats>, every_ms: u64| {
                 let cmd = parse(b"[1100, 1900, 1300]", model).unwrap();
                 Synthetic {
@@ -380,7 +384,7 @@ fn two_lanes_on_a_bank_do_not_allocate() {
                         sink: Sink::Bank { bank: 0, bit: 0 },
                         stats: &stats[0],
                         meter: &mut m0,
-                        log: None,
+                        log: Some(producer),
                     },
                     Lane {
                         model: &follow,
@@ -400,6 +404,14 @@ fn two_lanes_on_a_bank_do_not_allocate() {
         })
     };
     let writes = looper.join().unwrap();
+    log_writer.finish();
+    let rows = std::fs::read_to_string(&log_path).unwrap().lines().count() as u64;
+    let _ = std::fs::remove_file(&log_path);
+    assert!(
+        rows >= stats[0].frames.load(Relaxed),
+        "{rows} frame-log rows for {} frames",
+        stats[0].frames.load(Relaxed)
+    );
     for (i, s) in stats.iter().enumerate() {
         assert!(
             s.frames.load(Relaxed) >= 10,
