@@ -113,12 +113,14 @@ fn status_counts_every_datagram_and_reports_ppmd() {
     // status round trip after each keeps every command in its own wake-up.
     let (mut malformed, mut stale) = (0, 0);
     let start = Instant::now();
+    let mut last_sent = start;
     for i in 0..100u64 {
         let command = if i == 50 {
             json!({"ch": [900, 2100, 1200], "seq": i + 1})
         } else {
             json!({"ch": [1000 + i, 1500, 1200], "seq": i + 1})
         };
+        last_sent = Instant::now();
         c.send(command.to_string().as_bytes());
         if i % 10 == 5 {
             c.send(MALFORMED[malformed]);
@@ -179,7 +181,14 @@ fn status_counts_every_datagram_and_reports_ppmd() {
     assert_eq!(reply["status_requests"], json!(c.queries));
     assert_eq!(reply["status_dropped"], json!(0));
     assert_eq!(reply["newest_seq"], json!(100));
-    assert!(reply["newest_command_age_ms"].as_f64().unwrap() >= 0.0);
+    // The newest command's age: received after it was sent, reported before
+    // the reply came back.
+    let age_ms = reply["newest_command_age_ms"].as_f64().unwrap();
+    let since_sent_ms = last_sent.elapsed().as_secs_f64() * 1e3;
+    assert!(
+        age_ms <= since_sent_ms,
+        "age {age_ms} ms, but it was sent {since_sent_ms} ms ago"
+    );
     assert!(reply["uptime_s"].as_f64().unwrap() >= 2.0, "{reply}");
     assert_eq!(reply["ppmd_stale"], json!(false));
     let p = &reply["ppmd"];
