@@ -16,15 +16,7 @@ use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
-/// Shortest sync gap (period from the last channel's pulse to the next
-/// frame's first pulse) that EdgeTX/OpenTX trainer inputs recognise.
-pub const SYNC_MIN_US: f64 = 4_000.0;
-/// Longest sync gap EdgeTX/OpenTX trainer inputs recognise.
-pub const SYNC_MAX_US: f64 = 19_000.0;
-/// Smallest channel period a transmitter accepts.
-pub const CHANNEL_MIN_US: f64 = 800.0;
-/// Largest channel period a transmitter accepts.
-pub const CHANNEL_MAX_US: f64 = 2_200.0;
+pub use crate::signal::{CHANNEL_MAX_US, CHANNEL_MIN_US, SYNC_MAX_US, SYNC_MIN_US};
 /// The longest sync `follow` timing leaves, for every receiver: EdgeTX's
 /// 19 ms less [`crate::receiver::SYNC_MARGIN_US`]. A `follow` frame that
 /// comes late is moved later only while its sync stays under this.

@@ -6,7 +6,9 @@
 //! channel; anything else loses synchronisation until the next sync. Pulse
 //! width and polarity do not matter beyond choosing which edges to time.
 
-use crate::signal::{Level, MAX_CHANNELS};
+use crate::signal::{
+    Level, CHANNEL_MAX_US, CHANNEL_MIN_US, MAX_CHANNELS, SYNC_MAX_US, SYNC_MIN_US,
+};
 
 /// The ranges the decoder accepts, in nanoseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -27,10 +29,10 @@ impl Default for DecoderLimits {
     /// EdgeTX's trainer input: channels 800..2200 us, sync 4..19 ms, 16 channels.
     fn default() -> Self {
         DecoderLimits {
-            channel_min_ns: 800_000,
-            channel_max_ns: 2_200_000,
-            sync_min_ns: 4_000_000,
-            sync_max_ns: 19_000_000,
+            channel_min_ns: (CHANNEL_MIN_US * 1e3) as u64,
+            channel_max_ns: (CHANNEL_MAX_US * 1e3) as u64,
+            sync_min_ns: (SYNC_MIN_US * 1e3) as u64,
+            sync_max_ns: (SYNC_MAX_US * 1e3) as u64,
             max_channels: MAX_CHANNELS,
         }
     }

@@ -13,7 +13,7 @@
 //! waveform that decodes here decodes there.
 
 use crate::decode::{DecodedFrame, LeadingEdges};
-use crate::signal::Level;
+use crate::signal::{Level, CHANNEL_MAX_US, CHANNEL_MIN_US, SYNC_MAX_US, SYNC_MIN_US};
 use serde::Deserialize;
 
 /// A receiver whose PPM decoding is modelled.
@@ -219,18 +219,18 @@ impl Receiver {
             Receiver::EdgeTx => Rules {
                 min_channels: (1, "EdgeTX reads a frame of any channel count"),
                 max_channels: (16, TRAINER_MAX),
-                channel_min_us: (800.0 + c, EDGETX_CHANNEL),
-                channel_max_us: (2_200.0 - c, EDGETX_CHANNEL),
-                sync_min_us: (sync(4_000.0), TRAINER_SYNC_MIN),
-                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MIN),
+                channel_min_us: (CHANNEL_MIN_US + c, EDGETX_CHANNEL),
+                channel_max_us: (CHANNEL_MAX_US - c, EDGETX_CHANNEL),
+                sync_min_us: (sync(SYNC_MIN_US), TRAINER_SYNC_MIN),
+                sync_max_us: (SYNC_MAX_US - SYNC_MARGIN_US, TRAINER_SYNC_MIN),
             },
             Receiver::OpenTx => Rules {
                 min_channels: (1, "OpenTX reads a frame of any channel count"),
                 max_channels: (16, TRAINER_MAX),
                 channel_min_us: (801.0 + c, OPENTX_CHANNEL),
                 channel_max_us: (2_199.0 - c, OPENTX_CHANNEL),
-                sync_min_us: (sync(4_000.0), TRAINER_SYNC_MIN),
-                sync_max_us: (19_000.0 - SYNC_MARGIN_US, TRAINER_SYNC_MIN),
+                sync_min_us: (sync(SYNC_MIN_US), TRAINER_SYNC_MIN),
+                sync_max_us: (SYNC_MAX_US - SYNC_MARGIN_US, TRAINER_SYNC_MIN),
             },
             Receiver::Betaflight => Rules {
                 min_channels: (4, "Betaflight decodes 4..=12 channels (rx_pwm.c, PPM_IN_MIN_NUM_CHANNELS)"),

@@ -10,6 +10,16 @@ pub const MAX_CHANNELS: usize = 16;
 /// `MAX_CHANNELS + 1` pulses.
 pub const MAX_EDGES: usize = 2 * (MAX_CHANNELS + 1);
 
+/// Shortest sync gap (period from the last channel's pulse to the next
+/// frame's first pulse) that EdgeTX/OpenTX trainer inputs recognise.
+pub const SYNC_MIN_US: f64 = 4_000.0;
+/// Longest sync gap EdgeTX/OpenTX trainer inputs recognise.
+pub const SYNC_MAX_US: f64 = 19_000.0;
+/// Smallest channel period a transmitter accepts.
+pub const CHANNEL_MIN_US: f64 = 800.0;
+/// Largest channel period a transmitter accepts.
+pub const CHANNEL_MAX_US: f64 = 2_200.0;
+
 /// A logic level of the output line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize)]
 #[serde(rename_all = "lowercase")]
