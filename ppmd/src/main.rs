@@ -166,9 +166,9 @@ fn run(cli: Cli) -> Result<()> {
         let node = ipc::create_node(&shared.ipc.root, &format!("ppmd-{}", s.cfg.name))?;
         let service = ipc::open_stats_service(&node, &s.cfg.name)?;
         let publisher = service.publisher_builder().create().map_err(|e| {
-            anyhow!(
-                "creating the timing snapshot publisher of `{}`: {e:?}",
-                s.cfg.name
+            ipc::IpcError::new(
+                format!("creating the timing snapshot publisher of `{}`", s.cfg.name),
+                e,
             )
         })?;
         publishers.push(publisher);

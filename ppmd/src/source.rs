@@ -171,16 +171,20 @@ impl IpcSource {
             .subscriber_builder()
             .buffer_size(1)
             .create()
-            .map_err(|e| IpcError {
-                what: format!("subscribing to `{}`", ipc::command_service_name(name)),
-                detail: format!("{e:?}"),
+            .map_err(|e| {
+                IpcError::new(
+                    format!("subscribing to `{}`", ipc::command_service_name(name)),
+                    e,
+                )
             })?;
         let (wake_service, listener) = if wake {
             use iceoryx2::prelude::FileDescriptorBased;
             let events = ipc::open_wake_service(&node, name)?;
-            let listener = events.listener_builder().create().map_err(|e| IpcError {
-                what: format!("listening to `{}`", ipc::wake_service_name(name)),
-                detail: format!("{e:?}"),
+            let listener = events.listener_builder().create().map_err(|e| {
+                IpcError::new(
+                    format!("listening to `{}`", ipc::wake_service_name(name)),
+                    e,
+                )
             })?;
             // SAFETY: only the number is read; the fd lives as long as the
             // listener, which this source owns, and is only polled.

@@ -242,20 +242,33 @@ impl Default for TimingSnapshot {
 
 /// Setting up shared memory failed.
 #[derive(Debug, thiserror::Error)]
-#[error("shared memory: {what}: {detail}")]
+#[error("shared memory: {what}: {source:?}")]
 pub struct IpcError {
     /// What was being done.
     pub what: String,
-    /// iceoryx2's error.
-    pub detail: String,
+    /// iceoryx2's error, kept as its type.
+    #[source]
+    pub source: Box<dyn std::error::Error + Send + Sync>,
 }
 
-fn ipc_err(what: impl Into<String>) -> impl FnOnce(&dyn std::fmt::Debug) -> IpcError {
-    let what = what.into();
-    move |e| IpcError {
-        what,
-        detail: format!("{e:?}"),
+impl IpcError {
+    /// `what` failed with iceoryx2's error `source`.
+    pub fn new(
+        what: impl Into<String>,
+        source: impl std::error::Error + Send + Sync + 'static,
+    ) -> IpcError {
+        IpcError {
+            what: what.into(),
+            source: Box::new(source),
+        }
     }
+}
+
+fn ipc_err<E: std::error::Error + Send + Sync + 'static>(
+    what: impl Into<String>,
+) -> impl FnOnce(E) -> IpcError {
+    let what = what.into();
+    move |e| IpcError::new(what, e)
 }
 
 /// Sets iceoryx2's own log level from `IOX2_LOG_LEVEL` (trace, debug, info,
@@ -271,17 +284,16 @@ pub fn create_node(root: &std::path::Path, node_name: &str) -> Result<Node, IpcE
     let mut cfg = iceoryx2::config::Config::default();
     let root_str = root.to_string_lossy();
     let root_path = iceoryx2::prelude::Path::new(root_str.as_bytes())
-        .map_err(|e| ipc_err(format!("root path `{root_str}`"))(&e))?;
+        .map_err(ipc_err(format!("root path `{root_str}`")))?;
     cfg.global.set_root_path(&root_path);
-    cfg.global.prefix = FileName::new(PREFIX).map_err(|e| ipc_err("prefix")(&e))?;
-    let name =
-        NodeName::new(node_name).map_err(|e| ipc_err(format!("node name `{node_name}`"))(&e))?;
+    cfg.global.prefix = FileName::new(PREFIX).map_err(ipc_err("prefix"))?;
+    let name = NodeName::new(node_name).map_err(ipc_err(format!("node name `{node_name}`")))?;
     NodeBuilder::new()
         .name(&name)
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .config(&cfg)
         .create::<iceoryx2::service::ipc::Service>()
-        .map_err(|e| ipc_err(format!("creating node under `{root_str}`"))(&e))
+        .map_err(ipc_err(format!("creating node under `{root_str}`")))
 }
 
 /// Opens (or creates) the newest-only command service of output `name`.
@@ -295,14 +307,13 @@ pub fn open_command_service(node: &Node, name: &str) -> Result<CommandService, I
 /// opens it with these settings.
 pub fn open_wake_service(node: &Node, name: &str) -> Result<WakeService, IpcError> {
     let service = wake_service_name(name);
-    let sn =
-        ServiceName::new(&service).map_err(|e| ipc_err(format!("service name `{service}`"))(&e))?;
+    let sn = ServiceName::new(&service).map_err(ipc_err(format!("service name `{service}`")))?;
     node.service_builder(&sn)
         .event()
         .max_notifiers(2)
         .max_listeners(2)
         .open_or_create()
-        .map_err(|e| ipc_err(format!("opening service `{service}`"))(&e))
+        .map_err(ipc_err(format!("opening service `{service}`")))
 }
 
 /// The timing snapshot service.
@@ -332,8 +343,7 @@ fn open_newest_only<T: ZeroCopySend + std::fmt::Debug + Copy + 'static>(
     >,
     IpcError,
 > {
-    let sn =
-        ServiceName::new(service).map_err(|e| ipc_err(format!("service name `{service}`"))(&e))?;
+    let sn = ServiceName::new(service).map_err(ipc_err(format!("service name `{service}`")))?;
     node.service_builder(&sn)
         .publish_subscribe::<T>()
         .subscriber_max_buffer_size(1)
@@ -342,7 +352,7 @@ fn open_newest_only<T: ZeroCopySend + std::fmt::Debug + Copy + 'static>(
         .max_publishers(2)
         .max_subscribers(4)
         .open_or_create()
-        .map_err(|e| ipc_err(format!("opening service `{service}`"))(&e))
+        .map_err(ipc_err(format!("opening service `{service}`")))
 }
 
 #[cfg(test)]

@@ -482,9 +482,12 @@ impl Server {
         let node = ipc::create_node(&cfg.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
         let service = ipc::open_command_service(&node, &cfg.name)?;
         let publisher: Publisher = service.publisher_builder().create().map_err(|e| {
-            anyhow::anyhow!(
-                "creating publisher on `{}`: {e:?}",
-                ipc::command_service_name(&cfg.name)
+            ipc::IpcError::new(
+                format!(
+                    "creating publisher on `{}`",
+                    ipc::command_service_name(&cfg.name)
+                ),
+                e,
             )
         })?;
 
@@ -492,9 +495,12 @@ impl Server {
         // sleeps until one comes); nothing listens to it in grid timing.
         let wake = ipc::open_wake_service(&node, &cfg.name)?;
         let notifier: Notifier = wake.notifier_builder().create().map_err(|e| {
-            anyhow::anyhow!(
-                "creating notifier on `{}`: {e:?}",
-                ipc::wake_service_name(&cfg.name)
+            ipc::IpcError::new(
+                format!(
+                    "creating notifier on `{}`",
+                    ipc::wake_service_name(&cfg.name)
+                ),
+                e,
             )
         })?;
 

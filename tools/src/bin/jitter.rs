@@ -587,7 +587,7 @@ fn attach(cli: &Cli, name: &str) -> Result<()> {
         .subscriber_builder()
         .buffer_size(1)
         .create()
-        .map_err(|e| anyhow::anyhow!("subscribing to ppmd's timing snapshots: {e:?}"))?;
+        .map_err(|e| ipc::IpcError::new("subscribing to ppmd's timing snapshots", e))?;
     let stop = stop_flag()?;
     let unit = unit_ns(cli);
     let started = Instant::now();
@@ -603,7 +603,7 @@ fn attach(cli: &Cli, name: &str) -> Result<()> {
         let mut newest = None;
         while let Some(s) = sub
             .receive()
-            .map_err(|e| anyhow::anyhow!("receiving: {e:?}"))?
+            .map_err(|e| ipc::IpcError::new("receiving a timing snapshot", e))?
         {
             newest = Some(*s.payload());
         }
