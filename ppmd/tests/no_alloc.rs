@@ -85,6 +85,20 @@ impl CommandSource for Counted {
     }
 }
 
+/// The loop's settings in these tests: ppmd's default spin margin, the
+/// failsafe holding the last command after 200 ms.
+fn emitter_config() -> EmitterConfig {
+    EmitterConfig {
+        margin: Margin::Auto {
+            min_ns: 20_000,
+            max_ns: 1_000_000,
+        },
+        failsafe_after_ns: 200_000_000,
+        failsafe_action: FailsafeAction::Hold,
+        startup: FailsafeAction::Silence,
+    }
+}
+
 #[test]
 fn the_timing_loop_does_not_allocate_after_start() {
     // Grid: commands faster than frames. Follow: slower, so the loop sleeps
@@ -201,15 +215,7 @@ fn run_without_allocating(timing: Timing, every_ms: u64, whole_frames: bool) {
             } else {
                 Box::new(SimOutput::create(&trace, &["idle_level 0".into()], u64::MAX).unwrap())
             };
-            let cfg = EmitterConfig {
-                margin: Margin::Auto {
-                    min_ns: 20_000,
-                    max_ns: 1_000_000,
-                },
-                failsafe_after_ns: 200_000_000,
-                failsafe_action: FailsafeAction::Hold,
-                startup: FailsafeAction::Silence,
-            };
+            let cfg = emitter_config();
             emitter::run(
                 &model,
                 &cfg,
@@ -361,15 +367,7 @@ fn two_lanes_on_a_bank_do_not_allocate() {
             let mut sources = [source(&grid, &stats[0], 5), source(&follow, &stats[1], 20)];
             let (mut m0, _r0) = ppmd::meter::meter(100_000_000);
             let (mut m1, _r1) = ppmd::meter::meter(100_000_000);
-            let cfg = EmitterConfig {
-                margin: Margin::Auto {
-                    min_ns: 20_000,
-                    max_ns: 1_000_000,
-                },
-                failsafe_after_ns: 200_000_000,
-                failsafe_action: FailsafeAction::Hold,
-                startup: FailsafeAction::Silence,
-            };
+            let cfg = emitter_config();
             let mut bank = BankStandIn {
                 levels: 0,
                 writes: 0,

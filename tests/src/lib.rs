@@ -392,3 +392,23 @@ pub fn at_50hz(n: u64, mut send: impl FnMut(u64)) {
         }
     }
 }
+
+/// The `key=value` directives of a systemd unit in `deploy/`, in order
+/// (comments and section headers dropped).
+pub fn unit_directives(unit: &str) -> Vec<(String, String)> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deploy")
+        .join(unit);
+    std::fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#') && !l.starts_with('['))
+        .map(|l| {
+            let (k, v) = l
+                .split_once('=')
+                .unwrap_or_else(|| panic!("{unit}: `{l}` is not key=value"));
+            (k.trim().to_string(), v.trim().to_string())
+        })
+        .collect()
+}

@@ -14,17 +14,7 @@ fn read(file: &str) -> String {
 
 /// The `key=value` directives of a unit file (comments and sections dropped).
 fn directives(unit: &str) -> Vec<(String, String)> {
-    read(&format!("deploy/{unit}"))
-        .lines()
-        .map(str::trim)
-        .filter(|l| !l.is_empty() && !l.starts_with('#') && !l.starts_with('['))
-        .map(|l| {
-            let (k, v) = l
-                .split_once('=')
-                .unwrap_or_else(|| panic!("{unit}: `{l}` is not key=value"));
-            (k.trim().to_string(), v.trim().to_string())
-        })
-        .collect()
+    ppm_tests::unit_directives(unit)
 }
 
 fn value<'a>(d: &'a [(String, String)], key: &str) -> &'a str {

@@ -63,22 +63,9 @@ fn unit_path(unit: &str) -> PathBuf {
     Path::new(ROOT).join("deploy").join(unit)
 }
 
-/// The `key=value` directives of a unit file, in order (comments and
-/// section headers dropped).
+/// The `key=value` directives of a unit file, in order.
 fn directives(unit: &str) -> Vec<(String, String)> {
-    let path = unit_path(unit);
-    std::fs::read_to_string(&path)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-        .lines()
-        .map(str::trim)
-        .filter(|l| !l.is_empty() && !l.starts_with('#') && !l.starts_with('['))
-        .map(|l| {
-            let (k, v) = l
-                .split_once('=')
-                .unwrap_or_else(|| panic!("{unit}: `{l}` is not key=value"));
-            (k.trim().to_string(), v.trim().to_string())
-        })
-        .collect()
+    ppm_tests::unit_directives(unit)
 }
 
 /// Every value of `key`, in order.
