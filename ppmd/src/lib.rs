@@ -2,6 +2,7 @@
 //! the frame and emits every edge at its scheduled time through an
 //! [`output::Output`] backend.
 //!
+//! - [`cli`]: ppmd's `--output` arguments.
 //! - [`clock`]: CLOCK_MONOTONIC reads and absolute sleeps.
 //! - [`output`]: the backend trait and the simulated line.
 //! - [`emitter`]: the timing loop (no allocation, logging or locks inside).
@@ -16,6 +17,7 @@
 //! - [`rt`]: the real-time setup of the timing thread.
 //! - [`watchdog`]: systemd's watchdog, petted while the timing loop moves.
 
+pub mod cli;
 pub mod clock;
 pub mod emitter;
 pub mod framelog;

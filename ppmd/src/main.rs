@@ -98,7 +98,7 @@ fn run(cli: Cli) -> Result<()> {
         // With [[outputs]], --name runs that output alone.
         cfg = cfg.select(Some(name))?;
     }
-    cfg.apply_cli_outputs(&cli.output)?;
+    ppmd::cli::apply_cli_outputs(&mut cfg, &cli.output)?;
     cfg.rt.allow_degraded |= cli.allow_degraded;
     if let Some(t) = cli.timing {
         cfg.ppm.timing = t;

@@ -803,67 +803,12 @@ impl Config {
         }
     }
 
-    /// Applies ppmd's `--output` arguments: one `SPEC` sets the one output's
-    /// `ppmd.output`; `NAME=SPEC` (repeatable) sets output NAME's, or, when
-    /// the file has no `[[outputs]]`, makes one output per argument with the
-    /// file's settings.
-    pub fn apply_cli_outputs(&mut self, args: &[String]) -> Result<(), ConfigError> {
-        let named: Vec<Option<(&str, &str)>> = args.iter().map(|a| split_named_output(a)).collect();
-        match (
-            named.iter().all(Option::is_some),
-            named.iter().all(Option::is_none),
-        ) {
-            _ if args.is_empty() => Ok(()),
-            (false, true) => {
-                args[0]
-                    .parse::<OutputSpec>()
-                    .map_err(|m| ConfigError::Usage(format!("--output {}: {m}", args[0])))?;
-                if args.len() > 1 {
-                    return Err(ConfigError::Usage(
-                        "--output SPEC given more than once: name each output, --output NAME=SPEC"
-                            .into(),
-                    ));
-                }
-                if !self.outputs.is_empty() {
-                    return Err(ConfigError::Usage(format!(
-                        "the configuration has [[outputs]] ({}): say which one, --output NAME=SPEC",
-                        self.output_names().join(", ")
-                    )));
-                }
-                self.ppmd.output = args[0].clone();
-                Ok(())
-            }
-            (true, false) => {
-                let pairs: Vec<(&str, &str)> = named.into_iter().flatten().collect();
-                for (name, spec) in &pairs {
-                    spec.parse::<OutputSpec>()
-                        .map_err(|m| ConfigError::Usage(format!("--output {name}={spec}: {m}")))?;
-                }
-                if self.outputs.is_empty() {
-                    for (name, spec) in pairs {
-                        let mut c = self.clone();
-                        c.name = name.to_string();
-                        c.ppmd.output = spec.to_string();
-                        self.outputs.push(c);
-                        self.entry_keys.push(Vec::new());
-                    }
-                    return Ok(());
-                }
-                for (name, spec) in pairs {
-                    let names = self.output_names().join(", ");
-                    let out = self.outputs.iter_mut().find(|c| c.name == name).ok_or_else(|| {
-                        ConfigError::Usage(format!(
-                            "--output {name}=...: no output `{name}` in the configuration's [[outputs]] ({names})"
-                        ))
-                    })?;
-                    out.ppmd.output = spec.to_string();
-                }
-                Ok(())
-            }
-            _ => Err(ConfigError::Usage(
-                "--output: either one SPEC or NAME=SPEC for every output, not both".into(),
-            )),
-        }
+    /// Adds an output made on ppmd's command line (`--output NAME=SPEC`):
+    /// it has no keys of its own in the file, so its errors name the
+    /// command-line argument.
+    pub fn push_cli_output(&mut self, output: Config) {
+        self.outputs.push(output);
+        self.entry_keys.push(Vec::new());
     }
 
     /// Validates every output (see [`Config::validate`]) and what outputs
@@ -1233,12 +1178,6 @@ fn invalid(key: &str, message: String) -> ConfigError {
 
 /// Most outputs one ppmd drives.
 pub const MAX_OUTPUTS: usize = 8;
-
-/// `NAME=SPEC` as ppmd's `--output` takes it, when NAME is a valid output name.
-pub fn split_named_output(arg: &str) -> Option<(&str, &str)> {
-    let (name, spec) = arg.split_once('=')?;
-    (!name.contains(':') && validate_name(name).is_ok()).then_some((name, spec))
-}
 
 /// The value at a dotted key path in a TOML table.
 fn lookup<'a>(table: &'a toml::Table, dotted: &str) -> Option<&'a toml::Value> {
@@ -2301,55 +2240,5 @@ action = "hold"
         // Without [[outputs]] --name renames the one output.
         assert_eq!(Config::default().select(Some("x")).unwrap().name, "x");
         assert_eq!(Config::default().output_names(), ["ppm"]);
-    }
-
-    #[test]
-    fn cli_outputs() {
-        let args = |a: &[&str]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-        let mut c = Config::default();
-        c.apply_cli_outputs(&args(&["gpio:0:18"])).unwrap();
-        assert_eq!(c.ppmd.output, "gpio:0:18");
-        assert!(c.outputs.is_empty());
-        let mut c = Config::default();
-        c.apply_cli_outputs(&args(&["a=sim:a.trace", "b=sim"]))
-            .unwrap();
-        let outs = c.validate_outputs().unwrap();
-        assert_eq!(outs.len(), 2);
-        assert_eq!(
-            (outs[0].0.name.as_str(), outs[0].0.ppmd.output.as_str()),
-            ("a", "sim:a.trace")
-        );
-        assert_eq!(
-            (outs[1].0.name.as_str(), outs[1].0.ppmd.output.as_str()),
-            ("b", "sim")
-        );
-        // Both inherit the default listen address: ppmd does not listen, and
-        // each output's udp-ingress gets its own --listen.
-        assert_eq!(outs[0].0.ingress.listen, outs[1].0.ingress.listen);
-        let mut c = Config::parse(TWO_OUTPUTS).unwrap();
-        c.apply_cli_outputs(&args(&["rover=sim:r.trace"])).unwrap();
-        assert_eq!(c.select(Some("rover")).unwrap().ppmd.output, "sim:r.trace");
-        assert_eq!(
-            c.select(Some("plane")).unwrap().ppmd.output,
-            "sim:plane.trace"
-        );
-        for (bad, says) in [
-            (&["sim"][..], "NAME=SPEC"),
-            (&["boat=sim"][..], "no output `boat`"),
-            (&["plane=sim", "sim"][..], "not both"),
-            (&["plane=pwm:3"][..], "--output plane=pwm:3"),
-        ] {
-            let e = Config::parse(TWO_OUTPUTS)
-                .unwrap()
-                .apply_cli_outputs(&args(bad))
-                .unwrap_err();
-            assert!(e.to_string().contains(says), "{bad:?}: {e}");
-        }
-        let e = Config::default()
-            .apply_cli_outputs(&args(&["sim", "sim:x"]))
-            .unwrap_err();
-        assert!(e.to_string().contains("more than once"), "{e}");
-        assert_eq!(split_named_output("sim:/a=b"), None);
-        assert_eq!(split_named_output("a=sim:/x"), Some(("a", "sim:/x")));
     }
 }
