@@ -17,8 +17,7 @@ use ppmd::meter::{self, MeterReader};
 use ppmd::monitor::{HdrLog, Monitor, SNAPSHOT_EVERY_NS};
 use ppmd::rt::RtSetup;
 use ppmd::timing::LanePart;
-use ppmd::watchdog::{self, Verdict, Watchdog};
-use sd_notify::NotifyState;
+use ppmd::watchdog::Systemd;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
@@ -243,47 +242,10 @@ fn run(cli: Cli) -> Result<()> {
         first.hdr_untagged = true;
     }
     let progress = || -> u64 { setups.iter().map(|s| s.stats.decisions.load(Relaxed)).sum() };
-    let mut watchdog = Watchdog::from_env(progress(), Instant::now());
-    if let Some(w) = &watchdog {
-        log::info!(
-            "systemd watchdog: {:?}, petted while the timing loop makes progress",
-            w.timeout()
-        );
-    }
-    // Under Type=notify: the outputs are open and the loop runs.
-    if let Err(e) = watchdog::notify(NotifyState::Ready) {
-        log::warn!("cannot tell systemd ppmd is ready: {e}");
-    }
-    let mut notify_failed = false;
+    let mut systemd = Systemd::start(progress(), Instant::now());
     while !stop.load(Relaxed) && !timing.is_finished() {
         std::thread::sleep(MONITOR_EVERY);
-        let pet = match watchdog
-            .as_mut()
-            .map(|w| (w.tick(progress(), Instant::now()), w.timeout()))
-        {
-            Some((Verdict::Pet, _)) => true,
-            Some((Verdict::Resumed, _)) => {
-                log::warn!("the timing loop makes progress again: petting systemd's watchdog");
-                true
-            }
-            Some((Verdict::Stalled(quiet), timeout)) => {
-                log::error!(
-                    "the timing loop has made no progress for {quiet:?}: systemd's watchdog is no longer petted and restarts ppmd {timeout:?} after the last pet"
-                );
-                false
-            }
-            Some((Verdict::Wait, _)) | None => false,
-        };
-        if pet {
-            match watchdog::notify(NotifyState::Watchdog) {
-                Ok(()) => notify_failed = false,
-                Err(e) if !notify_failed => {
-                    notify_failed = true;
-                    log::warn!("cannot pet systemd's watchdog: {e}");
-                }
-                Err(_) => {}
-            }
-        }
+        systemd.tick(progress(), Instant::now());
         for ((monitor, publisher), s) in monitors.iter_mut().zip(&publishers).zip(&setups) {
             if let Some(snapshot) = monitor.tick(hdr.as_mut(), s.log_writer.as_ref()) {
                 let sent = publisher
@@ -297,7 +259,7 @@ fn run(cli: Cli) -> Result<()> {
             }
         }
     }
-    let _ = watchdog::notify(NotifyState::Stopping);
+    systemd.stopping();
     let receive_errors = timing
         .join()
         .map_err(|_| anyhow!("the timing thread panicked"))??;

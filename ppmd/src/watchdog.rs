@@ -98,6 +98,74 @@ impl Watchdog {
     }
 }
 
+/// ppmd's side of `Type=notify`: READY=1 at start, the watchdog petted
+/// while the loop moves (stalls and recoveries said in the log), STOPPING=1
+/// at the end. Without `NOTIFY_SOCKET` every message is a no-op.
+#[derive(Debug)]
+pub struct Systemd {
+    watchdog: Option<Watchdog>,
+    notify_failed: bool,
+}
+
+impl Systemd {
+    /// Says READY=1 (the outputs are open and the loop runs) and takes the
+    /// watchdog systemd asked for, if any.
+    pub fn start(progress: u64, now: Instant) -> Systemd {
+        let watchdog = Watchdog::from_env(progress, now);
+        if let Some(w) = &watchdog {
+            log::info!(
+                "systemd watchdog: {:?}, petted while the timing loop makes progress",
+                w.timeout()
+            );
+        }
+        if let Err(e) = notify(sd_notify::NotifyState::Ready) {
+            log::warn!("cannot tell systemd ppmd is ready: {e}");
+        }
+        Systemd {
+            watchdog,
+            notify_failed: false,
+        }
+    }
+
+    /// Takes the loop's progress counter (every 100 ms or so) and pets the
+    /// watchdog when [`Watchdog::tick`] says so.
+    pub fn tick(&mut self, progress: u64, now: Instant) {
+        let Some(w) = self.watchdog.as_mut() else {
+            return;
+        };
+        let pet = match w.tick(progress, now) {
+            Verdict::Pet => true,
+            Verdict::Resumed => {
+                log::warn!("the timing loop makes progress again: petting systemd's watchdog");
+                true
+            }
+            Verdict::Stalled(quiet) => {
+                log::error!(
+                    "the timing loop has made no progress for {quiet:?}: systemd's watchdog is no longer petted and restarts ppmd {:?} after the last pet",
+                    w.timeout()
+                );
+                false
+            }
+            Verdict::Wait => false,
+        };
+        if pet {
+            match notify(sd_notify::NotifyState::Watchdog) {
+                Ok(()) => self.notify_failed = false,
+                Err(e) if !self.notify_failed => {
+                    self.notify_failed = true;
+                    log::warn!("cannot pet systemd's watchdog: {e}");
+                }
+                Err(_) => {}
+            }
+        }
+    }
+
+    /// Says STOPPING=1.
+    pub fn stopping(&self) {
+        let _ = notify(sd_notify::NotifyState::Stopping);
+    }
+}
+
 /// Tells systemd (when `NOTIFY_SOCKET` is set) one state; failures are
 /// returned for the caller to count or log, never fatal.
 pub fn notify(state: sd_notify::NotifyState) -> std::io::Result<()> {
