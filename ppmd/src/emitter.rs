@@ -1519,8 +1519,11 @@ mod tests {
         fake_fd: Option<std::os::fd::RawFd>,
         /// Clearing the wake-ups fails.
         broken_clear: bool,
-        /// (time it was available, first value in us) per command.
-        made: Arc<std::sync::Mutex<Vec<(u64, u32)>>>,
+        /// Per command: when it was surely available (its slot set), its
+        /// first value in us, and its stamp (taken before the slot was set:
+        /// it was not available earlier). The thread may be preempted
+        /// between the two, for milliseconds on a loaded or emulated machine.
+        made: Arc<std::sync::Mutex<Vec<(u64, u32, u64)>>>,
         feeder: Option<std::thread::JoinHandle<()>>,
         /// Set by the feeder `tail_ms` after the last command.
         stop: Arc<AtomicBool>,
@@ -1546,10 +1549,10 @@ mod tests {
                         let cmd = parse(format!("[{v}, 1900]").as_bytes(), &model).unwrap();
                         let mut sample =
                             CommandSample::new(&cmd, model.fingerprint(), k as u64 + 1, 0, 0);
-                        let now = clock::now_ns();
-                        sample.recv_mono_ns = now;
+                        let stamp = clock::now_ns();
+                        sample.recv_mono_ns = stamp;
                         *slot.lock().unwrap() = Some(sample);
-                        made.lock().unwrap().push((now, v));
+                        made.lock().unwrap().push((clock::now_ns(), v, stamp));
                         let _ = tx.send(&[1]);
                     }
                     std::thread::sleep(std::time::Duration::from_millis(tail_ms));
@@ -1568,7 +1571,7 @@ mod tests {
             }
         }
 
-        fn made(&mut self) -> Vec<(u64, u32)> {
+        fn made(&mut self) -> Vec<(u64, u32, u64)> {
             if let Some(f) = self.feeder.take() {
                 f.join().unwrap();
             }
@@ -1702,7 +1705,7 @@ mod tests {
     fn check_follow(
         edges: &[TraceEdge],
         model: &FrameModel,
-        made: &[(u64, u32)],
+        made: &[(u64, u32, u64)],
         stats: &Stats,
     ) -> Vec<Sent> {
         let frames = sent_frames(edges, model.channels());
@@ -1738,7 +1741,7 @@ mod tests {
                 .position(|m| m.1 == f.first_us)
                 .expect("a command's value");
             assert!(
-                made[carried].0 <= f.start - READY_NS,
+                made[carried].2 <= f.start - READY_NS,
                 "frame {i} carries a command from after its decision"
             );
             if !lead_in {
@@ -1761,7 +1764,7 @@ mod tests {
         model: &FrameModel,
         source: &mut Paced,
         action: FailsafeAction,
-    ) -> (Vec<TraceEdge>, Stats, Vec<(u64, u32)>) {
+    ) -> (Vec<TraceEdge>, Stats, Vec<(u64, u32, u64)>) {
         let mut out = Recorder::default();
         let stats = Stats::default();
         let (mut meter, _r) = crate::meter::meter(1_000_000_000);
