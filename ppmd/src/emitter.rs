@@ -1701,12 +1701,17 @@ mod tests {
     /// longest sync unless counted late; and each frame carries the newest
     /// command there was when the loop decided it (no later than its start
     /// less READY_NS, no earlier than its start less DECIDE_NS, after a
-    /// lead-in no earlier than that less LEAD_IN_NS).
+    /// lead-in no earlier than that less LEAD_IN_NS). `alone`: the lane is
+    /// the loop's only one. With another lane, a decision whose time falls
+    /// on that lane's edge is made earlier, before the edge, so when it was
+    /// made is not known here: the newest-command and late-count checks,
+    /// which need it, are left out.
     fn check_follow(
         edges: &[TraceEdge],
         model: &FrameModel,
         made: &[(u64, u32, u64)],
         stats: &Stats,
+        alone: bool,
     ) -> Vec<Sent> {
         let frames = sent_frames(edges, model.channels());
         assert_eq!(frames.len() as u64, stats.frames.load(Relaxed));
@@ -1744,7 +1749,7 @@ mod tests {
                 made[carried].2 <= f.start - READY_NS,
                 "frame {i} carries a command from after its decision"
             );
-            if !lead_in {
+            if alone && !lead_in {
                 assert!(
                     index_at(f.start - DECIDE_NS).is_none_or(|a| carried >= a),
                     "frame {i} at {} carries command {carried}, not the newest",
@@ -1753,7 +1758,7 @@ mod tests {
             }
         }
         assert!(
-            late <= stats.late_frames.load(Relaxed),
+            !alone || late <= stats.late_frames.load(Relaxed),
             "{late} late repeats"
         );
         frames
@@ -1789,7 +1794,7 @@ mod tests {
             let mut src = Paced::start(&model, 16, 25, 160);
             src.with_fd = with_fd;
             let (edges, stats, made) = run_follow(&model, &mut src, FailsafeAction::Silence);
-            let frames = check_follow(&edges, &model, &made, &stats);
+            let frames = check_follow(&edges, &model, &made, &stats, true);
             assert_eq!(stats.commands.load(Relaxed), 16, "with_fd {with_fd}");
             // Commands come slower than frames can go: they reach the line
             // (a stall of this shared machine may merge a few; how soon is
@@ -1822,7 +1827,7 @@ mod tests {
             // before the next command, and the next one, and so on.
             let mut src = Paced::start(&model, 5, 60, 250);
             let (edges, stats, made) = run_follow(&model, &mut src, action);
-            let frames = check_follow(&edges, &model, &made, &stats);
+            let frames = check_follow(&edges, &model, &made, &stats, true);
             let repeats = frames
                 .windows(2)
                 .filter(|w| w[0].first_us == w[1].first_us)
@@ -1855,7 +1860,7 @@ mod tests {
                 src.fake_fd = Some(999_999);
             }
             let (edges, stats, made) = run_follow(&model, &mut src, FailsafeAction::Silence);
-            check_follow(&edges, &model, &made, &stats);
+            check_follow(&edges, &model, &made, &stats, true);
             assert_eq!(stats.wake_errors.load(Relaxed), 1, "{clear_fails}");
             assert_eq!(stats.commands.load(Relaxed), 8);
         }
@@ -1895,7 +1900,7 @@ mod tests {
             run_lanes(&mut lanes, &mut [], &stop);
         }
         let made = src_f.made();
-        let frames = check_follow(&out_f.0, &follow, &made, &stats_f);
+        let frames = check_follow(&out_f.0, &follow, &made, &stats_f, false);
         assert!(frames.len() >= 10, "{} follow frames", frames.len());
         // The grid lane keeps its grid.
         let edges: Vec<(u64, Level)> = out_g.0.iter().map(|e| (e.scheduled_ns, e.level)).collect();
@@ -1924,7 +1929,7 @@ mod tests {
         // sync) finds a newer command waiting at its earliest start.
         let mut src = Paced::start(&model, 60, 7, 40);
         let (edges, stats, made) = run_follow(&model, &mut src, FailsafeAction::Silence);
-        let frames = check_follow(&edges, &model, &made, &stats);
+        let frames = check_follow(&edges, &model, &made, &stats, true);
         let (min, _) = model.follow_sync_ns();
         // check_follow holds every frame to the rule (a waiting command starts
         // at the shortest sync, or the frame is counted late). How many made
