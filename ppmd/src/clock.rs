@@ -1,9 +1,15 @@
-//! CLOCK_MONOTONIC time in nanoseconds and absolute-deadline sleeps.
+//! CLOCK_MONOTONIC time in nanoseconds and absolute-deadline sleeps, and
+//! the [`Clock`] the timing loop reads and waits on: [`SystemClock`] in
+//! ppmd, a simulated one in the loop's tests (so they are exact and never
+//! sleep).
 
 use nix::sys::time::TimeSpec;
 use nix::time::{clock_nanosleep, ClockId, ClockNanosleepFlags};
 pub use ppm_shared::time::{now_ns, realtime_ns};
 use std::os::fd::RawFd;
+
+#[cfg(test)]
+pub mod sim;
 
 /// Most file descriptors one wait watches.
 pub const MAX_WATCHED: usize = 8;
@@ -99,6 +105,43 @@ impl Readable {
     /// Whether any fd ended the sleep.
     pub fn any(&self) -> bool {
         self.readable | self.broken != 0
+    }
+}
+
+/// The time and the waits the timing loop uses. [`SystemClock`] is the
+/// machine's; a test gives a simulated one, whose time moves only when the
+/// loop reads it, spins or sleeps, so the loop runs deterministically.
+pub trait Clock {
+    /// CLOCK_MONOTONIC, ns.
+    fn now_ns(&self) -> u64;
+    /// CLOCK_REALTIME, ns since the Unix epoch (for logs only).
+    fn realtime_ns(&self) -> u64;
+    /// Sleeps until `deadline_ns` or until one of `fds` is readable or in
+    /// error, as [`sleep_until_or_readable`] does.
+    fn sleep_until_or_readable(&self, deadline_ns: u64, fds: &[RawFd]) -> Readable;
+    /// One turn of a busy wait.
+    fn spin(&self) {
+        std::hint::spin_loop();
+    }
+}
+
+/// The machine's clocks: CLOCK_MONOTONIC and CLOCK_REALTIME, with absolute
+/// sleeps on CLOCK_MONOTONIC.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SystemClock;
+
+impl Clock for SystemClock {
+    #[inline]
+    fn now_ns(&self) -> u64 {
+        now_ns()
+    }
+    #[inline]
+    fn realtime_ns(&self) -> u64 {
+        realtime_ns()
+    }
+    #[inline]
+    fn sleep_until_or_readable(&self, deadline_ns: u64, fds: &[RawFd]) -> Readable {
+        sleep_until_or_readable(deadline_ns, fds)
     }
 }
 
@@ -224,9 +267,9 @@ impl EdgeTimer {
         self.margin_ns
     }
 
-    /// Waits until `deadline_ns`. Never returns early.
-    pub fn wait(&mut self, deadline_ns: u64) -> Waited {
-        match self.wait_or_readable(deadline_ns, &[]) {
+    /// Waits on `clock` until `deadline_ns`. Never returns early.
+    pub fn wait<C: Clock + ?Sized>(&mut self, clock: &C, deadline_ns: u64) -> Waited {
+        match self.wait_or_readable(clock, deadline_ns, &[]) {
             Wake::Due(w) => w,
             Wake::Readable(_) => unreachable!("no fds watched"),
         }
@@ -235,16 +278,21 @@ impl EdgeTimer {
     /// Waits until `deadline_ns` as [`EdgeTimer::wait`] does, but returns
     /// early, before spinning, when one of `fds` becomes readable during the
     /// sleep. The spin itself is not interrupted: it is at most the margin.
-    pub fn wait_or_readable(&mut self, deadline_ns: u64, fds: &[RawFd]) -> Wake {
+    pub fn wait_or_readable<C: Clock + ?Sized>(
+        &mut self,
+        clock: &C,
+        deadline_ns: u64,
+        fds: &[RawFd],
+    ) -> Wake {
         let wake = deadline_ns.saturating_sub(self.margin_ns);
         let mut woke_late_ns = None;
-        let mut spin_start = now_ns();
+        let mut spin_start = clock.now_ns();
         if spin_start < wake {
-            let readable = sleep_until_or_readable(wake, fds);
+            let readable = clock.sleep_until_or_readable(wake, fds);
             if readable.any() {
                 return Wake::Readable(readable);
             }
-            spin_start = now_ns();
+            spin_start = clock.now_ns();
             let late = spin_start - wake;
             woke_late_ns = Some(late);
             self.observe(late);
@@ -258,7 +306,7 @@ impl EdgeTimer {
             }
         }
         loop {
-            let now = now_ns();
+            let now = clock.now_ns();
             if now >= deadline_ns {
                 return Wake::Due(Waited {
                     now_ns: now,
@@ -266,7 +314,7 @@ impl EdgeTimer {
                     spun_ns: now.saturating_sub(spin_start),
                 });
             }
-            std::hint::spin_loop();
+            clock.spin();
         }
     }
 
@@ -297,7 +345,7 @@ mod tests {
                 // Far enough past the largest margin that even a machine
                 // stalled for a few ms (qemu-user in CI) still sleeps.
                 let deadline = now_ns() + 10_000_000;
-                let w = t.wait(deadline);
+                let w = t.wait(&SystemClock, deadline);
                 assert!(w.now_ns >= deadline);
                 assert!(w.woke_late_ns.is_some(), "it slept");
             }
@@ -308,7 +356,7 @@ mod tests {
     fn past_deadline_returns_at_once() {
         let mut t = EdgeTimer::new(Margin::Fixed(0));
         let t0 = now_ns();
-        let w = t.wait(t0 - 1_000_000);
+        let w = t.wait(&SystemClock, t0 - 1_000_000);
         assert!(w.now_ns >= t0);
         assert_eq!(w.woke_late_ns, None, "no sleep");
         assert!(w.spun_ns < 1_000_000);
@@ -344,7 +392,8 @@ mod tests {
             min_ns: 20_000,
             max_ns: 1_000_000,
         });
-        let w = first.wait(now_ns() + 100_000);
+        let sim = sim::Sim::new();
+        let w = first.wait(&sim, sim.at() + 100_000);
         assert_eq!(w.woke_late_ns, None, "inside the starting margin: no sleep");
         assert_eq!(first.margin_ns(), 20_000, "but the margin left its start");
         let mut f = EdgeTimer::new(Margin::Fixed(300_000));

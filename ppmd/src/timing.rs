@@ -89,7 +89,12 @@ pub fn spawn(
                     .collect();
                 let mut bank_refs: Vec<&mut dyn Bank> =
                     banks.iter_mut().map(|b| b as &mut dyn Bank).collect();
-                emitter::run_lanes(&mut lanes, &mut bank_refs, &stop);
+                emitter::run_lanes(
+                    &crate::clock::SystemClock,
+                    &mut lanes,
+                    &mut bank_refs,
+                    &stop,
+                );
             }
             drop(lines); // sets the lines idle, flushes the sim traces
             drop(obtained); // releases /dev/cpu_dma_latency

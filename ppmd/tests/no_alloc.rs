@@ -395,7 +395,7 @@ fn two_lanes_on_a_bank_do_not_allocate() {
                     },
                 ];
                 let mut banks: [&mut dyn Bank; 1] = [&mut bank];
-                emitter::run_lanes(&mut lanes, &mut banks, &stop);
+                emitter::run_lanes(&ppmd::clock::SystemClock, &mut lanes, &mut banks, &stop);
             }
             COUNTING.with(|c| c.set(false));
             bank.writes

@@ -386,7 +386,7 @@ fn cyclic(cli: &Cli) -> Result<()> {
                         && (loops == 0 || cycle < loops)
                         && deadline.is_none_or(|d| next <= d)
                     {
-                        let w = timer.wait(next);
+                        let w = timer.wait(&clock::SystemClock, next);
                         let lat = w.now_ns - next;
                         let v = lat / unit;
                         stats.record(v, cycle);

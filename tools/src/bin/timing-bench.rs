@@ -144,7 +144,7 @@ fn run_block(
                 log: None,
             })
             .collect();
-        emitter::run_lanes(&mut lanes, &mut [], &stop);
+        emitter::run_lanes(&ppmd::clock::SystemClock, &mut lanes, &mut [], &stop);
     }
     totals.cpu_ns += thread_cpu_ns() - cpu0;
     totals.wall_ns += clock::now_ns() - wall0;
