@@ -13,7 +13,9 @@
 //! exact); otherwise it is skipped (counted as an overrun), and the frame
 //! after it gets the lead-in pulse a frame after silence gets. Nothing inside the
 //! loop allocates, logs or takes a lock; it updates atomic counters in
-//! [`Stats`] and histograms in a [`Meter`].
+//! [`Stats`] and histograms in a [`Meter`]. It reads the time and waits only
+//! through the [`Clock`] it is given: ppmd's is the [`SystemClock`]; its
+//! tests give a simulated one and get the same edges on every machine.
 
 use crate::clock::{Clock, EdgeTimer, Margin, Readable, SystemClock, Wake};
 use crate::framelog::{self, CommandInfo, Record};
@@ -42,6 +44,46 @@ pub const READY_NS: u64 = 20_000;
 /// sync period (4..19 ms) before the frame, so a transmitter reads that first
 /// frame instead of waiting for the second.
 pub const LEAD_IN_NS: u64 = 5_000_000;
+/// EdgeTX's and OpenTX's trainer inputs time pulses with a 16-bit counter
+/// at 2 MHz, which wraps every 32.768 ms: they read a gap between two
+/// pulses modulo that. After silence or skipped frames, the gap before a
+/// lead-in pulse could so read as one more channel (800..=2200 us), handed
+/// on as channel N+1. The loop keeps lead-in pulses out of these gaps
+/// (100 us to spare each side) by moving them by at most
+/// [`ALIAS_SHIFT_MAX_NS`].
+pub const TRAINER_WRAP_NS: u64 = 32_768_000;
+/// The longest lead-in: LEAD_IN_NS, moved out of a gap a trainer input
+/// would read as a channel.
+pub const LEAD_IN_MAX_NS: u64 = LEAD_IN_NS + ALIAS_SHIFT_MAX_NS;
+/// Gaps (modulo [`TRAINER_WRAP_NS`]) a lead-in pulse keeps out of.
+const ALIASED_NS: std::ops::RangeInclusive<u64> = 700_000..=2_300_000;
+/// The most a lead-in pulse moves to keep out of [`ALIASED_NS`]: a lead-in
+/// is between LEAD_IN_NS and LEAD_IN_NS plus this.
+pub const ALIAS_SHIFT_MAX_NS: u64 = 1_600_001;
+/// Gaps longer than this are left as they come: the receiver's clock
+/// (within 50 ppm of ours) makes where they fall uncertain by more than the
+/// 100 us to spare.
+const ALIAS_HORIZON_NS: u64 = 2_000_000_000;
+
+/// Where the gap from the line's previous pulse `prev` to a pulse at `at`
+/// falls in the trainer's counter, if that reads as a channel.
+fn aliased(prev: Option<u64>, at: u64) -> Option<u64> {
+    let gap = at.checked_sub(prev?)?;
+    let m = gap % TRAINER_WRAP_NS;
+    (gap <= ALIAS_HORIZON_NS && ALIASED_NS.contains(&m)).then_some(m)
+}
+
+/// How much later than `at` a lead-in pulse goes so that the gap before
+/// it reads as no channel (0: it reads as none at `at`).
+fn alias_later(prev: Option<u64>, at: u64) -> u64 {
+    aliased(prev, at).map_or(0, |m| ALIASED_NS.end() + 1 - m)
+}
+
+/// How much earlier than `at` a lead-in pulse goes for the same.
+fn alias_earlier(prev: Option<u64>, at: u64) -> u64 {
+    aliased(prev, at).map_or(0, |m| m + 1 - ALIASED_NS.start())
+}
+
 /// How often the loop looks for a command while the line is silent.
 pub const IDLE_POLL_NS: u64 = 2_000_000;
 /// How often a follow lane whose source has no wake fd looks for a command
@@ -262,6 +304,9 @@ struct Progress {
     wake_fd: Option<RawFd>,
     state: LineState,
     frame_no: u64,
+    /// Where the last pulse scheduled on the line starts (kept through
+    /// silence): where a lead-in pulse's gap is measured from.
+    prev_pulse: Option<u64>,
     /// When to look for a command again while silent (and, without a wake
     /// fd, while armed).
     poll_at: u64,
@@ -318,14 +363,16 @@ impl Progress {
     /// The lead-in the frame at `next_start` needs. A transmitter reads a
     /// frame only after a sync period (4..19 ms), so after silence or skipped
     /// frames (a gap of a sync plus at least a frame before it) a lone pulse
-    /// LEAD_IN_NS before the frame provides one. The gap before that pulse is
-    /// over 3.8 ms (a sync plus a 4.8 ms frame, the shortest valid, less
-    /// LEAD_IN_NS): never read as a channel.
+    /// LEAD_IN_NS before the frame provides one, or up to
+    /// [`ALIAS_SHIFT_MAX_NS`] earlier where the gap before it would read as
+    /// a channel on a trainer input (see [`TRAINER_WRAP_NS`]). Unwrapped,
+    /// that gap is over 3.8 ms (a sync plus a 4.8 ms frame, the shortest
+    /// valid, less LEAD_IN_NS).
     fn lead_in_ns(&self) -> u64 {
-        if self.prev_sync_ns == 0 {
-            LEAD_IN_NS
-        } else {
-            0
+        match (self.prev_sync_ns, self.next_start) {
+            (0, Some(s)) => LEAD_IN_NS + alias_earlier(self.prev_pulse, s - LEAD_IN_NS),
+            (0, None) => LEAD_IN_NS,
+            _ => 0,
         }
     }
 }
@@ -363,6 +410,7 @@ pub fn run_lanes<C: Clock + ?Sized>(
         wake_fd: None,
         state: LineState::Silent,
         frame_no: 0,
+        prev_pulse: None,
         poll_at: now,
         frame: None,
     }; MAX_LANES];
@@ -626,6 +674,7 @@ fn decide_frame<C: Clock + ?Sized>(
         }),
         spun: 0,
     });
+    p.prev_pulse = Some(start + last_pulse);
     if follow {
         p.last_pulse = Some(start + last_pulse);
     } else {
@@ -657,13 +706,26 @@ fn place_grid<C: Clock + ?Sized>(
         Some(s) => (s, p.lead_in_ns()),
         None => {
             p.prev_sync_ns = 0;
-            // Joining a running grid costs up to one frame, once; a grid
-            // point is taken while it is still twice READY_NS away.
-            let start = match anchor {
-                Some(_) => align(now + LEAD_IN_NS + 2 * READY_NS, anchor, frame_ns),
-                None => now + lead + LEAD_IN_NS,
-            };
-            (start, LEAD_IN_NS)
+            match anchor {
+                // Joining a running grid costs up to one frame, once; a
+                // grid point is taken while its lead-in pulse is still twice
+                // READY_NS away.
+                Some(_) => {
+                    let mut s = align(now + LEAD_IN_NS + 2 * READY_NS, anchor, frame_ns);
+                    loop {
+                        let li = LEAD_IN_NS + alias_earlier(p.prev_pulse, s - LEAD_IN_NS);
+                        if s - li >= now + 2 * READY_NS {
+                            break (s, li);
+                        }
+                        s += frame_ns;
+                    }
+                }
+                None => {
+                    let lone = now + lead;
+                    let lone = lone + alias_later(p.prev_pulse, lone);
+                    (lone + LEAD_IN_NS, LEAD_IN_NS)
+                }
+            }
         }
     };
     p.next_start = Some(grid_start);
@@ -673,7 +735,10 @@ fn place_grid<C: Clock + ?Sized>(
         // Moving the frame later by `late` lengthens the gap before it and
         // shortens the one after it: both must stay sync periods (a lead-in
         // pulse moves with its frame).
-        let late = ready - (start - lead_in_ns);
+        let mut late = ready - (start - lead_in_ns);
+        if lead_in_ns > 0 {
+            late += alias_later(p.prev_pulse, ready);
+        }
         let fits_after = sync_ns >= sync_min_ns + late;
         let fits_before = lead_in_ns > 0 || p.prev_sync_ns + late <= sync_max_ns;
         if fits_after && fits_before {
@@ -682,7 +747,15 @@ fn place_grid<C: Clock + ?Sized>(
         } else {
             // Skip to the first frame whose lead-in can still be decided in
             // time (the gap it follows is too long to be a sync).
-            let missed = (ready + lead + LEAD_IN_NS - start).div_ceil(frame_ns);
+            let mut missed = (ready + lead + LEAD_IN_NS - start).div_ceil(frame_ns);
+            loop {
+                let s = start + missed * frame_ns;
+                let li = LEAD_IN_NS + alias_earlier(p.prev_pulse, s - LEAD_IN_NS);
+                if s - li >= ready + lead {
+                    break;
+                }
+                missed += 1;
+            }
             add(&stats.overruns, missed);
             p.next_start = Some(start + missed * frame_ns);
             p.prev_sync_ns = 0;
@@ -710,8 +783,11 @@ fn place_follow<C: Clock + ?Sized>(
 ) -> Option<(u64, u64)> {
     let (sync_min_ns, sync_max_ns) = model.follow_sync_ns();
     let ready = clk.now_ns() + READY_NS;
+    // A lead-in pulse as soon as it can be written, clear of the gaps a
+    // trainer input reads as a channel.
+    let lone = ready + alias_later(p.prev_pulse, ready);
     let Some(last) = p.last_pulse else {
-        return Some((ready + LEAD_IN_NS, LEAD_IN_NS));
+        return Some((lone + LEAD_IN_NS, LEAD_IN_NS));
     };
     if !fresh_arrived {
         add(&stats.repeats, 1);
@@ -732,7 +808,7 @@ fn place_follow<C: Clock + ?Sized>(
         return Some((ready, 0));
     }
     add(&stats.overruns, 1);
-    Some((ready + LEAD_IN_NS, LEAD_IN_NS))
+    Some((lone + LEAD_IN_NS, LEAD_IN_NS))
 }
 
 /// Waits for `due` and writes every lane's edge due then: lines one by one,
@@ -2063,5 +2139,210 @@ mod tests {
         }
         assert_eq!(stats.late_frames.load(Relaxed), 0);
         assert_eq!(stats.overruns.load(Relaxed), 0);
+    }
+
+    /// A command after silence whose lead-in pulse would fall 1.5 ms past
+    /// four wraps of a trainer input's 16-bit counter after the line's last
+    /// pulse (EdgeTX and OpenTX would read that gap as a 9th channel of
+    /// 1500 us): the pulse moves later, out of the gaps read as a channel,
+    /// and they read exactly the 8 channels of every frame.
+    #[test]
+    fn a_lead_in_pulse_keeps_out_of_gaps_a_trainer_reads_as_a_channel() {
+        let model = follow_model("");
+        let run = |second: Option<u64>| {
+            let sim = Sim::new();
+            let mut cmds = vec![(START_NS + 20 * MS, "[1100, 1900]")];
+            if let Some(at) = second {
+                cmds.push((at, "[1200, 1900]"));
+            }
+            let mut src = Feed::new(&sim, &model, &cmds);
+            let mut out = Recorder::default();
+            let stats = run_one(
+                &sim,
+                &model,
+                cfg(100, FailsafeAction::Silence),
+                &mut src,
+                &mut out,
+                400,
+            );
+            (out.edges, stats)
+        };
+        let rising = |edges: &[TraceEdge]| -> Vec<u64> {
+            edges
+                .iter()
+                .filter(|e| e.level == Level::High)
+                .map(|e| e.scheduled_ns)
+                .collect()
+        };
+        let (alone, _) = run(None);
+        let last = *rising(&alone).last().unwrap();
+        let at = last + 4 * TRAINER_WRAP_NS + 1_500_000 - READY_NS;
+        let (edges, stats) = run(Some(at));
+        let pulses = rising(&edges);
+        let lone = *pulses.iter().find(|&&t| t > last).unwrap();
+        let gap = lone - last;
+        let m = gap % TRAINER_WRAP_NS;
+        assert!(m > 2_300_000 && m < 2_400_000, "the gap reads as {m} ns");
+        assert!(lone - (at + READY_NS) <= ALIAS_SHIFT_MAX_NS);
+        assert_eq!(stats.commands.load(Relaxed), 2);
+        let frames = sent_frames(&edges, model.channels());
+        assert_eq!(frames.last().unwrap().first_us, 1_200);
+        for r in [Receiver::EdgeTx, Receiver::OpenTx] {
+            let (read, _) = decode_as(r, scheduled(&edges), Level::High);
+            assert_eq!(read.len(), frames.len(), "{r:?}");
+            for f in &read {
+                assert_eq!(f.channels_us().len(), 8, "{r:?}: {:?}", f.channels_us());
+            }
+        }
+    }
+
+    /// A frame of any single-lane waveform: its first edge, its last pulse,
+    /// its values, and whether a lone (lead-in) pulse came before it.
+    #[derive(Debug)]
+    struct Planned {
+        start: u64,
+        last_pulse: u64,
+        values_us: Vec<u64>,
+        after_lead_in: bool,
+        /// Where the lone pulse (or the previous frame's last pulse) was.
+        before: Option<u64>,
+    }
+
+    /// The frames of a recorded waveform of `channels` channels, from the
+    /// scheduled edges; panics on a pulse that fits neither a frame nor a
+    /// lone lead-in pulse.
+    fn planned(edges: &[TraceEdge], channels: usize) -> Vec<Planned> {
+        let leading: Vec<u64> = edges
+            .iter()
+            .filter(|e| e.level == Level::High)
+            .map(|e| e.scheduled_ns)
+            .collect();
+        let mut frames: Vec<Planned> = Vec::new();
+        let (mut i, mut lone) = (0, None);
+        while i < leading.len() {
+            let gap = leading.get(i + 1).map(|n| n - leading[i]);
+            if gap.is_none_or(|g| g > us_to_ns(ppm_shared::config::CHANNEL_MAX_US) * 2) {
+                assert!(
+                    gap.is_some_and(|g| (LEAD_IN_NS..=LEAD_IN_NS + ALIAS_SHIFT_MAX_NS).contains(&g)),
+                    "a lone pulse {gap:?} before a frame"
+                );
+                lone = Some(leading[i]);
+                i += 1;
+                continue;
+            }
+            let per = channels + 1;
+            assert!(i + per <= leading.len(), "a frame cut short");
+            frames.push(Planned {
+                start: leading[i],
+                last_pulse: leading[i + per - 1],
+                values_us: leading[i..i + per]
+                    .windows(2)
+                    .map(|w| (w[1] - w[0] + 500) / 1_000)
+                    .collect(),
+                after_lead_in: lone.is_some(),
+                before: lone.or(frames.last().map(|f| f.last_pulse)),
+            });
+            lone = None;
+            i += per;
+        }
+        frames
+    }
+
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(
+            std::env::var("PROPTEST_CASES").map_or(48, |c| c.parse().expect("a number")),
+        ))]
+
+        /// Whatever the commands' pace, stalls of the loop and late
+        /// wake-ups: every edge is planned, none written early; every frame
+        /// has valid syncs around it or a lead-in pulse before it; a trainer
+        /// input (EdgeTX, OpenTX) reads every frame, with the values of a
+        /// command that was published (or the defaults) to the microsecond;
+        /// and the counters add up.
+        #[test]
+        fn any_commands_stalls_and_late_wake_ups_give_frames_a_trainer_reads(
+            follow in any::<bool>(),
+            cmds in prop::collection::vec((1u64..60, 1_000u64..=2_000), 1..40),
+            stalls in prop::collection::vec((0u64..800, 1u64..60_000), 0..4),
+            late_us in 0u64..80,
+            action in prop_oneof![
+                Just(FailsafeAction::Hold),
+                Just(FailsafeAction::Silence),
+                Just(FailsafeAction::Default),
+            ],
+        ) {
+            let model = if follow { follow_model("") } else { default_model() };
+            let sim = Sim::new();
+            sim.set_wake_late_ns(late_us * 1_000);
+            for (at_ms, us) in &stalls {
+                sim.stall_at(START_NS + at_ms * MS, us * 1_000);
+            }
+            let mut t = START_NS;
+            let cmds: Vec<(u64, String)> = cmds
+                .iter()
+                .map(|(gap_ms, v)| {
+                    t += gap_ms * MS;
+                    (t, format!("[{v}, 1900]"))
+                })
+                .collect();
+            let cmds: Vec<(u64, &str)> = cmds.iter().map(|(t, c)| (*t, c.as_str())).collect();
+            let mut src = Feed::new(&sim, &model, &cmds);
+            let values: Vec<u64> = src.made().iter().map(|m| m.1 as u64).collect();
+            let until_ms = (src.last_at() - START_NS) / MS + 150;
+            let mut out = Recorder::default();
+            let cfg = EmitterConfig {
+                margin: Margin::Auto { min_ns: 20_000, max_ns: 500_000 },
+                ..cfg(100, action)
+            };
+            let stats = run_one(&sim, &model, cfg, &mut src, &mut out, until_ms);
+            let edges = &out.edges;
+            prop_assert!(edges.iter().all(|e| e.actual_ns >= e.scheduled_ns), "never early");
+            let frames = planned(edges, model.channels());
+            let n = frames.len() as u64;
+            prop_assert_eq!(n, stats.frames.load(Relaxed));
+            let lead_ins = frames.iter().filter(|f| f.after_lead_in).count() as u64;
+            prop_assert_eq!(edges.len() as u64, n * 2 * (model.channels() as u64 + 1) + 2 * lead_ins);
+            prop_assert_eq!(stats.edges.load(Relaxed), edges.len() as u64);
+            prop_assert!(
+                lead_ins <= 1 + stats.overruns.load(Relaxed) + stats.failsafe_entries.load(Relaxed),
+                "{lead_ins} lead-ins, {stats:?}"
+            );
+            // The syncs: a frame follows its predecessor's last pulse by a
+            // sync, or a lone pulse LEAD_IN_NS before it (which itself
+            // follows the last pulse by more than any channel).
+            let (lo, hi) = match model.timing() {
+                Timing::Grid => (us_to_ns(SYNC_MIN_US), us_to_ns(SYNC_MAX_US)),
+                Timing::Follow => (model.follow_sync_ns().0, us_to_ns(FOLLOW_SYNC_CEILING_US)),
+            };
+            for (i, f) in frames.iter().enumerate() {
+                match (f.after_lead_in, f.before) {
+                    (false, Some(b)) => {
+                        let sync = f.start - b;
+                        prop_assert!((lo..=hi).contains(&sync), "frame {}: sync {} ns", i, sync);
+                    }
+                    (false, None) => prop_assert!(false, "the first frame without a lead-in"),
+                    (true, _) => {}
+                }
+                // Values: a command's first value (or the default), then
+                // 1900 (or the default), then the defaults.
+                let default_us = |c: usize| u64::from(model.default_ns(c)) / 1_000;
+                let want_rest: Vec<u64> = (2..model.channels()).map(default_us).collect();
+                let v = &f.values_us;
+                let cmd = values.contains(&v[0]) && v[1] == 1_900;
+                let defaults = v[0] == default_us(0) && v[1] == default_us(1);
+                prop_assert!(cmd || defaults, "frame {}: {:?}", i, v);
+                prop_assert_eq!(&v[2..], &want_rest[..], "frame {}", i);
+            }
+            for r in [Receiver::EdgeTx, Receiver::OpenTx] {
+                let (read, _) = decode_as(r, scheduled(edges), Level::High);
+                prop_assert_eq!(read.len(), frames.len(), "{:?}", r);
+                for (got, f) in read.iter().zip(&frames) {
+                    prop_assert_eq!(got.start_ns, f.start);
+                    prop_assert_eq!(&got.channels_us()[..], &f.values_us[..]);
+                }
+            }
+        }
     }
 }

@@ -48,7 +48,7 @@ pub fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
             OutputSpec::Spi { device } => {
                 // The longest frame: the lead-in pulse after silence, every
                 // channel at its maximum, the last pulse.
-                let longest = emitter::LEAD_IN_NS
+                let longest = emitter::LEAD_IN_MAX_NS
                     + (0..model.channels())
                         .map(|c| model.max_ns(c) as u64)
                         .sum::<u64>()
