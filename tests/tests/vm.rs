@@ -781,7 +781,7 @@ fn check_spi(out: &Path, flavor: &str) {
             && (1..=8).contains(&f.tail_bits);
         assert!(ok, "{}: {f:?}, want {COMMAND_US:?} us, {pulse_us} us pulses, starting with a pulse, 1..=8 zero bits after the last", what(*k));
         // The lead-in: on the first frame (after silence), 5 ms before it;
-        // on another only after skipped frames (reported below), 5 to 6.6
+        // on another only after skipped frames (reported below), 5 to 6.8
         // ms before it (moved out of a gap a trainer reads as a channel).
         let lead_in_max_us = ppmd::emitter::LEAD_IN_MAX_NS as f64 / 1_000.0;
         match f.lead_in_us {
