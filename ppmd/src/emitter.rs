@@ -22,9 +22,7 @@ use crate::framelog::{self, CommandInfo, Record};
 use crate::meter::Meter;
 use crate::output::{Bank, FrameEdge, Output};
 use crate::source::CommandSource;
-use ppm_shared::config::{
-    FailsafeAction, Timing, FOLLOW_SYNC_CEILING_US, SYNC_MAX_US, SYNC_MIN_US,
-};
+use ppm_shared::config::{FailsafeAction, Timing, FOLLOW_SYNC_CEILING_US};
 use ppm_shared::frame::{
     us_to_ns, Channels, EdgeSchedule, FrameModel, Level, MAX_CHANNELS, MAX_EDGES,
 };
@@ -700,7 +698,7 @@ fn place_grid<C: Clock + ?Sized>(
     sync_ns: u64,
 ) -> Option<(u64, u64)> {
     let frame_ns = model.frame_ns();
-    let (sync_min_ns, sync_max_ns) = (us_to_ns(SYNC_MIN_US), us_to_ns(SYNC_MAX_US));
+    let (sync_min_ns, sync_max_ns) = model.sync_window_ns();
     let now = clk.now_ns();
     let (grid_start, lead_in_ns) = match p.next_start {
         Some(s) => (s, p.lead_in_ns()),
@@ -2249,6 +2247,138 @@ mod tests {
     }
 
     use proptest::prelude::*;
+    use proptest::test_runner::TestCaseError;
+
+    /// A scenario of the property below: grid or follow timing; commands
+    /// as (ms after the previous one, first value); stalls as (ms after the
+    /// start, us long); how late every sleep wakes; the failsafe action.
+    type Scenario = (bool, Vec<(u64, u64)>, Vec<(u64, u64)>, u64, FailsafeAction);
+
+    /// Runs a scenario on the simulated clock and checks what every
+    /// receiver reads (see the property).
+    fn check_scenario(
+        (follow, cmds, stalls, late_us, action): Scenario,
+    ) -> Result<(), TestCaseError> {
+        let model = if follow {
+            follow_model("")
+        } else {
+            default_model()
+        };
+        let sim = Sim::new();
+        sim.set_wake_late_ns(late_us * 1_000);
+        for (at_ms, us) in &stalls {
+            sim.stall_at(START_NS + at_ms * MS, us * 1_000);
+        }
+        let mut t = START_NS;
+        let cmds: Vec<(u64, String)> = cmds
+            .iter()
+            .map(|(gap_ms, v)| {
+                t += gap_ms * MS;
+                (t, format!("[{v}, 1900]"))
+            })
+            .collect();
+        let cmds: Vec<(u64, &str)> = cmds.iter().map(|(t, c)| (*t, c.as_str())).collect();
+        let mut src = Feed::new(&sim, &model, &cmds);
+        let values: Vec<u64> = src.made().iter().map(|m| m.1 as u64).collect();
+        let until_ms = (src.last_at() - START_NS) / MS + 150;
+        let mut out = Recorder::default();
+        let cfg = EmitterConfig {
+            margin: Margin::Auto {
+                min_ns: 20_000,
+                max_ns: 500_000,
+            },
+            ..cfg(100, action)
+        };
+        let stats = run_one(&sim, &model, cfg, &mut src, &mut out, until_ms);
+        let edges = &out.edges;
+        prop_assert!(
+            edges.iter().all(|e| e.actual_ns >= e.scheduled_ns),
+            "never early"
+        );
+        let frames = planned(edges, model.channels());
+        let n = frames.len() as u64;
+        prop_assert_eq!(n, stats.frames.load(Relaxed));
+        let lead_ins = frames.iter().filter(|f| f.after_lead_in).count() as u64;
+        prop_assert_eq!(
+            edges.len() as u64,
+            n * 2 * (model.channels() as u64 + 1) + 2 * lead_ins
+        );
+        prop_assert_eq!(stats.edges.load(Relaxed), edges.len() as u64);
+        prop_assert!(
+            lead_ins <= 1 + stats.overruns.load(Relaxed) + stats.failsafe_entries.load(Relaxed),
+            "{lead_ins} lead-ins, {stats:?}"
+        );
+        // The syncs: a frame follows its predecessor's last pulse by a
+        // sync, or a lone pulse LEAD_IN_NS before it (which itself
+        // follows the last pulse by more than any channel).
+        let (lo, hi) = match model.timing() {
+            Timing::Grid => model.sync_window_ns(),
+            Timing::Follow => (model.follow_sync_ns().0, us_to_ns(FOLLOW_SYNC_CEILING_US)),
+        };
+        for (i, f) in frames.iter().enumerate() {
+            match (f.after_lead_in, f.before) {
+                (false, Some(b)) => {
+                    let sync = f.start - b;
+                    prop_assert!((lo..=hi).contains(&sync), "frame {}: sync {} ns", i, sync);
+                }
+                (false, None) => prop_assert!(false, "the first frame without a lead-in"),
+                (true, _) => {}
+            }
+            // Values: a command's first value (or the default), then
+            // 1900 (or the default), then the defaults.
+            let default_us = |c: usize| u64::from(model.default_ns(c)) / 1_000;
+            let want_rest: Vec<u64> = (2..model.channels()).map(default_us).collect();
+            let v = &f.values_us;
+            let cmd = values.contains(&v[0]) && v[1] == 1_900;
+            let defaults = v[0] == default_us(0) && v[1] == default_us(1);
+            prop_assert!(cmd || defaults, "frame {}: {:?}", i, v);
+            prop_assert_eq!(&v[2..], &want_rest[..], "frame {}", i);
+        }
+        for r in [Receiver::EdgeTx, Receiver::OpenTx] {
+            let (read, _) = decode_as(r, scheduled(edges), Level::High);
+            prop_assert_eq!(read.len(), frames.len(), "{:?}", r);
+            for (got, f) in read.iter().zip(&frames) {
+                prop_assert_eq!(got.start_ns, f.start);
+                prop_assert_eq!(&got.channels_us()[..], &f.values_us[..]);
+            }
+        }
+        // A flight controller hands a frame on at the sync after it (not
+        // the last one), once locked on (a lead-in pulse before it locks
+        // can make it start over): from the first frame it hands on, every
+        // frame but the last, exactly; and it locks after its warm-up
+        // when no lead-in comes in between.
+        for r in [Receiver::Betaflight, Receiver::ArduPilot] {
+            let (read, _) = decode_as(r, scheduled(edges), Level::High);
+            let Some(first) = read.first() else {
+                let clean = frames.iter().skip(1).all(|f| !f.after_lead_in);
+                prop_assert!(
+                    !clean || frames.len() <= 1 + r.warmup_frames(),
+                    "{:?} read none of {} frames",
+                    r,
+                    frames.len()
+                );
+                continue;
+            };
+            let from = frames.iter().position(|f| f.start == first.start_ns);
+            prop_assert!(from.is_some(), "{:?} read a frame not sent", r);
+            let tail = &frames[from.unwrap()..frames.len() - 1];
+            prop_assert_eq!(read.len(), tail.len(), "{:?}", r);
+            for (got, f) in read.iter().zip(tail) {
+                prop_assert_eq!(got.start_ns, f.start);
+                prop_assert_eq!(&got.channels_us()[..], &f.values_us[..]);
+            }
+            let clean = frames[1..=r.warmup_frames().min(frames.len() - 1)]
+                .iter()
+                .all(|f| !f.after_lead_in);
+            prop_assert!(
+                !clean || from == Some(r.warmup_frames()),
+                "{:?} locked at {:?}",
+                r,
+                from
+            );
+        }
+        Ok(())
+    }
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(
@@ -2258,11 +2388,12 @@ mod tests {
         /// Whatever the commands' pace, stalls of the loop and late
         /// wake-ups: every edge is planned, none written early; every frame
         /// has valid syncs around it or a lead-in pulse before it; a trainer
-        /// input (EdgeTX, OpenTX) reads every frame, with the values of a
-        /// command that was published (or the defaults) to the microsecond;
-        /// and the counters add up.
+        /// input (EdgeTX, OpenTX) reads every frame, a flight controller
+        /// (Betaflight, ArduPilot) every frame after its warm-up, with the
+        /// values of a command that was published (or the defaults) to the
+        /// microsecond; and the counters add up.
         #[test]
-        fn any_commands_stalls_and_late_wake_ups_give_frames_a_trainer_reads(
+        fn any_commands_stalls_and_late_wake_ups_give_frames_every_receiver_reads(
             follow in any::<bool>(),
             cmds in prop::collection::vec((1u64..60, 1_000u64..=2_000), 1..40),
             stalls in prop::collection::vec((0u64..800, 1u64..60_000), 0..4),
@@ -2273,76 +2404,20 @@ mod tests {
                 Just(FailsafeAction::Default),
             ],
         ) {
-            let model = if follow { follow_model("") } else { default_model() };
-            let sim = Sim::new();
-            sim.set_wake_late_ns(late_us * 1_000);
-            for (at_ms, us) in &stalls {
-                sim.stall_at(START_NS + at_ms * MS, us * 1_000);
-            }
-            let mut t = START_NS;
-            let cmds: Vec<(u64, String)> = cmds
-                .iter()
-                .map(|(gap_ms, v)| {
-                    t += gap_ms * MS;
-                    (t, format!("[{v}, 1900]"))
-                })
-                .collect();
-            let cmds: Vec<(u64, &str)> = cmds.iter().map(|(t, c)| (*t, c.as_str())).collect();
-            let mut src = Feed::new(&sim, &model, &cmds);
-            let values: Vec<u64> = src.made().iter().map(|m| m.1 as u64).collect();
-            let until_ms = (src.last_at() - START_NS) / MS + 150;
-            let mut out = Recorder::default();
-            let cfg = EmitterConfig {
-                margin: Margin::Auto { min_ns: 20_000, max_ns: 500_000 },
-                ..cfg(100, action)
-            };
-            let stats = run_one(&sim, &model, cfg, &mut src, &mut out, until_ms);
-            let edges = &out.edges;
-            prop_assert!(edges.iter().all(|e| e.actual_ns >= e.scheduled_ns), "never early");
-            let frames = planned(edges, model.channels());
-            let n = frames.len() as u64;
-            prop_assert_eq!(n, stats.frames.load(Relaxed));
-            let lead_ins = frames.iter().filter(|f| f.after_lead_in).count() as u64;
-            prop_assert_eq!(edges.len() as u64, n * 2 * (model.channels() as u64 + 1) + 2 * lead_ins);
-            prop_assert_eq!(stats.edges.load(Relaxed), edges.len() as u64);
-            prop_assert!(
-                lead_ins <= 1 + stats.overruns.load(Relaxed) + stats.failsafe_entries.load(Relaxed),
-                "{lead_ins} lead-ins, {stats:?}"
-            );
-            // The syncs: a frame follows its predecessor's last pulse by a
-            // sync, or a lone pulse LEAD_IN_NS before it (which itself
-            // follows the last pulse by more than any channel).
-            let (lo, hi) = match model.timing() {
-                Timing::Grid => (us_to_ns(SYNC_MIN_US), us_to_ns(SYNC_MAX_US)),
-                Timing::Follow => (model.follow_sync_ns().0, us_to_ns(FOLLOW_SYNC_CEILING_US)),
-            };
-            for (i, f) in frames.iter().enumerate() {
-                match (f.after_lead_in, f.before) {
-                    (false, Some(b)) => {
-                        let sync = f.start - b;
-                        prop_assert!((lo..=hi).contains(&sync), "frame {}: sync {} ns", i, sync);
-                    }
-                    (false, None) => prop_assert!(false, "the first frame without a lead-in"),
-                    (true, _) => {}
-                }
-                // Values: a command's first value (or the default), then
-                // 1900 (or the default), then the defaults.
-                let default_us = |c: usize| u64::from(model.default_ns(c)) / 1_000;
-                let want_rest: Vec<u64> = (2..model.channels()).map(default_us).collect();
-                let v = &f.values_us;
-                let cmd = values.contains(&v[0]) && v[1] == 1_900;
-                let defaults = v[0] == default_us(0) && v[1] == default_us(1);
-                prop_assert!(cmd || defaults, "frame {}: {:?}", i, v);
-                prop_assert_eq!(&v[2..], &want_rest[..], "frame {}", i);
-            }
-            for r in [Receiver::EdgeTx, Receiver::OpenTx] {
-                let (read, _) = decode_as(r, scheduled(edges), Level::High);
-                prop_assert_eq!(read.len(), frames.len(), "{:?}", r);
-                for (got, f) in read.iter().zip(&frames) {
-                    prop_assert_eq!(got.start_ns, f.start);
-                    prop_assert_eq!(&got.channels_us()[..], &f.values_us[..]);
-                }
-            }
+            check_scenario((follow, cmds, stalls, late_us, action))?;
         }
+    }
+
+    /// Found by the property above: a 29.6 ms stall in the first frame
+    /// made the next one late; moved later by 7.1 ms it left a sync of
+    /// exactly 4000 us after it, which EdgeTX does not read as a sync (it
+    /// lost the frame after). A late frame now keeps the receivers' window
+    /// less the 500 us margin (4500..18500 us).
+    #[test]
+    fn a_late_frame_keeps_the_sync_margin() {
+        let cmds = [15, 36, 7, 7, 39, 7, 46, 31, 52, 20, 58, 59, 47, 50, 50]
+            .map(|gap| (gap, 1_000))
+            .to_vec();
+        check_scenario((false, cmds, vec![(17, 29_588)], 21, FailsafeAction::Hold)).unwrap();
     }
 }

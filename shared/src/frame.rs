@@ -128,6 +128,7 @@ pub struct FrameModel {
     timing: Timing,
     follow_sync_ns: (u64, u64),
     receiver: ReceiverChoice,
+    sync_window_ns: (u64, u64),
 }
 
 impl FrameModel {
@@ -151,6 +152,11 @@ impl FrameModel {
             timing: spec.timing,
             follow_sync_ns: spec.follow_sync_ns,
             receiver: spec.receiver,
+            sync_window_ns: {
+                let rules = spec.receiver.rules();
+                let ns = |us: f64| (us * 1e3).round() as u64;
+                (ns(rules.sync_min_us.0), ns(rules.sync_max_us.0))
+            },
         };
         for (i, c) in spec.channels.iter().enumerate() {
             m.default_ns[i] = c.default_ns;
@@ -198,6 +204,13 @@ impl FrameModel {
     /// The receiver the model was checked for.
     pub fn receiver(&self) -> ReceiverChoice {
         self.receiver
+    }
+
+    /// The shortest and the longest sync gap the receivers of
+    /// `ppm.receiver` all read, less the margin ppm keeps for a late edge,
+    /// ns (4500..18500 us for `any`): how far a late frame may move.
+    pub fn sync_window_ns(&self) -> (u64, u64) {
+        self.sync_window_ns
     }
 
     /// `follow` timing's shortest and longest sync gap, ns.
