@@ -2264,11 +2264,34 @@ mod tests {
         } else {
             default_model()
         };
+        let sim = scenario_sim(&stalls, late_us);
+        let mut src = scenario_feed(&sim, &model, &cmds);
+        let until_ms = (src.last_at() - START_NS) / MS + 150;
+        let mut out = Recorder::default();
+        let stats = run_one(
+            &sim,
+            &model,
+            scenario_cfg(action),
+            &mut src,
+            &mut out,
+            until_ms,
+        );
+        check_lane(&model, &out.edges, &stats, &src.made())
+    }
+
+    /// A simulated clock with these stalls (ms after the start, us long)
+    /// and every sleep `late_us` late.
+    fn scenario_sim(stalls: &[(u64, u64)], late_us: u64) -> Sim {
         let sim = Sim::new();
         sim.set_wake_late_ns(late_us * 1_000);
-        for (at_ms, us) in &stalls {
+        for (at_ms, us) in stalls {
             sim.stall_at(START_NS + at_ms * MS, us * 1_000);
         }
+        sim
+    }
+
+    /// Commands (ms after the previous one, first value) as `[v, 1900]`.
+    fn scenario_feed(sim: &Sim, model: &FrameModel, cmds: &[(u64, u64)]) -> Feed {
         let mut t = START_NS;
         let cmds: Vec<(u64, String)> = cmds
             .iter()
@@ -2278,19 +2301,29 @@ mod tests {
             })
             .collect();
         let cmds: Vec<(u64, &str)> = cmds.iter().map(|(t, c)| (*t, c.as_str())).collect();
-        let mut src = Feed::new(&sim, &model, &cmds);
-        let values: Vec<u64> = src.made().iter().map(|m| m.1 as u64).collect();
-        let until_ms = (src.last_at() - START_NS) / MS + 150;
-        let mut out = Recorder::default();
-        let cfg = EmitterConfig {
+        Feed::new(sim, model, &cmds)
+    }
+
+    /// The automatic margin and a 100 ms failsafe with `action`.
+    fn scenario_cfg(action: FailsafeAction) -> EmitterConfig {
+        EmitterConfig {
             margin: Margin::Auto {
                 min_ns: 20_000,
                 max_ns: 500_000,
             },
             ..cfg(100, action)
-        };
-        let stats = run_one(&sim, &model, cfg, &mut src, &mut out, until_ms);
-        let edges = &out.edges;
+        }
+    }
+
+    /// Checks one lane's waveform (see the property below); `made`: its
+    /// commands (published at, first value).
+    fn check_lane(
+        model: &FrameModel,
+        edges: &[TraceEdge],
+        stats: &Stats,
+        made: &[(u64, u32)],
+    ) -> Result<(), TestCaseError> {
+        let values: Vec<u64> = made.iter().map(|m| m.1 as u64).collect();
         prop_assert!(
             edges.iter().all(|e| e.actual_ns >= e.scheduled_ns),
             "never early"
@@ -2405,6 +2438,67 @@ mod tests {
             ],
         ) {
             check_scenario((follow, cmds, stalls, late_us, action))?;
+        }
+
+        /// The same for two lanes of one loop (8 channels at 22.5 ms and 6
+        /// at 20 ms, each grid or follow, commands of their own): each
+        /// lane's waveform holds to it, whatever the other's edges and
+        /// decisions (a decision whose time falls on an edge is made
+        /// before it).
+        #[test]
+        fn two_lanes_of_any_commands_each_give_frames_every_receiver_reads(
+            follow in (any::<bool>(), any::<bool>()),
+            cmds_a in prop::collection::vec((1u64..60, 1_000u64..=2_000), 1..30),
+            cmds_b in prop::collection::vec((1u64..60, 1_000u64..=2_000), 1..30),
+            stalls in prop::collection::vec((0u64..800, 1u64..60_000), 0..3),
+            late_us in 0u64..80,
+        ) {
+            let timing = |f: bool| if f { "timing = 'follow'" } else { "timing = 'grid'" };
+            let a = Config::parse(&format!("[ppm]\n{}", timing(follow.0)))
+                .unwrap()
+                .validate()
+                .unwrap();
+            let b = Config::parse(&format!(
+                "[ppm]\nchannels = 6\norder = 'TAER'\nframe_us = 20000.0\n{}",
+                timing(follow.1)
+            ))
+            .unwrap()
+            .validate()
+            .unwrap();
+            let sim = scenario_sim(&stalls, late_us);
+            let mut src_a = scenario_feed(&sim, &a, &cmds_a);
+            let mut src_b = scenario_feed(&sim, &b, &cmds_b);
+            let (made_a, made_b) = (src_a.made(), src_b.made());
+            let until_ms = (src_a.last_at().max(src_b.last_at()) - START_NS) / MS + 150;
+            let (mut out_a, mut out_b) = (Recorder::default(), Recorder::default());
+            let (stats_a, stats_b) = (Stats::default(), Stats::default());
+            let (mut meter_a, _ra) = crate::meter::meter(1_000_000_000);
+            let (mut meter_b, _rb) = crate::meter::meter(1_000_000_000);
+            {
+                let mut lanes = [
+                    Lane {
+                        model: &a,
+                        cfg: scenario_cfg(FailsafeAction::Silence),
+                        source: &mut src_a,
+                        sink: Sink::Line(&mut out_a),
+                        stats: &stats_a,
+                        meter: &mut meter_a,
+                        log: None,
+                    },
+                    Lane {
+                        model: &b,
+                        cfg: scenario_cfg(FailsafeAction::Hold),
+                        source: &mut src_b,
+                        sink: Sink::Line(&mut out_b),
+                        stats: &stats_b,
+                        meter: &mut meter_b,
+                        log: None,
+                    },
+                ];
+                run_until(&sim, &mut lanes, &mut [], until_ms);
+            }
+            check_lane(&a, &out_a.edges, &stats_a, &made_a)?;
+            check_lane(&b, &out_b.edges, &stats_b, &made_b)?;
         }
     }
 
