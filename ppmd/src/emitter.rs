@@ -1544,6 +1544,105 @@ mod tests {
         assert!((25_000..26_000).contains(&max), "{max} ns");
     }
 
+    /// The frame log gets one row per frame sent, numbered from 1, with
+    /// its start on both clocks (as scheduled), its state, its values and
+    /// the command it carries (none for the failsafe defaults), and one
+    /// row per change of the line's state, at the decision that made it.
+    #[test]
+    fn the_frame_log_has_every_frame_and_change_as_sent() {
+        let dir = std::env::temp_dir().join(format!("ppmd-emitter-log-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("frames.jsonl");
+        let _ = std::fs::remove_file(&path);
+        let (mut log, mut writer) = framelog::open(&path, 1 << 20).unwrap();
+        let sim = Sim::new();
+        let model = default_model();
+        let mut src = Feed::new(&sim, &model, &[(START_NS, CMD)]);
+        let mut out = Recorder::default();
+        let stats = Stats::default();
+        let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
+        {
+            let mut lanes = [Lane {
+                model: &model,
+                cfg: cfg(60, FailsafeAction::Default),
+                source: &mut src,
+                sink: Sink::Line(&mut out),
+                stats: &stats,
+                meter: &mut meter,
+                log: Some(&mut log),
+            }];
+            run_until(&sim, &mut lanes, &mut [], 150);
+        }
+        drop(log);
+        writer.finish();
+        let rows: Vec<serde_json::Value> = std::fs::read_to_string(&path)
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        std::fs::remove_dir_all(&dir).unwrap();
+        let starts = starts_of(&scheduled(&out.edges));
+        // Frames decided at 5, 27.5 and 50 ms carry the command (60 ms
+        // fresh), those at 72.5..=140 ms the defaults.
+        assert_eq!(starts.len(), 7);
+        let frames: Vec<&serde_json::Value> =
+            rows.iter().filter(|r| r["type"] == "frame").collect();
+        assert_eq!(frames.len(), 7);
+        for (k, (f, start)) in frames.iter().zip(&starts).enumerate() {
+            assert_eq!(f["frame"], k as u64 + 1);
+            assert_eq!(f["mono_ns"], *start);
+            assert_eq!(
+                f["real_ns"],
+                *start + crate::clock::sim::REALTIME_OFFSET_NS,
+                "one pair of readings"
+            );
+            assert_eq!(f["timing"], "grid");
+            if k < 3 {
+                assert_eq!(f["state"], "active", "frame {k}");
+                assert_eq!(f["ingress_seq"], 1);
+                assert_eq!(f["recv_mono_ns"], START_NS);
+                assert_eq!(f["ch_us"], serde_json::json!(CMD_US.map(|v| v as f64)));
+            } else {
+                assert_eq!(f["state"], "failsafe", "frame {k}");
+                assert_eq!(f["ingress_seq"], serde_json::Value::Null);
+                assert_eq!(
+                    f["ch_us"],
+                    serde_json::json!([
+                        1500.0, 1500.0, 1000.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0
+                    ])
+                );
+            }
+        }
+        let changes: Vec<(&str, &str, u64)> = rows
+            .iter()
+            .filter(|r| r["type"] == "transition")
+            .map(|r| {
+                (
+                    r["from"].as_str().unwrap(),
+                    r["to"].as_str().unwrap(),
+                    r["mono_ns"].as_u64().unwrap(),
+                )
+            })
+            .collect();
+        assert_eq!(changes.len(), 2, "{changes:?}");
+        assert_eq!(changes[0].0..changes[0].1, "silent".."active");
+        assert_eq!(changes[1].0..changes[1].1, "active".."failsafe");
+        // At the first look (the start), and at the decision of frame 3,
+        // DECIDE_NS before it.
+        assert!(changes[0].2 - START_NS < 1_000, "{changes:?}");
+        assert!(
+            (starts[3] - LEAD_1).abs_diff(changes[1].2) < 1_000,
+            "{changes:?}"
+        );
+        // A row per frame and per change, in time order.
+        let times: Vec<u64> = rows
+            .iter()
+            .map(|r| r["mono_ns"].as_u64().unwrap())
+            .collect();
+        assert_eq!(rows.len(), 9);
+        assert!(times.windows(2).all(|w| w[0] < w[1]), "{times:?}");
+    }
+
     /// Records bank writes: (scheduled, mask, levels).
     #[derive(Default)]
     struct BankRecorder(Vec<(u64, u64, u64)>);
