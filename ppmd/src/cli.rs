@@ -1,8 +1,88 @@
-//! ppmd's `--output` arguments: `SPEC` for the one output, or `NAME=SPEC`
-//! for each of several (outputs of the file's `[[outputs]]`, or made from
-//! the file's settings when it has none).
+//! ppmd's command line: its options, and how they override the
+//! configuration file. `--output` takes `SPEC` for the one output, or
+//! `NAME=SPEC` for each of several (outputs of the file's `[[outputs]]`, or
+//! made from the file's settings when it has none).
 
-use ppm_shared::config::{validate_name, Config, ConfigError, OutputSpec};
+use clap::Parser;
+use ppm_shared::config::{validate_name, Config, ConfigError, OutputSpec, Timing};
+use ppm_shared::daemon::DaemonArgs;
+use std::path::PathBuf;
+
+/// PPM daemon: takes the newest command from udp-ingress once per frame and
+/// emits it as a PPM trainer signal.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+pub struct Cli {
+    #[command(flatten)]
+    pub daemon: DaemonArgs,
+    /// Output name; must match udp-ingress's. Overrides `name`; with
+    /// `[[outputs]]` in the configuration, runs that output alone.
+    #[arg(long)]
+    pub name: Option<String>,
+    /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, or `gpio:CHIP:LINE` (CHIP:
+    /// a path, name or label such as pinctrl-bcm2711; LINE: an offset or a
+    /// name such as GPIO18). Overrides `ppmd.output`. Repeat as
+    /// `--output NAME=SPEC` to drive several outputs from one timing thread,
+    /// each fed by its own `udp-ingress --name NAME`.
+    #[arg(long, value_name = "[NAME=]SPEC")]
+    pub output: Vec<String>,
+    /// Run even when a real-time setting cannot be had (the run is then
+    /// marked degraded). Sets `rt.allow_degraded`.
+    #[arg(long)]
+    pub allow_degraded: bool,
+    /// Append one JSON line per emitted frame and line-state change to FILE.
+    /// Overrides `ppmd.frame_log`.
+    #[arg(long, value_name = "FILE")]
+    pub frame_log: Option<PathBuf>,
+    /// When frames start: `grid` (one every `ppm.frame_us`) or `follow` (a
+    /// fresh command starts its frame as soon as the sync allows). Overrides
+    /// `ppm.timing`, for every output.
+    #[arg(long, value_name = "grid|follow")]
+    pub timing: Option<Timing>,
+    /// Append an HdrHistogram interval log of edge error and write duration
+    /// (nanoseconds, one interval a second) to FILE.
+    #[arg(long, value_name = "FILE")]
+    pub hdr_log: Option<PathBuf>,
+}
+
+impl Cli {
+    /// The configuration to run: the file (`--config`, or every default
+    /// without one) with these options applied ([`Cli::apply`]).
+    pub fn config(&self) -> Result<Config, ConfigError> {
+        self.apply(Config::load_or_default(self.daemon.config.as_deref())?)
+    }
+
+    /// Applies these options to `cfg`: `--name` picks that output alone
+    /// (with `[[outputs]]`), `--output` sets the lines ([`apply_cli_outputs`]),
+    /// `--allow-degraded` and `--timing` reach every output, and
+    /// `--frame-log` sets the one output's frame log (with several, each
+    /// output's entry names its own).
+    pub fn apply(&self, mut cfg: Config) -> Result<Config, ConfigError> {
+        if let Some(name) = self.name.as_deref() {
+            cfg = cfg.select(Some(name))?;
+        }
+        apply_cli_outputs(&mut cfg, &self.output)?;
+        cfg.rt.allow_degraded |= self.allow_degraded;
+        if let Some(t) = self.timing {
+            cfg.ppm.timing = t;
+        }
+        for out in cfg.outputs.iter_mut() {
+            out.rt.allow_degraded = cfg.rt.allow_degraded;
+            if let Some(t) = self.timing {
+                out.ppm.timing = t;
+            }
+        }
+        if let Some(path) = &self.frame_log {
+            if !cfg.outputs.is_empty() {
+                return Err(ConfigError::Usage(
+                    "--frame-log with several outputs: set frame_log in each output's [[outputs]] entry instead".into(),
+                ));
+            }
+            cfg.ppmd.frame_log = Some(path.clone());
+        }
+        Ok(cfg)
+    }
+}
 
 /// Applies ppmd's `--output` arguments to `cfg`: one `SPEC` sets the one output's
 /// `ppmd.output`; `NAME=SPEC` (repeatable) sets output NAME's, or, when
@@ -76,34 +156,8 @@ pub fn split_named_output(arg: &str) -> Option<(&str, &str)> {
 mod tests {
     use super::*;
 
-    const TWO_OUTPUTS: &str = r#"
-[ppm]
-order = "AETR"
-[ppm.channel.ail]
-reverse = true
-[failsafe]
-after_ms = 150
-
-[[outputs]]
-name = "plane"
-output = "sim:plane.trace"
-frame_log = "plane.jsonl"
-ingress.listen = "0.0.0.0:5005"
-
-[[outputs]]
-name = "rover"
-output = "gpio:gpiochip0:18"
-[outputs.ingress]
-listen = "0.0.0.0:5006"
-[outputs.ppm]
-channels = 6
-order = "TAER"
-frame_us = 20000.0
-[outputs.ppm.channel.thr]
-max_us = 1900.0
-[outputs.failsafe]
-action = "hold"
-"#;
+    /// The fixture of shared's [[outputs]] tests: plane and rover.
+    const TWO_OUTPUTS: &str = include_str!("../../shared/testdata/two-outputs.toml");
 
     #[test]
     fn cli_outputs() {
@@ -148,5 +202,62 @@ action = "hold"
         assert!(e.to_string().contains("more than once"), "{e}");
         assert_eq!(split_named_output("sim:/a=b"), None);
         assert_eq!(split_named_output("a=sim:/x"), Some(("a", "sim:/x")));
+    }
+
+    fn cli(args: &[&str]) -> Cli {
+        Cli::try_parse_from(std::iter::once("ppmd").chain(args.iter().copied())).unwrap()
+    }
+
+    #[test]
+    fn options_override_the_configuration() {
+        // Nothing given: the file's settings stand.
+        let two = Config::parse(TWO_OUTPUTS).unwrap();
+        assert_eq!(cli(&[]).apply(two.clone()).unwrap(), two);
+        // One output: each option sets its key.
+        let c = cli(&[
+            "--timing",
+            "follow",
+            "--allow-degraded",
+            "--frame-log",
+            "f.jsonl",
+            "--output",
+            "sim:x.trace",
+        ])
+        .apply(Config::default())
+        .unwrap();
+        assert_eq!(c.ppm.timing, Timing::Follow);
+        assert!(c.rt.allow_degraded);
+        assert_eq!(c.ppmd.frame_log, Some(PathBuf::from("f.jsonl")));
+        assert_eq!(c.ppmd.output, "sim:x.trace");
+        // Several: --timing and --allow-degraded reach every output; a frame
+        // log of its own is each output's.
+        let c = cli(&["--timing", "follow", "--allow-degraded"])
+            .apply(two.clone())
+            .unwrap();
+        let outs = c.validate_outputs().unwrap();
+        assert_eq!(outs.len(), 2);
+        for (o, model) in &outs {
+            assert_eq!(
+                (o.ppm.timing, model.timing()),
+                (Timing::Follow, Timing::Follow)
+            );
+            assert!(o.rt.allow_degraded, "{}", o.name);
+        }
+        let e = cli(&["--frame-log", "f.jsonl"])
+            .apply(two.clone())
+            .unwrap_err();
+        assert!(
+            e.to_string().contains("set frame_log in each output's"),
+            "{e}"
+        );
+        // --name runs that output alone: then --frame-log is its own.
+        let c = cli(&["--name", "rover", "--frame-log", "r.jsonl"])
+            .apply(two)
+            .unwrap();
+        assert!(c.outputs.is_empty());
+        assert_eq!((c.name.as_str(), c.ppm.channels), ("rover", 6));
+        assert_eq!(c.ppmd.frame_log, Some(PathBuf::from("r.jsonl")));
+        let e = cli(&["--name", "boat"]).apply(Config::parse(TWO_OUTPUTS).unwrap());
+        assert!(e.unwrap_err().to_string().contains("no output `boat`"));
     }
 }

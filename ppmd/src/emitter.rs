@@ -56,7 +56,8 @@ pub const TRAINER_WRAP_NS: u64 = 32_768_000;
 pub const LEAD_IN_MAX_NS: u64 = LEAD_IN_NS + ALIAS_SHIFT_MAX_NS;
 /// Gaps (modulo [`TRAINER_WRAP_NS`]) a lead-in pulse keeps out of.
 const ALIASED_NS: std::ops::RangeInclusive<u64> = 600_000..=2_400_000;
-/// The most a lead-in pulse moves to keep out of [`ALIASED_NS`]: a lead-in
+/// The most a lead-in pulse moves to keep out of the gaps a trainer reads
+/// as a channel (600..=2400 us modulo [`TRAINER_WRAP_NS`]): a lead-in
 /// is between LEAD_IN_NS and LEAD_IN_NS plus this.
 pub const ALIAS_SHIFT_MAX_NS: u64 = 1_800_001;
 /// Gaps longer than this are left as they come: the receiver's clock

@@ -1,6 +1,7 @@
 //! The main thread's view of the timing loop: it merges the meter's
 //! intervals, logs line-state changes and failures, builds the timing
-//! snapshots udp-ingress reports, and writes the HdrHistogram log.
+//! snapshots udp-ingress reports (published by a [`SnapshotPublisher`]),
+//! and writes the HdrHistogram log.
 
 use crate::clock;
 use crate::emitter::{self, LineState, Stats};
@@ -8,7 +9,7 @@ use crate::meter::{self, Interval, MeterReader};
 use anyhow::{Context, Result};
 use ppm_shared::config::Timing;
 use ppm_shared::frame::FrameModel;
-use ppm_shared::ipc::{Summary, TimingSnapshot};
+use ppm_shared::ipc::{self, IpcError, PublishError, Summary, TimingSnapshot};
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
@@ -301,6 +302,40 @@ impl Monitor {
     }
 }
 
+/// The publisher of one output's timing snapshots, with the node and
+/// service it lives in.
+pub struct SnapshotPublisher {
+    publisher: ipc::Publisher<TimingSnapshot>,
+    _service: ipc::StatsService,
+    _node: ipc::Node,
+}
+
+impl SnapshotPublisher {
+    /// Opens output `name`'s timing snapshot service under the shared-memory
+    /// `root`, as the node `ppmd-NAME`.
+    pub fn open(root: &std::path::Path, name: &str) -> Result<SnapshotPublisher, IpcError> {
+        let node = ipc::create_node(root, &format!("ppmd-{name}"))?;
+        let service = ipc::open_stats_service(&node, name)?;
+        let publisher = service.publisher_builder().create().map_err(|e| {
+            IpcError::new(
+                format!("creating the timing snapshot publisher of `{name}`"),
+                e,
+            )
+        })?;
+        Ok(SnapshotPublisher {
+            publisher,
+            _service: service,
+            _node: node,
+        })
+    }
+
+    /// Publishes `snapshot` to whoever subscribed (udp-ingress, `jitter
+    /// --attach`).
+    pub fn publish(&self, snapshot: TimingSnapshot) -> Result<(), PublishError> {
+        ipc::publish(&self.publisher, snapshot).map(|_| ())
+    }
+}
+
 /// Summary of a histogram (all zero when empty).
 pub fn summarize(h: &hdrhistogram::Histogram<u64>) -> Summary {
     if h.is_empty() {
@@ -393,5 +428,31 @@ impl HdrLog {
             .context("writing to the log")?;
         self.started = true;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn snapshots_reach_a_subscriber_of_the_outputs_stats_service() {
+        let root = std::env::temp_dir().join(format!("ppm-monitor-test-{}", std::process::id()));
+        let name = format!("montest{}", std::process::id());
+        {
+            let publisher = SnapshotPublisher::open(&root, &name).unwrap();
+            let node = ipc::create_node(&root, &format!("{name}-reader")).unwrap();
+            let service = ipc::open_stats_service(&node, &name).unwrap();
+            let subscriber = service.subscriber_builder().create().unwrap();
+            let snapshot = TimingSnapshot {
+                seq: 3,
+                frames: 150,
+                ..TimingSnapshot::default()
+            };
+            publisher.publish(snapshot).unwrap();
+            let got = subscriber.receive().unwrap().expect("the snapshot");
+            assert_eq!(*got.payload(), snapshot);
+        }
+        let _ = std::fs::remove_dir_all(&root);
     }
 }

@@ -2110,34 +2110,8 @@ mod units_tests {
         assert_eq!(cmd.channels.as_ns()[0], 2_000_000);
     }
 
-    const TWO_OUTPUTS: &str = r#"
-[ppm]
-order = "AETR"
-[ppm.channel.ail]
-reverse = true
-[failsafe]
-after_ms = 150
-
-[[outputs]]
-name = "plane"
-output = "sim:plane.trace"
-frame_log = "plane.jsonl"
-ingress.listen = "0.0.0.0:5005"
-
-[[outputs]]
-name = "rover"
-output = "gpio:gpiochip0:18"
-[outputs.ingress]
-listen = "0.0.0.0:5006"
-[outputs.ppm]
-channels = 6
-order = "TAER"
-frame_us = 20000.0
-[outputs.ppm.channel.thr]
-max_us = 1900.0
-[outputs.failsafe]
-action = "hold"
-"#;
+    /// Two outputs, plane and rover, over shared top-level settings.
+    const TWO_OUTPUTS: &str = include_str!("../testdata/two-outputs.toml");
 
     #[test]
     fn outputs_inherit_the_top_level_and_override_it() {

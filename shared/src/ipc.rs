@@ -240,9 +240,12 @@ impl Default for TimingSnapshot {
     }
 }
 
-/// Setting up shared memory failed.
+/// Setting up shared memory failed. Its message says what was being done;
+/// iceoryx2's error is its [source](std::error::Error::source), so a log line
+/// with the causes (`{:#}` of anyhow, [`Chain`](crate::logging::Chain))
+/// shows both once.
 #[derive(Debug, thiserror::Error)]
-#[error("shared memory: {what}: {source:?}")]
+#[error("shared memory: {what}")]
 pub struct IpcError {
     /// What was being done.
     pub what: String,
@@ -262,6 +265,39 @@ impl IpcError {
             source: Box::new(source),
         }
     }
+}
+
+/// Publishing one sample (and the wake-up after a command) failed, with
+/// iceoryx2's error as the source.
+#[derive(Debug, thiserror::Error)]
+pub enum PublishError {
+    /// No sample could be loaned from the shared memory.
+    #[error("loaning a sample")]
+    Loan(#[source] iceoryx2::port::LoanError),
+    /// The sample could not be delivered.
+    #[error("sending the sample")]
+    Send(#[source] iceoryx2::port::SendError),
+    /// The wake-up after a command ([`open_wake_service`]) could not be sent.
+    #[error("waking ppmd")]
+    Wake(#[source] iceoryx2::port::notifier::NotifierNotifyError),
+}
+
+/// A publisher on one of the newest-only services ([`open_command_service`],
+/// [`open_stats_service`]).
+pub type Publisher<T> =
+    iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, T, ()>;
+
+/// Publishes `value`: loans a sample, writes `value` into it and sends it.
+/// Returns how many subscribers it reached.
+pub fn publish<T: ZeroCopySend + std::fmt::Debug + Copy>(
+    publisher: &Publisher<T>,
+    value: T,
+) -> Result<usize, PublishError> {
+    let sample = publisher.loan_uninit().map_err(PublishError::Loan)?;
+    sample
+        .write_payload(value)
+        .send()
+        .map_err(PublishError::Send)
 }
 
 fn ipc_err<E: std::error::Error + Send + Sync + 'static>(
@@ -360,6 +396,38 @@ mod tests {
     use super::*;
     use crate::config::Config;
     use crate::protocol::parse;
+
+    #[test]
+    fn publish_reaches_a_subscriber_and_errors_keep_their_source() {
+        let root = std::env::temp_dir().join(format!("ppm-ipc-test-{}", std::process::id()));
+        let name = format!("ipctest{}", std::process::id());
+        {
+            let node = create_node(&root, &format!("{name}-node")).unwrap();
+            let service = open_stats_service(&node, &name).unwrap();
+            let publisher = service.publisher_builder().create().unwrap();
+            let subscriber = service.subscriber_builder().create().unwrap();
+            let snapshot = TimingSnapshot {
+                seq: 7,
+                frames: 42,
+                ..TimingSnapshot::default()
+            };
+            assert_eq!(publish(&publisher, snapshot).unwrap(), 1, "one subscriber");
+            let got = subscriber.receive().unwrap().expect("the published sample");
+            assert_eq!(*got.payload(), snapshot);
+        }
+        let _ = std::fs::remove_dir_all(&root);
+        // The message says what failed; iceoryx2's error is the source.
+        let e = PublishError::Loan(iceoryx2::port::LoanError::OutOfMemory);
+        assert_eq!(e.to_string(), "loaning a sample");
+        let source = std::error::Error::source(&e).expect("a source");
+        assert_eq!(source.to_string(), "LoanError::OutOfMemory");
+        let e = IpcError::new(
+            "opening service `x`",
+            iceoryx2::port::LoanError::OutOfMemory,
+        );
+        assert_eq!(e.to_string(), "shared memory: opening service `x`");
+        assert!(std::error::Error::source(&e).is_some());
+    }
 
     #[test]
     fn round_trip_and_mismatch() {

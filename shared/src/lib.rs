@@ -12,6 +12,7 @@
 //! - [`files`]: bounded reads of the configuration, key and seq files.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
 //! - [`logging`]: log lines for a terminal or for systemd's journal.
+//! - [`daemon`]: the options both daemons take, and their logs' set-up.
 //! - [`line`](mod@line): the line's state and its names.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
 //! - [`trace`]: the simulated line's trace format.
@@ -21,6 +22,7 @@
 
 pub mod auth;
 pub mod config;
+pub mod daemon;
 pub mod decode;
 pub mod files;
 pub mod frame;

@@ -67,6 +67,24 @@ pub fn journal_line(level: log::Level, message: &str) -> String {
     out
 }
 
+/// An error and its sources, each after `: ` (as anyhow's `{:#}` shows
+/// them), for logging a typed error whole without Debug output:
+/// `log::warn!("publishing failed: {}", Chain(&e))`. Formats straight into
+/// the log line, making no string of its own.
+pub struct Chain<'a>(pub &'a (dyn std::error::Error + 'static));
+
+impl std::fmt::Display for Chain<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.0)?;
+        let mut source = self.0.source();
+        while let Some(s) = source {
+            write!(f, ": {s}")?;
+            source = s.source();
+        }
+        Ok(())
+    }
+}
+
 /// Sets up the `log` crate's logger (`RUST_LOG` filters, default `info`).
 pub fn init(format: LogFormat) {
     let mut b = env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("info"));
@@ -96,6 +114,19 @@ mod tests {
         assert_eq!(journal_line(log::Level::Error, "a\nb"), "<3>a\n<3>b\n");
         assert_eq!(priority(log::Level::Info), 6);
         assert_eq!(priority(log::Level::Trace), 7);
+    }
+
+    #[test]
+    fn a_chain_shows_every_cause_in_order() {
+        use crate::ipc::{IpcError, PublishError};
+        let loan = PublishError::Loan(iceoryx2::port::LoanError::OutOfMemory);
+        let e = IpcError::new("publishing a snapshot", loan);
+        assert_eq!(
+            Chain(&e).to_string(),
+            "shared memory: publishing a snapshot: loaning a sample: LoanError::OutOfMemory"
+        );
+        let plain = std::io::Error::other("alone");
+        assert_eq!(Chain(&plain).to_string(), "alone");
     }
 
     #[test]

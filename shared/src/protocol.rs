@@ -190,16 +190,7 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
                 b.mapped(form, &map)?;
             } else {
                 for (k, v) in map.iter().filter(|(k, _)| *k != "seq") {
-                    let i = model.index_of(k).ok_or_else(|| {
-                        reject(
-                            RejectReason::UnknownChannel,
-                            format!(
-                                "no channel `{k}`; channels are {}",
-                                model.names().join(", ")
-                            ),
-                        )
-                    })?;
-                    b.set(i, Named::Key(k), v)?;
+                    b.set(channel_index(model, k)?, Named::Key(k), v)?;
                 }
             }
             seq
@@ -221,6 +212,20 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
         seq,
         channels: Channels::from_ns(&b.ns[..model.channels()]),
         clamped: b.clamped,
+    })
+}
+
+/// The index of the channel named `name`, or the rejection that lists the
+/// model's channels.
+fn channel_index(model: &FrameModel, name: &str) -> Result<usize, Reject> {
+    model.index_of(name).ok_or_else(|| {
+        reject(
+            RejectReason::UnknownChannel,
+            format!(
+                "no channel `{name}`; channels are {}",
+                model.names().join(", ")
+            ),
+        )
     })
 }
 
@@ -348,15 +353,7 @@ impl Builder<'_> {
         };
         for (k, v) in values {
             let model = self.model;
-            let i = model.index_of(k).ok_or_else(|| {
-                reject(
-                    RejectReason::UnknownChannel,
-                    format!(
-                        "no channel `{k}`; channels are {}",
-                        model.names().join(", ")
-                    ),
-                )
-            })?;
+            let i = channel_index(model, k)?;
             let x = v.as_f64().ok_or_else(|| {
                 reject(
                     RejectReason::NotANumber,
@@ -656,6 +653,13 @@ mod tests {
             e.to_string().contains("aileron") && e.to_string().contains("ail, ele"),
             "{e}"
         );
+        // A mapped form names an unknown channel as the named form does.
+        let named = parse(br#"{"yaw": 1500}"#, &units_model()).unwrap_err();
+        let mapped = parse(br#"{"norm": {"yaw": 0}}"#, &units_model()).unwrap_err();
+        assert_eq!(named.detail, mapped.detail);
+        assert!(named
+            .detail
+            .starts_with("no channel `yaw`; channels are ail, ele"));
         let e = parse(b"[1500, 9000]", &model()).unwrap_err();
         assert!(e.to_string().contains("channel 2"), "{e}");
     }

@@ -51,6 +51,12 @@ pub fn bin(name: &str) -> PathBuf {
     bin_dir().join(name)
 }
 
+/// An `[rt]` section for tests that run several ppmd at once: the normal
+/// scheduler, any CPU, the CPU's idle states left alone, and a run without
+/// the privileges for more allowed.
+pub const GENTLE_RT: &str =
+    "[rt]\npriority = 0\ncpu = \"none\"\ncpu_dma_latency = false\nallow_degraded = true\n";
+
 /// How long a program may take to start (debug builds on a busy machine).
 const STARTUP: Duration = Duration::from_secs(30);
 
@@ -107,6 +113,17 @@ impl Sandbox {
             self.dir.join("ipc").display()
         );
         std::fs::write(&path, text).expect("writing the config");
+        path
+    }
+
+    /// Writes `text` to the file `name` in the sandbox with permissions
+    /// `mode` (e.g. a key file, 0o600); returns its path.
+    pub fn write_file(&self, name: &str, text: &str, mode: u32) -> PathBuf {
+        use std::os::unix::fs::PermissionsExt;
+        let path = self.dir.join(name);
+        std::fs::write(&path, text).expect("writing a file in the sandbox");
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode))
+            .expect("setting a file's mode");
         path
     }
 
@@ -309,6 +326,27 @@ pub fn status(to: SocketAddr) -> serde_json::Value {
     serde_json::from_slice(&buf[..n]).expect("a JSON status reply")
 }
 
+/// How many commands a status reply counts as taken in: applied, or
+/// superseded by a newer one before it was published.
+pub fn handed_over(status: &serde_json::Value) -> u64 {
+    let d = &status["datagrams"];
+    let count = |k: &str| {
+        d[k].as_u64()
+            .unwrap_or_else(|| panic!("no datagrams.{k}: {status}"))
+    };
+    count("applied") + count("superseded")
+}
+
+/// How many datagrams a status reply counts as rejected, for any reason.
+pub fn rejected_total(status: &serde_json::Value) -> u64 {
+    status["datagrams"]["rejected"]
+        .as_object()
+        .unwrap_or_else(|| panic!("no datagrams.rejected: {status}"))
+        .values()
+        .map(|v| v.as_u64().expect("a count"))
+        .sum()
+}
+
 /// Writes `ppm.toml` with two outputs, `<name>a` (the defaults, on the
 /// sandbox's port, line `sim:a.trace`, frame log `a.jsonl`) and `<name>b`
 /// (line `sim:b.trace`, on `port_b`), with `b_keys` added to b's entry
@@ -391,6 +429,31 @@ pub fn at_50hz(n: u64, mut send: impl FnMut(u64)) {
             std::thread::sleep(Duration::from_nanos(next - now));
         }
     }
+}
+
+/// The Python groundstation package in the source tree (`import ppm`).
+pub const PYTHON_PACKAGE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/python");
+
+/// Runs python3 with `args` in `dir`, with the modules under `pythonpath`
+/// importable (e.g. [`PYTHON_PACKAGE`]) and no bytecode written; returns
+/// its standard output. The test fails, with both outputs, when python3
+/// fails or is missing.
+pub fn python3(dir: &Path, pythonpath: &str, args: &[&str]) -> String {
+    let out = Command::new("python3")
+        .args(args)
+        .env("PYTHONPATH", pythonpath)
+        .env("PYTHONDONTWRITEBYTECODE", "1")
+        .current_dir(dir)
+        .output()
+        .expect("python3 is needed for this test (apt-get install python3)");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "python3 {args:?} failed ({}):\n{stdout}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
 }
 
 /// The `key=value` directives of a systemd unit in `deploy/`, in order

@@ -7,40 +7,18 @@
 
 use nix::sys::signal::Signal;
 use ppm_shared::auth::AuthKey;
-use ppm_tests::{read_trace, Proc, Sandbox};
+use ppm_tests::{
+    handed_over, python3, read_trace, rejected_total, Proc, Sandbox, GENTLE_RT, PYTHON_PACKAGE,
+};
 use serde_json::{json, Value};
 use std::net::{SocketAddr, UdpSocket};
-use std::os::unix::fs::PermissionsExt;
-use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 const SECOND: Duration = Duration::from_secs(1);
 const KEY_HEX: &str = "8f2a55e0c1d94b7e3a6f0b1c2d3e4f5061728394a5b6c7d8e9f0a1b2c3d4e5f6";
-/// ppmd on the normal scheduler: several of these tests run at once.
-const GENTLE_RT: &str =
-    "[rt]\npriority = 0\ncpu = \"none\"\ncpu_dma_latency = false\nallow_degraded = true\n";
-
-fn write_key(sb: &Sandbox, name: &str, text: &str, mode: u32) -> PathBuf {
-    let path = sb.dir.join(name);
-    std::fs::write(&path, text).unwrap();
-    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode)).unwrap();
-    path
-}
 
 fn key() -> AuthKey {
     AuthKey::from_hex(KEY_HEX).unwrap()
-}
-
-/// The sandbox's config with `ingress` lines added to its `[ingress]` table.
-fn config_with_ingress(sb: &Sandbox, ingress: &str, extra: &str) -> String {
-    let path = sb.config(extra);
-    let text = std::fs::read_to_string(&path).unwrap().replacen(
-        "[ingress]\n",
-        &format!("[ingress]\n{ingress}\n"),
-        1,
-    );
-    std::fs::write(&path, text).unwrap();
-    path.to_str().unwrap().to_owned()
 }
 
 /// Sends from one socket and asks for status (unsigned) from it.
@@ -93,18 +71,14 @@ fn rejected(status: &Value, reason: &str) -> u64 {
 #[test]
 fn signed_commands_apply_and_forgeries_and_replays_do_not() {
     let sb = Sandbox::new("auth");
-    let key_path = write_key(&sb, "auth.key", &format!("{KEY_HEX}\n"), 0o600);
-    let cfg = config_with_ingress(
-        &sb,
-        &format!("auth_key = \"{}\"", key_path.display()),
-        GENTLE_RT,
-    );
+    let key_path = sb.write_file("auth.key", &format!("{KEY_HEX}\n"), 0o600);
+    let cfg = sb.config_with_ingress(&format!("auth_key = {key_path:?}"), GENTLE_RT);
     let trace = sb.dir.join("line.trace");
-    let output = format!("sim:{}", trace.display());
-    let mut ppmd = sb.spawn("ppmd", &["--config", &cfg, "--output", &output], "ppmd");
-    ppmd.wait_for_log("commands from", 30 * SECOND);
-    let mut ingress = start_ingress(&sb, &cfg, "ingress1");
-    assert!(ingress.log_text().contains("commands must be signed"));
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let cfg = cfg.to_str().unwrap();
+    let mut ingress = start_ingress(&sb, cfg, "ingress1");
+    // Logged just after "listening on", which start_ingress waited for.
+    ingress.wait_for_log("commands must be signed", 10 * SECOND);
     let k = key();
     let signed = |ch: u64, seq: u64| k.envelope(&json!({"ch": [ch], "seq": seq}).to_string());
     let c = Client::new("127.0.0.1", sb.addr());
@@ -143,11 +117,7 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
     // Status queries need no signature.
     let s = c.status();
     let d = &s["datagrams"];
-    assert_eq!(
-        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
-        50,
-        "{s}"
-    );
+    assert_eq!(handed_over(&s), 50, "{s}");
     assert_eq!(
         (
             rejected(&s, "unsigned"),
@@ -173,12 +143,8 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
             .parse::<u64>(),
         Ok(1_049)
     );
-    let mut ingress = start_ingress(&sb, &cfg, "ingress2");
-    assert!(
-        ingress.log_text().contains("seq 1049 and below refused"),
-        "{}",
-        ingress.log_text()
-    );
+    let mut ingress = start_ingress(&sb, cfg, "ingress2");
+    ingress.wait_for_log("seq 1049 and below refused", 10 * SECOND);
     c.send(history[40].as_bytes());
     c.send(history[49].as_bytes());
     let s = c.status();
@@ -198,12 +164,8 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
     });
     std::thread::sleep(Duration::from_millis(400));
     ingress.kill();
-    let ingress = start_ingress(&sb, &cfg, "ingress3");
-    assert!(
-        ingress.log_text().contains("seq 2024 and below refused"),
-        "{}",
-        ingress.log_text()
-    );
+    let ingress = start_ingress(&sb, cfg, "ingress3");
+    ingress.wait_for_log("seq 2024 and below refused", 10 * SECOND);
     c.send(second[24].as_bytes());
     c.send(second[3].as_bytes());
     c.send(history[49].as_bytes());
@@ -238,33 +200,24 @@ fn key_files_others_can_read_and_bad_settings_stop_the_ingress() {
         assert!(!status.success(), "udp-ingress {args:?} started");
         p.log_text()
     };
-    let open = write_key(&sb, "open.key", KEY_HEX, 0o644);
-    let log = run(
-        &["--config", cfg, "--auth-key", open.to_str().unwrap()],
-        "open",
-    );
-    assert!(
-        log.contains(&open.display().to_string()) && log.contains("chmod 600"),
-        "{log}"
-    );
-    let short = write_key(&sb, "short.key", &KEY_HEX[..63], 0o600);
-    let log = run(
-        &["--config", cfg, "--auth-key", short.to_str().unwrap()],
-        "short",
-    );
-    assert!(
-        log.contains(&short.display().to_string()) && log.contains("64 hex characters"),
-        "{log}"
-    );
+    let open = sb.write_file("open.key", KEY_HEX, 0o644);
+    let short = sb.write_file("short.key", &KEY_HEX[..63], 0o600);
     let missing = sb.dir.join("missing.key");
-    let log = run(
-        &["--config", cfg, "--auth-key", missing.to_str().unwrap()],
-        "missing",
-    );
-    assert!(
-        log.contains("cannot read auth key file") && log.contains("missing.key"),
-        "{log}"
-    );
+    for (key, says) in [
+        (&open, "chmod 600"),
+        (&short, "64 hex characters"),
+        (&missing, "cannot read auth key file"),
+    ] {
+        let name = key.file_stem().unwrap().to_str().unwrap();
+        let log = run(
+            &["--config", cfg, "--auth-key", key.to_str().unwrap()],
+            name,
+        );
+        assert!(
+            log.contains(&key.display().to_string()) && log.contains(says),
+            "{log}"
+        );
+    }
 
     // A key file that is a FIFO (it used to hang the ingress, silently), a
     // seq file that is /dev/zero (read until memory ran out) and a config
@@ -279,12 +232,14 @@ fn key_files_others_can_read_and_bad_settings_stop_the_ingress() {
         log.contains("fifo.key") && log.contains("a FIFO (named pipe), not a regular file"),
         "{log}"
     );
-    let good = write_key(&sb, "good.key", KEY_HEX, 0o600);
-    let zero = config_with_ingress(
-        &sb,
-        &format!("auth_key = {good:?}\nseq_file = \"/dev/zero\""),
-        GENTLE_RT,
-    );
+    let good = sb.write_file("good.key", KEY_HEX, 0o600);
+    let zero = sb
+        .config_with_ingress(
+            &format!("auth_key = {good:?}\nseq_file = \"/dev/zero\""),
+            GENTLE_RT,
+        )
+        .display()
+        .to_string();
     let log = run(&["--config", &zero], "zero");
     assert!(
         log.contains("/dev/zero") && log.contains("a character device"),
@@ -297,7 +252,10 @@ fn key_files_others_can_read_and_bad_settings_stop_the_ingress() {
     );
 
     // A bad address block, in the config (named by its key) and on the command line.
-    let bad = config_with_ingress(&sb, "allow = [\"10.0.0.0/33\"]", GENTLE_RT);
+    let bad = sb
+        .config_with_ingress("allow = [\"10.0.0.0/33\"]", GENTLE_RT)
+        .display()
+        .to_string();
     let log = run(&["--config", &bad], "badallow");
     assert!(
         log.contains("ingress.allow") && log.contains("10.0.0.0/33"),
@@ -323,15 +281,12 @@ fn key_files_others_can_read_and_bad_settings_stop_the_ingress() {
 #[test]
 fn allowlist_drops_other_sources_before_parsing() {
     let sb = Sandbox::new("allow");
-    let cfg = config_with_ingress(&sb, "allow = [\"127.0.0.2/32\"]", GENTLE_RT);
+    let cfg = sb.config_with_ingress("allow = [\"127.0.0.2/32\"]", GENTLE_RT);
     let trace = sb.dir.join("line.trace");
-    let output = format!("sim:{}", trace.display());
-    let mut ppmd = sb.spawn("ppmd", &["--config", &cfg, "--output", &output], "ppmd");
-    ppmd.wait_for_log("commands from", 30 * SECOND);
-    let ingress = start_ingress(&sb, &cfg, "ingress");
-    assert!(ingress
-        .log_text()
-        .contains("taking datagrams only from 127.0.0.2/32"));
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let ingress = start_ingress(&sb, cfg.to_str().unwrap(), "ingress");
+    // Logged just after "listening on", which start_ingress waited for.
+    ingress.wait_for_log("taking datagrams only from 127.0.0.2/32", 10 * SECOND);
     let outsider = Client::new("127.0.0.1", sb.addr());
     let insider = Client::new("127.0.0.2", sb.addr());
     at_50hz(50, |i| {
@@ -352,14 +307,9 @@ fn allowlist_drops_other_sources_before_parsing() {
     // Without a key a signed datagram is bad_shape.
     insider.send(key().envelope(r#"{"ch":[1900],"seq":5000}"#).as_bytes());
     let s = insider.status();
-    let d = &s["datagrams"];
     assert_eq!(rejected(&s, "not_allowed"), 51, "{s}");
     assert_eq!(rejected(&s, "bad_shape"), 1, "{s}");
-    assert_eq!(
-        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
-        50,
-        "{s}"
-    );
+    assert_eq!(handed_over(&s), 50, "{s}");
     assert_eq!(s["newest_seq"], json!(50));
     std::thread::sleep(Duration::from_millis(100));
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
@@ -421,7 +371,7 @@ fn readme_test_vector_is_what_the_code_computes() {
 #[test]
 fn readme_python_signed_sender_is_accepted() {
     let sb = Sandbox::new("authpy");
-    let key_path = write_key(&sb, "auth.key", &format!("{KEY_HEX}\n"), 0o600);
+    let key_path = sb.write_file("auth.key", &format!("{KEY_HEX}\n"), 0o600);
     let cfg = sb.config(GENTLE_RT);
     let cfg = cfg.to_str().unwrap();
     let ingress = sb.spawn(
@@ -439,31 +389,11 @@ fn readme_python_signed_sender_is_accepted() {
         .replace("/etc/ppm/auth.key", key_path.to_str().unwrap())
         .replace("5005", &sb.port.to_string());
     // The snippet imports the package from the source tree (`import ppm`).
-    let status = std::process::Command::new("python3")
-        .arg("-c")
-        .arg(&code)
-        .env(
-            "PYTHONPATH",
-            concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/python"),
-        )
-        .env("PYTHONDONTWRITEBYTECODE", "1")
-        .status()
-        .expect("python3 is needed for this test (apt-get install python3)");
-    assert!(status.success());
+    python3(&sb.dir, PYTHON_PACKAGE, &["-c", &code]);
     let s = Client::new("127.0.0.1", sb.addr()).status();
     let d = &s["datagrams"];
     assert_eq!(d["received"], json!(100), "{s}");
-    assert_eq!(
-        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
-        100,
-        "{s}"
-    );
-    let rejected: u64 = d["rejected"]
-        .as_object()
-        .unwrap()
-        .values()
-        .map(|v| v.as_u64().unwrap())
-        .sum();
-    assert_eq!(rejected, 0, "{s}");
+    assert_eq!(handed_over(&s), 100, "{s}");
+    assert_eq!(rejected_total(&s), 0, "{s}");
     assert!(s["newest_seq"].as_u64().is_some());
 }

@@ -93,7 +93,7 @@ fn docs_error_example_is_the_real_message() {
 #[test]
 fn readme_python_sender_flies_the_line() {
     use nix::sys::signal::Signal;
-    use ppm_tests::{read_trace, Sandbox};
+    use ppm_tests::{python3, read_trace, Sandbox, PYTHON_PACKAGE};
     use std::time::Duration;
 
     let quick_start = section("README.md", "Quick start");
@@ -109,14 +109,7 @@ fn readme_python_sender_flies_the_line() {
     let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
     let _ingress = sb.start_ingress(&cfg, &[]);
     // The snippet imports the package from the source tree (`import ppm`).
-    let status = std::process::Command::new("python3")
-        .arg("-c")
-        .arg(&code)
-        .env("PYTHONPATH", format!("{ROOT}/tools/python"))
-        .env("PYTHONDONTWRITEBYTECODE", "1")
-        .status()
-        .expect("python3 is needed for this test (apt-get install python3)");
-    assert!(status.success());
+    python3(&sb.dir, PYTHON_PACKAGE, &["-c", &code]);
     assert!(ppmd
         .signal_and_wait(Signal::SIGTERM, Duration::from_secs(10))
         .success());

@@ -5,7 +5,6 @@
 //! own commands, on its own frame grid; each output publishes its own
 //! timing, which its ingress's status reply shows.
 
-use nix::sys::signal::Signal;
 use ppm_tests::{
     at_50hz, bin, free_udp_port, read_trace, start_outputs, status, stop_all, two_outputs, Sandbox,
     Sender,
@@ -167,8 +166,7 @@ fn output_arguments_make_outputs_and_bad_ones_are_refused() {
         sender.send(b"[1234]");
         std::thread::sleep(Duration::from_millis(20));
     }
-    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
-    assert!(ing.signal_and_wait(Signal::SIGINT, 10 * SECOND).success());
+    stop_all(&mut ppmd, &mut [&mut ing]);
     let y = frames(&sb.dir.join("y.trace"));
     assert!(y.len() >= 15, "{} frames", y.len());
     assert!(y.iter().all(|f| f.1[0] == 1234));

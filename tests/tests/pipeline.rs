@@ -4,7 +4,7 @@
 
 use nix::sys::signal::Signal;
 use ppm_shared::time::now_ns;
-use ppm_tests::{at_50hz, read_trace, Sandbox, Sender};
+use ppm_tests::{at_50hz, read_trace, stop_all, Sandbox, Sender};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -50,14 +50,7 @@ fn commands_reach_the_line_and_malformed_datagrams_change_nothing() {
     });
     let last = now_ns();
     std::thread::sleep(Duration::from_millis(100));
-    assert!(
-        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
-        "{}",
-        ppmd.log_text()
-    );
-    assert!(ingress
-        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
-        .success());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
 
     let trace = read_trace(&sb.dir.join("line.trace"));
     let frames = trace.decode(false);

@@ -9,58 +9,26 @@
 //! nothing has to be installed for these tests but python3.
 
 use nix::sys::signal::Signal;
-use ppm_tests::{read_trace, Sandbox};
+use ppm_tests::{
+    handed_over, python3, read_trace, rejected_total, stop_all, Sandbox, GENTLE_RT, PYTHON_PACKAGE,
+};
 use serde_json::{json, Value};
-use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 const SECOND: Duration = Duration::from_secs(1);
-const PACKAGE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/python");
 const KEY_HEX: &str = "8f2a55e0c1d94b7e3a6f0b1c2d3e4f5061728394a5b6c7d8e9f0a1b2c3d4e5f6";
 const OTHER_KEY_HEX: &str = "00112233445566778899aabbccddeeff00112233445566778899aabbccddeeff";
-/// ppmd on the normal scheduler: several of these tests run at once.
-const GENTLE_RT: &str =
-    "[rt]\npriority = 0\ncpu = \"none\"\ncpu_dma_latency = false\nallow_degraded = true\n";
-
-/// python3 with the package importable from the source tree; returns its
-/// standard output (the test fails with both outputs when it fails).
-fn python_in(dir: &Path, pythonpath: &str, args: &[&str]) -> String {
-    let out = Command::new("python3")
-        .args(args)
-        .env("PYTHONPATH", pythonpath)
-        .env("PYTHONDONTWRITEBYTECODE", "1")
-        .current_dir(dir)
-        .output()
-        .expect("python3 is needed for this test (apt-get install python3)");
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "python3 {args:?} failed ({}):\n{stdout}\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout
-}
 
 /// Runs `code` (with `args` in `sys.argv[1:]`) and parses the last line it
 /// prints as JSON.
 fn python(sb: &Sandbox, code: &str, args: &[&str]) -> Value {
     let mut all = vec!["-c", code];
     all.extend_from_slice(args);
-    let out = python_in(&sb.dir, PACKAGE, &all);
+    let out = python3(&sb.dir, PYTHON_PACKAGE, &all);
     let last = out.lines().last().unwrap_or_default();
     serde_json::from_str(last).unwrap_or_else(|e| panic!("{e}: the script printed:\n{out}"))
-}
-
-fn rejected_total(status: &Value) -> u64 {
-    status["datagrams"]["rejected"]
-        .as_object()
-        .unwrap_or_else(|| panic!("no datagrams.rejected: {status}"))
-        .values()
-        .map(|v| v.as_u64().unwrap())
-        .sum()
 }
 
 fn now_us() -> u64 {
@@ -147,10 +115,7 @@ fn every_form_lands_exactly_on_the_line() {
     let before = now_us();
     let out = python(&sb, FORMS, &[&sb.addr().to_string()]);
     std::thread::sleep(Duration::from_millis(100));
-    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
-    assert!(ingress
-        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
-        .success());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
 
     // seq: from the time in microseconds, one more per command.
     let (first, last) = (
@@ -162,11 +127,7 @@ fn every_form_lands_exactly_on_the_line() {
     let s = &out["status"];
     let d = &s["datagrams"];
     assert_eq!(d["received"], json!(100), "{s}");
-    assert_eq!(
-        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
-        100,
-        "{s}"
-    );
+    assert_eq!(handed_over(s), 100, "{s}");
     assert_eq!(d["stale"], json!(0), "{s}");
     assert_eq!(d["clamped"], json!(0), "{s}");
     assert_eq!(rejected_total(s), 0, "{s}");
@@ -194,11 +155,9 @@ fn every_form_lands_exactly_on_the_line() {
     assert!(runs.iter().all(|r| r.1 >= 10), "{runs:?}");
 }
 
+/// A key file `name` holding `hex` and a newline, with permissions `mode`.
 fn write_key(sb: &Sandbox, name: &str, hex: &str, mode: u32) -> PathBuf {
-    let path = sb.dir.join(name);
-    std::fs::write(&path, format!("{hex}\n")).unwrap();
-    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(mode)).unwrap();
-    path
+    sb.write_file(name, &format!("{hex}\n"), mode)
 }
 
 /// One groundstation run: 25 signed commands (`ch` 1 at VALUE) at 50 Hz and,
@@ -232,7 +191,8 @@ fn signed_commands_apply_and_another_key_is_bad_mac() {
     let cfg = sb.config_with_ingress(&format!("auth_key = {key:?}"), GENTLE_RT);
     let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
     let ingress = sb.start_ingress(&cfg, &[]);
-    assert!(ingress.log_text().contains("commands must be signed"));
+    // Logged just after "listening on", which start_ingress waited for.
+    ingress.wait_for_log("commands must be signed", 10 * SECOND);
     let target = sb.addr().to_string();
     let (key, other) = (key.to_str().unwrap(), other.to_str().unwrap());
 
@@ -251,11 +211,7 @@ fn signed_commands_apply_and_another_key_is_bad_mac() {
     let s = &second["status"];
     let d = &s["datagrams"];
     assert_eq!(d["received"], json!(60), "{s}");
-    assert_eq!(
-        d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
-        50,
-        "{s}"
-    );
+    assert_eq!(handed_over(s), 50, "{s}");
     assert_eq!(d["rejected"]["bad_mac"], json!(10), "{s}");
     assert_eq!(rejected_total(s), 10, "no replay, unsigned, no_seq: {s}");
     assert!(
@@ -354,11 +310,7 @@ print(json.dumps({"short": short, "replies": [s.status(timeout=5) for s in sende
         let d = &s["datagrams"];
         assert!(s.is_object() && d.is_object(), "{s}");
         assert_eq!(d["received"], json!(want), "{s}");
-        assert_eq!(
-            d["applied"].as_u64().unwrap() + d["superseded"].as_u64().unwrap(),
-            want,
-            "{s}"
-        );
+        assert_eq!(handed_over(s), want, "{s}");
         assert_eq!(rejected_total(s), 0, "{s}");
         assert!(
             s["uptime_s"].as_f64().is_some() && s.get("ppmd").is_some(),
@@ -378,9 +330,13 @@ print(json.dumps({"short": short, "replies": [s.status(timeout=5) for s in sende
 /// input checks) and its doctests (the README's test vector).
 #[test]
 fn the_packages_unit_tests_and_doctests_pass() {
-    let dir = Path::new(PACKAGE);
-    python_in(dir, PACKAGE, &["-m", "unittest", "discover", "-s", "tests"]);
-    python_in(dir, PACKAGE, &["-m", "doctest", "ppm/__init__.py"]);
+    let dir = Path::new(PYTHON_PACKAGE);
+    python3(
+        dir,
+        PYTHON_PACKAGE,
+        &["-m", "unittest", "discover", "-s", "tests"],
+    );
+    python3(dir, PYTHON_PACKAGE, &["-m", "doctest", "ppm/__init__.py"]);
 }
 
 /// `pip install tools/python` installs a package that imports. pip builds in
@@ -401,11 +357,11 @@ fn pip_installs_the_package() {
     let src = sb.dir.join("src");
     std::fs::create_dir_all(src.join("ppm")).unwrap();
     std::fs::copy(
-        format!("{PACKAGE}/pyproject.toml"),
+        format!("{PYTHON_PACKAGE}/pyproject.toml"),
         src.join("pyproject.toml"),
     )
     .unwrap();
-    for entry in std::fs::read_dir(format!("{PACKAGE}/ppm")).unwrap() {
+    for entry in std::fs::read_dir(format!("{PYTHON_PACKAGE}/ppm")).unwrap() {
         let path = entry.unwrap().path();
         if path.is_file() {
             std::fs::copy(&path, src.join("ppm").join(path.file_name().unwrap())).unwrap();
@@ -430,7 +386,7 @@ fn pip_installs_the_package() {
     );
     assert!(site.join("ppm/py.typed").is_file(), "the type-hint marker");
     let site = site.to_str().unwrap();
-    let printed = python_in(
+    let printed = python3(
         &sb.dir,
         site,
         &[

@@ -3,18 +3,14 @@
 //! every target, signed sending, and `--status` of each target.
 
 use nix::sys::signal::Signal;
-use ppm_tests::{bin, read_trace, status, Proc, Sandbox};
+use ppm_tests::{bin, handed_over, read_trace, status, Proc, Sandbox, GENTLE_RT};
 use serde_json::{json, Value};
 use std::io::Write;
 use std::net::UdpSocket;
-use std::os::unix::fs::PermissionsExt;
 use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
 const SECOND: Duration = Duration::from_secs(1);
-/// ppmd on the normal scheduler: two of them run at once here.
-const GENTLE_RT: &str =
-    "[rt]\npriority = 0\ncpu = \"none\"\ncpu_dma_latency = false\nallow_degraded = true\n";
 
 /// One vehicle: its sandbox, ingress and (optionally) ppmd on a sim line.
 struct Vehicle {
@@ -76,10 +72,6 @@ fn ppm_send(args: &[&str], stdin: Option<&str>) -> Output {
         String::from_utf8_lossy(&out.stderr)
     );
     out
-}
-
-fn handed_over(s: &Value) -> u64 {
-    s["datagrams"]["applied"].as_u64().unwrap() + s["datagrams"]["superseded"].as_u64().unwrap()
 }
 
 #[test]
@@ -185,13 +177,11 @@ fn standard_input_lines_go_to_every_target() {
 #[test]
 fn signed_sending_and_status_of_each_target() {
     let key_dir = Sandbox::new("send-key");
-    let key = key_dir.dir.join("auth.key");
-    std::fs::write(
-        &key,
+    let key = key_dir.write_file(
+        "auth.key",
         "8f2a55e0c1d94b7e3a6f0b1c2d3e4f5061728394a5b6c7d8e9f0a1b2c3d4e5f6\n",
-    )
-    .unwrap();
-    std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
+        0o600,
+    );
     let key = key.to_str().unwrap();
     let a = Vehicle::start("signed-a", false, &["--auth-key", key]);
     let b = Vehicle::start("signed-b", false, &["--auth-key", key]);

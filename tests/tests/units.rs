@@ -4,12 +4,8 @@
 //! channel lands to the nanosecond (in scheduled time) on what the
 //! configured mapping defines, reverse and trim included.
 
-use nix::sys::signal::Signal;
 use ppm_shared::config::Config;
-use ppm_tests::{at_50hz, read_trace, Sandbox, Sender};
-use std::time::Duration;
-
-const SECOND: Duration = Duration::from_secs(1);
+use ppm_tests::{at_50hz, read_trace, stop_all, Sandbox, Sender};
 
 /// ail: degrees on 1000..2000 us; ele: -20..20 on 1100..1900 us, reversed,
 /// trimmed -12.5 us; rud: no unit range, reversed, trimmed +5 us (for `norm`).
@@ -71,14 +67,7 @@ fn units_and_norm_land_exactly_on_the_mapping() {
     let sender = Sender::new(sb.addr());
     send_50hz(&sender, UNITS, 1, 40);
     send_50hz(&sender, NORM, 100, 40);
-    assert!(
-        ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success(),
-        "{}",
-        ppmd.log_text()
-    );
-    assert!(ingress
-        .signal_and_wait(Signal::SIGINT, 10 * SECOND)
-        .success());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
 
     let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
     let kinds: Vec<char> = frames

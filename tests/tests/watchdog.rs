@@ -8,7 +8,7 @@ use nix::sys::ptrace;
 use nix::sys::signal::Signal;
 use nix::sys::wait::{waitpid, WaitPidFlag};
 use nix::unistd::Pid;
-use ppm_tests::Sandbox;
+use ppm_tests::{Proc, Sandbox};
 use std::os::unix::net::UnixDatagram;
 use std::time::{Duration, Instant};
 
@@ -52,22 +52,25 @@ fn thread_named(pid: u32, name: &str) -> Pid {
     panic!("ppmd {pid} has no thread `{name}`");
 }
 
-#[test]
-fn a_stalled_timing_loop_stops_the_watchdog_petting() {
-    let sb = Sandbox::new("watchdog");
+/// Starts ppmd on a simulated line, as systemd does a `Type=notify` service:
+/// its notify socket (`NOTIFY_SOCKET`) is one of the test's, returned with
+/// ppmd; `env` adds to its environment.
+fn start_notifying(sb: &Sandbox, env: &[(&str, &str)]) -> (UnixDatagram, Proc) {
     let notify = sb.dir.join("notify.sock");
     let sock = UnixDatagram::bind(&notify).unwrap();
     let cfg = sb.config("");
     let output = format!("sim:{}", sb.dir.join("line.trace").display());
-    let mut ppmd = sb.spawn_with_env(
-        "ppmd",
-        &["--config", cfg.to_str().unwrap(), "--output", &output],
-        &[
-            ("NOTIFY_SOCKET", notify.to_str().unwrap()),
-            ("WATCHDOG_USEC", "1000000"),
-        ],
-        "ppmd",
-    );
+    let mut all = vec![("NOTIFY_SOCKET", notify.to_str().unwrap())];
+    all.extend_from_slice(env);
+    let args = ["--config", cfg.to_str().unwrap(), "--output", &output];
+    let ppmd = sb.spawn_with_env("ppmd", &args, &all, "ppmd");
+    (sock, ppmd)
+}
+
+#[test]
+fn a_stalled_timing_loop_stops_the_watchdog_petting() {
+    let sb = Sandbox::new("watchdog");
+    let (sock, mut ppmd) = start_notifying(&sb, &[("WATCHDOG_USEC", "1000000")]);
 
     // READY=1 once the loop runs, then a pet every 250 ms (a quarter of 1 s).
     let start = Instant::now();
@@ -131,16 +134,7 @@ fn a_stalled_timing_loop_stops_the_watchdog_petting() {
 #[test]
 fn without_a_watchdog_ppmd_only_says_ready() {
     let sb = Sandbox::new("nowatchdog");
-    let notify = sb.dir.join("notify.sock");
-    let sock = UnixDatagram::bind(&notify).unwrap();
-    let cfg = sb.config("");
-    let output = format!("sim:{}", sb.dir.join("line.trace").display());
-    let mut ppmd = sb.spawn_with_env(
-        "ppmd",
-        &["--config", cfg.to_str().unwrap(), "--output", &output],
-        &[("NOTIFY_SOCKET", notify.to_str().unwrap())],
-        "ppmd",
-    );
+    let (sock, mut ppmd) = start_notifying(&sb, &[]);
     ppmd.wait_for_log("commands from", 30 * SECOND);
     let msgs = collect(&sock, SECOND);
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());

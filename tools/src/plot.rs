@@ -90,12 +90,8 @@ pub fn histogram_svg(
     let bottom = 0.5;
 
     render(path, |root| {
-        let mut chart = ChartBuilder::on(root)
-            .caption(title, (FONT, 22))
-            .margin(15)
-            .x_label_area_size(45)
-            .y_label_area_size(70)
-            .build_cartesian_2d(lo..hi, (bottom..top).log_scale())?;
+        let mut chart =
+            chart_on(root, title).build_cartesian_2d(lo..hi, (bottom..top).log_scale())?;
         chart
             .configure_mesh()
             .disable_x_mesh()
@@ -272,12 +268,7 @@ fn percentile_chart(
     let y_lo = y_lo.min(0.0);
 
     render(path, |root| {
-        let mut chart = ChartBuilder::on(root)
-            .caption(title, (FONT, 22))
-            .margin(15)
-            .x_label_area_size(45)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..x_hi, y_lo..y_hi)?;
+        let mut chart = chart_on(root, title).build_cartesian_2d(0.0..x_hi, y_lo..y_hi)?;
         chart
             .configure_mesh()
             .x_labels(x_hi.floor() as usize + 1)
@@ -313,6 +304,21 @@ fn percentile_chart(
             .draw()?;
         Ok(())
     })
+}
+
+/// A chart on `root` laid out as every picture is: `title` on top, the
+/// margin, and room left and below for the axis labels.
+fn chart_on<'a, 'b, 'c>(
+    root: &'a DrawingArea<SVGBackend<'c>, Shift>,
+    title: &str,
+) -> ChartBuilder<'a, 'b, SVGBackend<'c>> {
+    let mut builder = ChartBuilder::on(root);
+    builder
+        .caption(title, (FONT, 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(70);
+    builder
 }
 
 /// Draws with `draw` on a white SVG page, then writes it to `path`.
@@ -459,10 +465,33 @@ mod tests {
             .collect()
     }
 
-    fn well_formed(svg: &str) {
+    /// The SVG written to `path`, checked to be whole.
+    fn read_svg(path: &Path) -> String {
+        let svg = std::fs::read_to_string(path).unwrap();
         assert!(svg.starts_with("<svg "), "{}", &svg[..80.min(svg.len())]);
         assert!(svg.trim_end().ends_with("</svg>"));
         assert_eq!(svg.matches("<text").count(), svg.matches("</text>").count());
+        svg
+    }
+
+    /// Asserts that each of `want` is the text of one of the SVG's `<text>`s.
+    fn assert_texts(svg: &str, want: &[&str]) {
+        let texts: Vec<&str> = tags(svg, "text").iter().map(|t| t.1).collect();
+        for w in want {
+            assert!(texts.contains(w), "{w} not in {texts:?}");
+        }
+    }
+
+    /// The points of a `<polyline>` tag, in pixels.
+    fn points(polyline: &str) -> Vec<(f64, f64)> {
+        attr(polyline, "points")
+            .unwrap()
+            .split_whitespace()
+            .map(|p| {
+                let (x, y) = p.split_once(',').unwrap();
+                (x.parse().unwrap(), y.parse().unwrap())
+            })
+            .collect()
     }
 
     /// x of the vertical line in the mark whose label starts with `label`:
@@ -479,14 +508,7 @@ mod tests {
             .filter(|(t, _)| attr(t, "stroke") == Some(colour))
             .collect();
         assert_eq!(lines.len(), 1, "one line of {colour}");
-        let points: Vec<(f64, f64)> = attr(lines[0].0, "points")
-            .unwrap()
-            .split_whitespace()
-            .map(|p| {
-                let (x, y) = p.split_once(',').unwrap();
-                (x.parse().unwrap(), y.parse().unwrap())
-            })
-            .collect();
+        let points = points(lines[0].0);
         assert_eq!(points.len(), 2);
         assert_eq!(points[0].0, points[1].0, "a vertical line");
         points[0].0
@@ -505,18 +527,18 @@ mod tests {
             ("max", p.max / 1e3),
         ];
         histogram_svg(path, "jitter on test-host", "us", &h, 1000.0, &marks).unwrap();
-        let svg = std::fs::read_to_string(path).unwrap();
-        well_formed(&svg);
+        let svg = read_svg(path);
+        assert_texts(
+            &svg,
+            &[
+                "jitter on test-host",
+                "latency (us)",
+                "samples per 2 us (log scale)",
+                "p50 = 19.9 us",
+                "max = 150 us",
+            ],
+        );
         let texts: Vec<&str> = tags(&svg, "text").iter().map(|t| t.1).collect();
-        for want in [
-            "jitter on test-host",
-            "latency (us)",
-            "samples per 2 us (log scale)",
-            "p50 = 19.9 us",
-            "max = 150 us",
-        ] {
-            assert!(texts.contains(&want), "{want} not in {texts:?}");
-        }
         assert!(texts.iter().any(|t| t.starts_with("p99 = ")));
         assert!(texts.iter().any(|t| t.starts_with("p99.9 = ")));
         // Marks left to right in the order of their values.
@@ -587,21 +609,20 @@ mod tests {
             &[("follow", &fast, 1e3), ("grid", &slow, 1e3)],
         )
         .unwrap();
-        let svg = std::fs::read_to_string(path).unwrap();
-        well_formed(&svg);
-        let texts: Vec<&str> = tags(&svg, "text").iter().map(|t| t.1).collect();
-        for want in [
-            "grid and follow",
-            "latency (ms)",
-            "percentile (log scale of 1 - p)",
-            "follow (10051 samples)",
-            "grid (10051 samples)",
-            "90%",
-            "99.9%",
-            "99.99%",
-        ] {
-            assert!(texts.contains(&want), "{want} not in {texts:?}");
-        }
+        let svg = read_svg(path);
+        assert_texts(
+            &svg,
+            &[
+                "grid and follow",
+                "latency (ms)",
+                "percentile (log scale of 1 - p)",
+                "follow (10051 samples)",
+                "grid (10051 samples)",
+                "90%",
+                "99.9%",
+                "99.99%",
+            ],
+        );
         // Each curve rises left to right, the slow one above the fast one.
         let curve = |colour: RGBColor| -> Vec<(f64, f64)> {
             let c = format!("#{:02X}{:02X}{:02X}", colour.0, colour.1, colour.2);
@@ -610,14 +631,7 @@ mod tests {
                 .filter(|(t, _)| attr(t, "stroke") == Some(c.as_str()))
                 .max_by_key(|(t, _)| t.len())
                 .unwrap();
-            attr(t.0, "points")
-                .unwrap()
-                .split_whitespace()
-                .map(|p| {
-                    let (x, y) = p.split_once(',').unwrap();
-                    (x.parse().unwrap(), y.parse().unwrap())
-                })
-                .collect()
+            points(t.0)
         };
         let (f, s) = (curve(PALETTE[0]), curve(PALETTE[1]));
         assert!(f.len() > 10 && s.len() > 10);
@@ -645,12 +659,9 @@ mod tests {
             ],
         )
         .unwrap();
-        let svg = std::fs::read_to_string(path).unwrap();
-        well_formed(&svg);
+        let svg = read_svg(path);
         assert_eq!(svg.matches("<circle").count(), 6);
-        assert!(tags(&svg, "text")
-            .iter()
-            .any(|t| t.1 == "udp-ingress (3000 samples)"));
+        assert_texts(&svg, &["udp-ingress (3000 samples)"]);
         assert!((nines(0.99, 3000) - 2.0).abs() < 1e-12);
         assert!((nines(1.0, 1000) - 3.0).abs() < 1e-12);
         assert_eq!(nines_text(0.0), "0%");

@@ -12,7 +12,7 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use ppm_shared::config::{parse_net, Config, IngressCpu};
-use ppm_shared::ipc;
+use ppm_shared::daemon::DaemonArgs;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -24,14 +24,8 @@ use udp_ingress::server::Server;
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Cli {
-    /// Configuration file (TOML); every key has a default.
-    #[arg(long, value_name = "FILE")]
-    config: Option<PathBuf>,
-    /// Log lines: `journal` (`<N>` priority prefixes, no timestamp),
-    /// `plain` (timestamped), or `auto`: journal when standard error is
-    /// systemd's journal (JOURNAL_STREAM), else plain.
-    #[arg(long, value_enum, default_value_t = ppm_shared::logging::LogFormat::Auto, value_name = "FORMAT")]
-    log_format: ppm_shared::logging::LogFormat,
+    #[command(flatten)]
+    daemon: DaemonArgs,
     /// Output name; must match ppmd's. Overrides `name`; with `[[outputs]]`
     /// in the configuration, picks that output (its listen address, channels
     /// and units).
@@ -67,8 +61,7 @@ struct Cli {
 
 fn main() {
     let cli = Cli::parse();
-    ppm_shared::logging::init(cli.log_format);
-    ipc::init_ipc_logging();
+    cli.daemon.init_logging();
     if let Err(e) = run(cli) {
         log::error!("{e:#}");
         std::process::exit(1);
@@ -77,7 +70,8 @@ fn main() {
 
 fn run(cli: Cli) -> Result<()> {
     // With [[outputs]] in the file, --name picks this ingress's output.
-    let mut cfg = Config::load_or_default(cli.config.as_deref())?.select(cli.name.as_deref())?;
+    let mut cfg =
+        Config::load_or_default(cli.daemon.config.as_deref())?.select(cli.name.as_deref())?;
     if let Some(listen) = cli.listen {
         cfg.ingress.listen = listen;
     }

@@ -12,7 +12,8 @@ use mio::{Events, Interest, Poll, Token};
 use ppm_shared::auth::AuthKey;
 use ppm_shared::config::{Config, IngressSection};
 use ppm_shared::frame::FrameModel;
-use ppm_shared::ipc::{self, CommandSample, TimingSnapshot};
+use ppm_shared::ipc::{self, CommandSample, IpcError, PublishError, TimingSnapshot};
+use ppm_shared::logging::Chain;
 use ppm_shared::sched;
 use ppm_shared::time::{now_ns, realtime_ns};
 use std::net::SocketAddr;
@@ -68,8 +69,7 @@ impl ReplyBudget {
     }
 }
 
-type Publisher =
-    iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, CommandSample, ()>;
+type Publisher = ipc::Publisher<CommandSample>;
 type Notifier = iceoryx2::port::notifier::Notifier<iceoryx2::service::ipc::Service>;
 type StatsSubscriber =
     iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, TimingSnapshot, ()>;
@@ -227,7 +227,7 @@ impl Server {
             &mut self.publish_errors,
         ) {
             if let Err(e) = self.publisher.update_connections() {
-                log::debug!("updating connections: {e:?}");
+                log::debug!("updating connections: {e}");
             }
         }
         // Answered after publishing, so the counters add up.
@@ -315,21 +315,20 @@ impl Server {
 /// Subscribes to ppmd's timing snapshots for status replies. Status is not
 /// worth stopping for: on failure, replies say `"ppmd": null`.
 fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<StatsSubscriber> {
-    let subscribed = ipc::open_stats_service(node, name)
-        .map_err(|e| e.to_string())
-        .and_then(|service| {
-            service
-                .subscriber_builder()
-                .buffer_size(1)
-                .create()
-                .map_err(|e| format!("{e:?}"))
-        });
+    let subscribed = ipc::open_stats_service(node, name).and_then(|service| {
+        service
+            .subscriber_builder()
+            .buffer_size(1)
+            .create()
+            .map_err(|e| IpcError::new("creating the subscriber", e))
+    });
     match subscribed {
         Ok(sub) => Some(sub),
         Err(e) => {
             log::warn!(
-                "status replies will lack ppmd's timing: subscribing to `{}` failed: {e}",
-                ipc::stats_service_name(name)
+                "status replies will lack ppmd's timing: subscribing to `{}` failed: {}",
+                ipc::stats_service_name(name),
+                Chain(&e)
             );
             None
         }
@@ -343,7 +342,7 @@ fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
             Ok(Some(sample)) => *newest = Some(*sample.payload()),
             Ok(None) => break,
             Err(e) => {
-                log::debug!("receiving ppmd's timing snapshot: {e:?}");
+                log::debug!("receiving ppmd's timing snapshot: {e}");
                 break;
             }
         }
@@ -364,17 +363,13 @@ fn publish(
     };
     *ingress_seq += 1;
     let sample = CommandSample::new(&r.command, fingerprint, *ingress_seq, r.mono_ns, r.real_ns);
-    let sent = publisher
-        .loan_uninit()
-        .map(|s| s.write_payload(sample))
-        .map_err(|e| format!("{e:?}"))
-        .and_then(|s| s.send().map_err(|e| format!("{e:?}")));
-    let sent = sent.and_then(|_| notifier.notify().map_err(|e| format!("waking ppmd: {e:?}")));
+    let sent =
+        ipc::publish(publisher, sample).and_then(|_| notifier.notify().map_err(PublishError::Wake));
     match sent {
         Ok(_) => intake.published_after(realtime_ns().saturating_sub(r.real_ns)),
         Err(e) => {
             *errors += 1;
-            log::warn!("publishing command failed: {e}");
+            log::warn!("publishing command failed: {}", Chain(&e));
         }
     }
     true
@@ -482,7 +477,7 @@ impl Server {
         let node = ipc::create_node(&cfg.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
         let service = ipc::open_command_service(&node, &cfg.name)?;
         let publisher: Publisher = service.publisher_builder().create().map_err(|e| {
-            ipc::IpcError::new(
+            IpcError::new(
                 format!(
                     "creating publisher on `{}`",
                     ipc::command_service_name(&cfg.name)
@@ -495,7 +490,7 @@ impl Server {
         // sleeps until one comes); nothing listens to it in grid timing.
         let wake = ipc::open_wake_service(&node, &cfg.name)?;
         let notifier: Notifier = wake.notifier_builder().create().map_err(|e| {
-            ipc::IpcError::new(
+            IpcError::new(
                 format!(
                     "creating notifier on `{}`",
                     ipc::wake_service_name(&cfg.name)
