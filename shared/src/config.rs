@@ -25,8 +25,8 @@ pub const FOLLOW_SYNC_CEILING_US: f64 = SYNC_MAX_US - crate::receiver::SYNC_MARG
 /// Why a configuration was refused. Every variant names the file or the key.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    /// The file could not be read.
-    #[error("cannot read config file {path}: {source}")]
+    /// The file could not be read (why: its source).
+    #[error("cannot read config file {path}")]
     Read {
         path: PathBuf,
         #[source]
@@ -1521,9 +1521,8 @@ mod tests {
             ),
         ] {
             let shown = path.display().to_string();
-            let e = crate::files::tests::within_10s(move || Config::load(&path))
-                .unwrap_err()
-                .to_string();
+            let e = crate::files::tests::within_10s(move || Config::load(&path)).unwrap_err();
+            let e = crate::logging::Chain(&e).to_string();
             assert!(
                 e.contains("cannot read config file") && e.contains(&shown) && e.contains(what),
                 "{e}"
