@@ -2600,6 +2600,83 @@ mod tests {
             check_lane(&a, &out_a.edges, &stats_a, &made_a)?;
             check_lane(&b, &out_b.edges, &stats_b, &made_b)?;
         }
+
+        /// The same for three lanes on one GPIO bank (the lines of one
+        /// request, written together): each line's waveform holds to it,
+        /// and edges due at one time go out in one write, never two.
+        #[test]
+        fn three_banked_lanes_of_any_commands_each_give_frames_every_receiver_reads(
+            follow in (any::<bool>(), any::<bool>(), any::<bool>()),
+            cmds in prop::collection::vec(
+                prop::collection::vec((1u64..60, 1_000u64..=2_000), 1..25),
+                3,
+            ),
+            stalls in prop::collection::vec((0u64..600, 1u64..60_000), 0..3),
+            late_us in 0u64..80,
+        ) {
+            let model = |f: bool, extra: &str| {
+                let timing = if f { "follow" } else { "grid" };
+                Config::parse(&format!("[ppm]\ntiming = '{timing}'\n{extra}"))
+                    .unwrap()
+                    .validate()
+                    .unwrap()
+            };
+            let models = [
+                model(follow.0, ""),
+                model(follow.1, "channels = 6\norder = 'TAER'\nframe_us = 20000.0"),
+                model(follow.2, ""),
+            ];
+            let sim = scenario_sim(&stalls, late_us);
+            let mut srcs: Vec<Feed> = models
+                .iter()
+                .zip(&cmds)
+                .map(|(m, c)| scenario_feed(&sim, m, c))
+                .collect();
+            let made: Vec<Vec<(u64, u32)>> = srcs.iter().map(Feed::made).collect();
+            let last = srcs.iter().map(Feed::last_at).max().unwrap();
+            let until_ms = (last - START_NS) / MS + 150;
+            let stats: [Stats; 3] = Default::default();
+            let mut meters: Vec<Meter> =
+                (0..3).map(|_| crate::meter::meter(1_000_000_000).0).collect();
+            let mut bank = BankRecorder::default();
+            {
+                let mut lanes: Vec<Lane> = srcs
+                    .iter_mut()
+                    .zip(&models)
+                    .zip(&stats)
+                    .zip(meters.iter_mut())
+                    .enumerate()
+                    .map(|(i, (((source, model), stats), meter))| Lane {
+                        model,
+                        cfg: scenario_cfg(FailsafeAction::Silence),
+                        source,
+                        sink: Sink::Bank { bank: 0, bit: i as u32 },
+                        stats,
+                        meter,
+                        log: None,
+                    })
+                    .collect();
+                let mut banks: [&mut dyn Bank; 1] = [&mut bank];
+                run_until(&sim, &mut lanes, &mut banks, until_ms);
+            }
+            for w in bank.0.windows(2) {
+                prop_assert!(w[0].0 < w[1].0, "two writes for one time: {:?}", w);
+            }
+            for (i, model) in models.iter().enumerate() {
+                // The bank does not say when it wrote: its edges as due.
+                let edges: Vec<TraceEdge> = bank
+                    .0
+                    .iter()
+                    .filter(|(_, m, _)| m & (1 << i) != 0)
+                    .map(|&(t, _, l)| TraceEdge {
+                        scheduled_ns: t,
+                        actual_ns: t,
+                        level: Level::from_bit(l & (1 << i) != 0),
+                    })
+                    .collect();
+                check_lane(model, &edges, &stats[i], &made[i])?;
+            }
+        }
     }
 
     /// Found by the property above: a 29.6 ms stall in the first frame
