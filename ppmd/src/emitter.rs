@@ -1848,11 +1848,20 @@ mod tests {
 
     /// A follow-timing model: the defaults with `timing = "follow"`.
     fn follow_model(extra: &str) -> FrameModel {
-        Config::parse(&format!("[ppm]\ntiming = 'follow'\n{extra}"))
+        timed_model(true, extra)
+    }
+
+    /// The defaults with follow or grid timing and `extra` `[ppm]` keys.
+    fn timed_model(follow: bool, extra: &str) -> FrameModel {
+        let timing = if follow { "follow" } else { "grid" };
+        Config::parse(&format!("[ppm]\ntiming = '{timing}'\n{extra}"))
             .unwrap()
             .validate()
             .unwrap()
     }
+
+    /// The other lanes' model in the multi-lane properties.
+    const SIX_AT_20_MS: &str = "channels = 6\norder = 'TAER'\nframe_us = 20000.0";
 
     /// A lane of `model` into `out` from `source`.
     fn follow_lane<'a>(
@@ -1874,39 +1883,56 @@ mod tests {
         }
     }
 
-    /// A frame as sent: its first edge, its last pulse and its first value.
+    /// A frame as sent: its first edge, its last pulse, its values (the
+    /// first apart), and whether a lone (lead-in) pulse came before it.
     #[derive(Debug)]
     struct Sent {
         start: u64,
         last_pulse: u64,
         first_us: u32,
+        values_us: Vec<u64>,
+        after_lead_in: bool,
+        /// Where the lone pulse (or the previous frame's last pulse) was.
+        before: Option<u64>,
     }
 
-    /// The frames in a recorded single-lane waveform of `channels` channels,
-    /// from the scheduled edges, lead-in pulses left out.
+    /// The frames in a recorded single-lane waveform of `channels`
+    /// channels, from the scheduled edges; panics on a pulse that fits
+    /// neither a frame nor a lone lead-in pulse.
     fn sent_frames(edges: &[TraceEdge], channels: usize) -> Vec<Sent> {
         let leading: Vec<u64> = edges
             .iter()
             .filter(|e| e.level == Level::High)
             .map(|e| e.scheduled_ns)
             .collect();
-        let per = channels + 1;
-        let mut frames = Vec::new();
-        let mut i = 0;
-        while i + per <= leading.len() {
-            // A lead-in pulse is alone: the next leading edge is a sync away.
-            if leading
-                .get(i + 1)
-                .is_some_and(|&n| n - leading[i] >= 2_500_000)
-            {
+        let mut frames: Vec<Sent> = Vec::new();
+        let (mut i, mut lone) = (0, None);
+        while i < leading.len() {
+            let gap = leading.get(i + 1).map(|n| n - leading[i]);
+            if gap.is_none_or(|g| g > us_to_ns(ppm_shared::config::CHANNEL_MAX_US) * 2) {
+                assert!(
+                    gap.is_some_and(|g| (LEAD_IN_NS..=LEAD_IN_NS + ALIAS_SHIFT_MAX_NS).contains(&g)),
+                    "a lone pulse {gap:?} before a frame"
+                );
+                lone = Some(leading[i]);
                 i += 1;
                 continue;
             }
+            let per = channels + 1;
+            assert!(i + per <= leading.len(), "a frame cut short");
+            let values_us: Vec<u64> = leading[i..i + per]
+                .windows(2)
+                .map(|w| (w[1] - w[0] + 500) / 1_000)
+                .collect();
             frames.push(Sent {
                 start: leading[i],
                 last_pulse: leading[i + per - 1],
-                first_us: ((leading[i + 1] - leading[i] + 500) / 1_000) as u32,
+                first_us: values_us[0] as u32,
+                values_us,
+                after_lead_in: lone.is_some(),
+                before: lone.or(frames.last().map(|f| f.last_pulse)),
             });
+            lone = None;
             i += per;
         }
         frames
@@ -2294,58 +2320,6 @@ mod tests {
         }
     }
 
-    /// A frame of any single-lane waveform: its first edge, its last pulse,
-    /// its values, and whether a lone (lead-in) pulse came before it.
-    #[derive(Debug)]
-    struct Planned {
-        start: u64,
-        last_pulse: u64,
-        values_us: Vec<u64>,
-        after_lead_in: bool,
-        /// Where the lone pulse (or the previous frame's last pulse) was.
-        before: Option<u64>,
-    }
-
-    /// The frames of a recorded waveform of `channels` channels, from the
-    /// scheduled edges; panics on a pulse that fits neither a frame nor a
-    /// lone lead-in pulse.
-    fn planned(edges: &[TraceEdge], channels: usize) -> Vec<Planned> {
-        let leading: Vec<u64> = edges
-            .iter()
-            .filter(|e| e.level == Level::High)
-            .map(|e| e.scheduled_ns)
-            .collect();
-        let mut frames: Vec<Planned> = Vec::new();
-        let (mut i, mut lone) = (0, None);
-        while i < leading.len() {
-            let gap = leading.get(i + 1).map(|n| n - leading[i]);
-            if gap.is_none_or(|g| g > us_to_ns(ppm_shared::config::CHANNEL_MAX_US) * 2) {
-                assert!(
-                    gap.is_some_and(|g| (LEAD_IN_NS..=LEAD_IN_NS + ALIAS_SHIFT_MAX_NS).contains(&g)),
-                    "a lone pulse {gap:?} before a frame"
-                );
-                lone = Some(leading[i]);
-                i += 1;
-                continue;
-            }
-            let per = channels + 1;
-            assert!(i + per <= leading.len(), "a frame cut short");
-            frames.push(Planned {
-                start: leading[i],
-                last_pulse: leading[i + per - 1],
-                values_us: leading[i..i + per]
-                    .windows(2)
-                    .map(|w| (w[1] - w[0] + 500) / 1_000)
-                    .collect(),
-                after_lead_in: lone.is_some(),
-                before: lone.or(frames.last().map(|f| f.last_pulse)),
-            });
-            lone = None;
-            i += per;
-        }
-        frames
-    }
-
     use proptest::prelude::*;
     use proptest::test_runner::TestCaseError;
 
@@ -2359,11 +2333,7 @@ mod tests {
     fn check_scenario(
         (follow, cmds, stalls, late_us, action): Scenario,
     ) -> Result<(), TestCaseError> {
-        let model = if follow {
-            follow_model("")
-        } else {
-            default_model()
-        };
+        let model = timed_model(follow, "");
         let sim = scenario_sim(&stalls, late_us);
         let mut src = scenario_feed(&sim, &model, &cmds);
         let until_ms = (src.last_at() - START_NS) / MS + 150;
@@ -2428,7 +2398,7 @@ mod tests {
             edges.iter().all(|e| e.actual_ns >= e.scheduled_ns),
             "never early"
         );
-        let frames = planned(edges, model.channels());
+        let frames = sent_frames(edges, model.channels());
         let n = frames.len() as u64;
         prop_assert_eq!(n, stats.frames.load(Relaxed));
         let lead_ins = frames.iter().filter(|f| f.after_lead_in).count() as u64;
@@ -2553,18 +2523,8 @@ mod tests {
             stalls in prop::collection::vec((0u64..800, 1u64..60_000), 0..3),
             late_us in 0u64..80,
         ) {
-            let timing = |f: bool| if f { "timing = 'follow'" } else { "timing = 'grid'" };
-            let a = Config::parse(&format!("[ppm]\n{}", timing(follow.0)))
-                .unwrap()
-                .validate()
-                .unwrap();
-            let b = Config::parse(&format!(
-                "[ppm]\nchannels = 6\norder = 'TAER'\nframe_us = 20000.0\n{}",
-                timing(follow.1)
-            ))
-            .unwrap()
-            .validate()
-            .unwrap();
+            let a = timed_model(follow.0, "");
+            let b = timed_model(follow.1, SIX_AT_20_MS);
             let sim = scenario_sim(&stalls, late_us);
             let mut src_a = scenario_feed(&sim, &a, &cmds_a);
             let mut src_b = scenario_feed(&sim, &b, &cmds_b);
@@ -2614,17 +2574,10 @@ mod tests {
             stalls in prop::collection::vec((0u64..600, 1u64..60_000), 0..3),
             late_us in 0u64..80,
         ) {
-            let model = |f: bool, extra: &str| {
-                let timing = if f { "follow" } else { "grid" };
-                Config::parse(&format!("[ppm]\ntiming = '{timing}'\n{extra}"))
-                    .unwrap()
-                    .validate()
-                    .unwrap()
-            };
             let models = [
-                model(follow.0, ""),
-                model(follow.1, "channels = 6\norder = 'TAER'\nframe_us = 20000.0"),
-                model(follow.2, ""),
+                timed_model(follow.0, ""),
+                timed_model(follow.1, SIX_AT_20_MS),
+                timed_model(follow.2, ""),
             ];
             let sim = scenario_sim(&stalls, late_us);
             let mut srcs: Vec<Feed> = models
