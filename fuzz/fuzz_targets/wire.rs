@@ -8,12 +8,13 @@
 //!
 //! The signed form too: the bytes go through `auth::envelope` (a signed
 //! datagram whose MAC verifies under the README's test key has its `msg`
-//! parsed like a plain command), and the bytes as text are signed, taken
-//! apart again and verified.
+//! parsed like a plain command, and opened for the vector's output, which it
+//! must name in `to`), and the bytes as text are signed, taken apart again
+//! and verified.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use ppm_fuzz::{check_envelope, check_signing, models, parse_checked};
+use ppm_fuzz::{check_envelope, check_open, check_signing, models, parse_checked};
 use ppm_shared::protocol::SeqGate;
 
 fuzz_target!(|data: &[u8]| {
@@ -25,6 +26,7 @@ fuzz_target!(|data: &[u8]| {
         if let Some(msg) = &signed_msg {
             let _ = parse_checked(msg.as_bytes(), m);
         }
+        check_open(data, m);
         let whole = parse_checked(data, m);
 
         // The same datagram twice through a fresh gate: the first passes, a

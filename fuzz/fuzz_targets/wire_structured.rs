@@ -42,6 +42,9 @@ enum Num {
 enum Class {
     /// Not JSON at all.
     BadJson,
+    /// A number beyond a 64-bit float (`1e400`): `out_of_range` wherever it
+    /// stands, since the JSON cannot be read.
+    BeyondF64,
     /// A number: its value in ns (read as microseconds) when exactly
     /// known; its value (within an ulp), and its `as_u64`.
     Number {
@@ -51,7 +54,8 @@ enum Class {
     },
 }
 
-/// (text, value in us when a number (NaN: not JSON), exact ns, as_u64)
+/// (text, value in us when a number (NaN: not JSON, infinity: beyond a
+/// 64-bit float), exact ns, as_u64)
 const SPECIAL: &[(&str, f64, Option<u64>, Option<u64>)] = &[
     ("500", 500.0, Some(500_000), Some(500)),
     ("2500", 2500.0, Some(2_500_000), Some(2500)),
@@ -78,7 +82,8 @@ const SPECIAL: &[(&str, f64, Option<u64>, Option<u64>)] = &[
     ("-1e-400", -0.0, Some(0), None),
     ("1e-400", 0.0, Some(0), None),
     ("1e300", 1e300, None, None),
-    ("1e400", f64::NAN, None, None),
+    ("1e400", f64::INFINITY, None, None),
+    ("-1e400", f64::INFINITY, None, None),
     ("01500", f64::NAN, None, None),
     ("1500.", f64::NAN, None, None),
     (".5", f64::NAN, None, None),
@@ -153,6 +158,8 @@ impl Num {
                 let (text, us, ns, u64) = SPECIAL[k as usize % SPECIAL.len()];
                 let class = if us.is_nan() {
                     Class::BadJson
+                } else if us.is_infinite() {
+                    Class::BeyondF64
                 } else {
                     Class::Number { ns, us, u64 }
                 };
@@ -206,6 +213,8 @@ enum Key {
     Get,
     Units,
     Norm,
+    /// `to`, the output a command is for (any string, unchecked by `parse`).
+    To,
     Other(String),
 }
 
@@ -271,10 +280,14 @@ impl J {
     }
 
     fn has_bad_json(&self) -> bool {
+        self.has(Class::BadJson)
+    }
+
+    fn has(&self, class: Class) -> bool {
         match self {
-            J::Num(_, c) => *c == Class::BadJson,
-            J::Arr(v) => v.iter().any(J::has_bad_json),
-            J::Obj(v) => v.iter().any(|(_, j)| j.has_bad_json()),
+            J::Num(_, c) => *c == class,
+            J::Arr(v) => v.iter().any(|j| j.has(class)),
+            J::Obj(v) => v.iter().any(|(_, j)| j.has(class)),
             _ => false,
         }
     }
@@ -352,6 +365,7 @@ fn build(top: &Top, m: &FrameModel) -> J {
         Key::Get => "get".into(),
         Key::Units => "units".into(),
         Key::Norm => "norm".into(),
+        Key::To => "to".into(),
         Key::Other(s) => s.clone(),
     };
     let mut obj: Vec<(String, J)> = vec![];
@@ -446,8 +460,13 @@ fn positional(
 }
 
 fn expect(j: &J, m: &FrameModel) -> Expect {
-    if j.has_bad_json() {
-        return Expect::Err(vec![InvalidJson]);
+    // serde_json stops at the first error in the text: a syntax error
+    // (invalid_json) or a number beyond a 64-bit float (out_of_range).
+    match (j.has_bad_json(), j.has(Class::BeyondF64)) {
+        (true, true) => return Expect::Err(vec![InvalidJson, OutOfRange]),
+        (true, false) => return Expect::Err(vec![InvalidJson]),
+        (false, true) => return Expect::Err(vec![OutOfRange]),
+        (false, false) => {}
     }
     let mut given = vec![None; m.channels()];
     let mut why = vec![];
@@ -461,6 +480,11 @@ fn expect(j: &J, m: &FrameModel) -> Expect {
                 Some(_) => why.push(BadShape),
                 None => {}
             }
+            // `to` names the output, any string (`parse` checks no name).
+            match get("to") {
+                Some(J::Str(_)) | None => {}
+                Some(_) => why.push(BadShape),
+            }
             let form = if get("ch").is_some() {
                 "ch"
             } else if get("units").is_some() {
@@ -470,7 +494,11 @@ fn expect(j: &J, m: &FrameModel) -> Expect {
             } else {
                 ""
             };
-            if !form.is_empty() && entries.iter().any(|(k, _)| k != form && k != "seq") {
+            if !form.is_empty()
+                && entries
+                    .iter()
+                    .any(|(k, _)| k != form && k != "seq" && k != "to")
+            {
                 // One form per command.
                 why.push(BadShape);
             }
@@ -497,7 +525,7 @@ fn expect(j: &J, m: &FrameModel) -> Expect {
                 }
                 ("ch" | "units" | "norm", _) => why.push(BadShape),
                 _ => {
-                    for (k, v) in entries.iter().filter(|(k, _)| k != "seq") {
+                    for (k, v) in entries.iter().filter(|(k, _)| k != "seq" && k != "to") {
                         match m.index_of(k) {
                             None => why.push(UnknownChannel),
                             Some(i) => set(i, v, &mut given, &mut why),
@@ -572,7 +600,7 @@ fuzz_target!(|input: Input| {
                             "{text}: channel {i} = {got} ns, expected {want}"
                         );
                     }
-                    Some(Given::Us(Class::BadJson)) => unreachable!(),
+                    Some(Given::Us(Class::BadJson | Class::BeyondF64)) => unreachable!(),
                 }
             }
             if exact {

@@ -6,7 +6,8 @@ use ppm_shared::auth::{self, AuthKey, MAC_HEX_LEN};
 use ppm_shared::config::{Config, Timing, FOLLOW_SYNC_CEILING_US};
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::{us_to_ns, Channels, FrameModel, Level};
-use ppm_shared::protocol::{self, Command, Reject, RejectReason};
+use ppm_shared::ipc::CommandSample;
+use ppm_shared::protocol::{self, Command, Reject, RejectReason, To};
 use ppm_shared::receiver::{decode_as, Receiver, SYNC_MARGIN_US};
 use std::sync::OnceLock;
 
@@ -345,6 +346,37 @@ pub fn check_accepted(m: &FrameModel, cmd: &Command) {
     assert_eq!(again.clamped, 0, "{text}");
 }
 
+/// An accepted command as udp-ingress hands it to ppmd: it comes back
+/// whole under its own model, and ppmd's freshness rule holds whatever the
+/// times (drawn from `seed`): a sample received before the daemon's loop
+/// started (a service's history of an earlier run) never flies, nor one
+/// older than the failsafe limit, and every other one does.
+pub fn check_sample(m: &FrameModel, cmd: &Command, seed: u64) {
+    let mut x = seed | 1;
+    let mut next = || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
+    };
+    let recv = next() % 10_000_000_000;
+    let s = CommandSample::new(cmd, m.fingerprint(), 1, recv, 0);
+    assert_eq!(s.channels(m), Some(cmd.channels), "through shared memory");
+    let after = next() % 2_000_000_000;
+    let started = next() % 10_000_000_000;
+    let now = recv.max(started) + next() % 4_000_000_000;
+    let want = recv >= started && now - recv <= after;
+    assert_eq!(
+        s.fresh(started, now, after),
+        want,
+        "received {recv}, loop started {started}, now {now}, limit {after}"
+    );
+    // The last command of an earlier run, however young, never flies.
+    assert!(!s.fresh(recv + 1, recv + 1, u64::MAX));
+    // One past the limit never flies.
+    assert!(!s.fresh(recv, recv + after + 1, after));
+}
+
 /// Invariants of a rejection.
 pub fn check_rejected(e: &Reject) {
     let name = e.reason.as_str();
@@ -362,7 +394,15 @@ pub fn check_rejected(e: &Reject) {
 pub fn parse_checked(data: &[u8], m: &FrameModel) -> Result<Command, Reject> {
     let r = protocol::parse(data, m);
     match &r {
-        Ok(cmd) => check_accepted(m, cmd),
+        Ok(cmd) => {
+            check_accepted(m, cmd);
+            let seed = data
+                .iter()
+                .fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+                    (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+                });
+            check_sample(m, cmd, seed);
+        }
         Err(e) => check_rejected(e),
     }
     r
@@ -503,6 +543,54 @@ pub fn check_envelope(data: &[u8]) -> Option<String> {
             assert!(env.mac.bytes().all(|b| b.is_ascii_hexdigit()));
             env.verify(key()).then_some(env.msg)
         }
+    }
+}
+
+/// The output name signed commands are opened for: the one of the test
+/// vector in ../docs/security.md.
+pub const OUTPUT: &str = "rover";
+
+/// Another output that shares [`OUTPUT`]'s key.
+pub const OTHER_OUTPUT: &str = "plane";
+
+/// A signed datagram whose MAC verifies under [`key`], opened for
+/// [`OUTPUT`] with `m`: the same as parsing its `msg` for exactly that
+/// output (so `no_to` and `wrong_output` come before the command's other
+/// faults), plus `no_seq` for an accepted command without a `seq`; and
+/// never accepted unless `msg` names [`OUTPUT`].
+pub fn check_open(data: &[u8], m: &FrameModel) {
+    let Some(Ok(env)) = auth::envelope(data) else {
+        return;
+    };
+    let opened = env.open(key(), OUTPUT, m);
+    if !env.verify(key()) {
+        assert_eq!(opened.map_err(|e| e.reason), Err(RejectReason::BadMac));
+        return;
+    }
+    let parsed = protocol::parse_for(env.msg.as_bytes(), m, To::Exactly(OUTPUT));
+    match (&opened, parsed) {
+        (Ok(cmd), Ok(p)) => {
+            assert_eq!(*cmd, p);
+            assert!(cmd.seq.is_some(), "{}", env.msg);
+            let v: serde_json::Value = serde_json::from_str(&env.msg).unwrap();
+            assert_eq!(v["to"], OUTPUT, "{}", env.msg);
+        }
+        (Err(e), Ok(p)) => {
+            assert_eq!(e.reason, RejectReason::NoSeq, "{e}");
+            assert_eq!(p.seq, None);
+        }
+        (Err(e), Err(p)) => assert_eq!(e.reason, p.reason, "{e}"),
+        (Ok(cmd), Err(p)) => panic!("{}: opened as {cmd:?}, parsed as {p}", env.msg),
+    }
+    if let Err(e) = &opened {
+        check_rejected(e);
+    }
+    // The same datagram copied to another output under the same key: what
+    // opens for this output is refused there as `wrong_output`, so it never
+    // reaches that output's seq gate.
+    if opened.is_ok() {
+        let copy = env.open(key(), OTHER_OUTPUT, m);
+        assert_eq!(copy.map(|_| ()).map_err(|e| e.reason), Err(RejectReason::WrongOutput));
     }
 }
 

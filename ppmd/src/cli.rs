@@ -1,10 +1,10 @@
 //! ppmd's command line: its options, and how they override the
-//! configuration file. `--output` takes `SPEC` for the one output, or
+//! configuration file: [`Cli::plan`] lowers both into the [`Plan`] ppmd runs. `--output` takes `SPEC` for the one output, or
 //! `NAME=SPEC` for each of several (outputs of the file's `[[outputs]]`, or
 //! made from the file's settings when it has none).
 
 use clap::Parser;
-use ppm_shared::config::{validate_name, Config, ConfigError, OutputSpec, Timing};
+use ppm_shared::config::{validate_name, Config, ConfigError, OutputSpec, Plan, Timing};
 use ppm_shared::daemon::DaemonArgs;
 use std::path::PathBuf;
 
@@ -19,11 +19,13 @@ pub struct Cli {
     /// `[[outputs]]` in the configuration, runs that output alone.
     #[arg(long)]
     pub name: Option<String>,
-    /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, or `gpio:CHIP:LINE` (CHIP:
+    /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, `gpio:CHIP:LINE` (CHIP:
     /// a path, name or label such as pinctrl-bcm2711; LINE: an offset or a
-    /// name such as GPIO18). Overrides `ppmd.output`. Repeat as
-    /// `--output NAME=SPEC` to drive several outputs from one timing thread,
-    /// each fed by its own `udp-ingress --name NAME`.
+    /// name such as GPIO18), or `spi:DEVICE` (a spidev device such as
+    /// /dev/spidev0.0, MOSI as the line; runs alone). Overrides
+    /// `ppmd.output`. Repeat as `--output NAME=SPEC` to drive several
+    /// outputs from one timing thread, each fed by its own
+    /// `udp-ingress --name NAME`.
     #[arg(long, value_name = "[NAME=]SPEC")]
     pub output: Vec<String>,
     /// Run even when a real-time setting cannot be had (the run is then
@@ -46,10 +48,11 @@ pub struct Cli {
 }
 
 impl Cli {
-    /// The configuration to run: the file (`--config`, or every default
-    /// without one) with these options applied ([`Cli::apply`]).
-    pub fn config(&self) -> Result<Config, ConfigError> {
-        self.apply(Config::load_or_default(self.daemon.config.as_deref())?)
+    /// What ppmd runs: the file (`--config`, or every default without one)
+    /// with these options applied ([`Cli::apply`]), resolved and checked.
+    pub fn plan(&self) -> Result<Plan, ConfigError> {
+        let file = Config::load_or_default(self.daemon.config.as_deref())?;
+        Plan::resolve(&self.apply(file)?)
     }
 
     /// Applies these options to `cfg`: `--name` picks that output alone
@@ -66,7 +69,7 @@ impl Cli {
         if let Some(t) = self.timing {
             cfg.ppm.timing = t;
         }
-        for out in cfg.outputs.iter_mut() {
+        for out in cfg.outputs.iter_mut().map(|e| &mut e.config) {
             out.rt.allow_degraded = cfg.rt.allow_degraded;
             if let Some(t) = self.timing {
                 out.ppm.timing = t;
@@ -131,12 +134,16 @@ pub fn apply_cli_outputs(cfg: &mut Config, args: &[String]) -> Result<(), Config
             }
             for (name, spec) in pairs {
                 let names = cfg.output_names().join(", ");
-                let out = cfg.outputs.iter_mut().find(|c| c.name == name).ok_or_else(|| {
-                    ConfigError::Usage(format!(
-                        "--output {name}=...: no output `{name}` in the configuration's [[outputs]] ({names})"
-                    ))
-                })?;
-                out.ppmd.output = spec.to_string();
+                let out = cfg
+                    .outputs
+                    .iter_mut()
+                    .find(|e| e.config.name == name)
+                    .ok_or_else(|| {
+                        ConfigError::Usage(format!(
+                            "--output {name}=...: no output `{name}` in the configuration's [[outputs]] ({names})"
+                        ))
+                    })?;
+                out.config.ppmd.output = spec.to_string();
             }
             Ok(())
         }
@@ -168,19 +175,19 @@ mod tests {
         assert!(c.outputs.is_empty());
         let mut c = Config::default();
         apply_cli_outputs(&mut c, &args(&["a=sim:a.trace", "b=sim"])).unwrap();
-        let outs = c.validate_outputs().unwrap();
+        let outs = Plan::resolve(&c).unwrap().outputs;
         assert_eq!(outs.len(), 2);
+        let sim = |path: Option<&str>| OutputSpec::Sim {
+            path: path.map(PathBuf::from),
+        };
         assert_eq!(
-            (outs[0].0.name.as_str(), outs[0].0.ppmd.output.as_str()),
-            ("a", "sim:a.trace")
+            (outs[0].name.as_str(), &outs[0].output),
+            ("a", &sim(Some("a.trace")))
         );
-        assert_eq!(
-            (outs[1].0.name.as_str(), outs[1].0.ppmd.output.as_str()),
-            ("b", "sim")
-        );
+        assert_eq!((outs[1].name.as_str(), &outs[1].output), ("b", &sim(None)));
         // Both inherit the default listen address: ppmd does not listen, and
         // each output's udp-ingress gets its own --listen.
-        assert_eq!(outs[0].0.ingress.listen, outs[1].0.ingress.listen);
+        assert_eq!(outs[0].ingress.listen, outs[1].ingress.listen);
         let mut c = Config::parse(TWO_OUTPUTS).unwrap();
         apply_cli_outputs(&mut c, &args(&["rover=sim:r.trace"])).unwrap();
         assert_eq!(c.select(Some("rover")).unwrap().ppmd.output, "sim:r.trace");
@@ -234,14 +241,18 @@ mod tests {
         let c = cli(&["--timing", "follow", "--allow-degraded"])
             .apply(two.clone())
             .unwrap();
-        let outs = c.validate_outputs().unwrap();
-        assert_eq!(outs.len(), 2);
-        for (o, model) in &outs {
+        for e in &c.outputs {
+            let o = &e.config;
+            assert!(o.rt.allow_degraded, "{}", o.name);
+        }
+        let plan = Plan::resolve(&c).unwrap();
+        assert_eq!(plan.outputs.len(), 2);
+        assert!(plan.shared.rt.allow_degraded);
+        for (e, o) in c.outputs.iter().zip(&plan.outputs) {
             assert_eq!(
-                (o.ppm.timing, model.timing()),
+                (e.config.ppm.timing, o.model.timing()),
                 (Timing::Follow, Timing::Follow)
             );
-            assert!(o.rt.allow_degraded, "{}", o.name);
         }
         let e = cli(&["--frame-log", "f.jsonl"])
             .apply(two.clone())

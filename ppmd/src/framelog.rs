@@ -39,9 +39,14 @@ pub enum Record {
         timing: Timing,
         /// The command the frame carries, if any (none for failsafe defaults).
         command: Option<CommandInfo>,
-        /// Number of channels in `values_ns`.
+        /// Whether the line carried it whole.
+        status: FrameStatus,
+        /// Number of channels in `values_ns`: the frame's, or the ones an
+        /// aborted frame carried before its abort.
         channels: u8,
-        /// The channel values sent, ns.
+        /// The channel values the line carried, ns: each value sent, moved
+        /// by the difference of its two edges' measured lateness, to the
+        /// microsecond (the value sent unless an edge was late).
         values_ns: [u32; MAX_CHANNELS],
     },
     /// The line changed state.
@@ -55,6 +60,46 @@ pub enum Record {
         /// State after.
         to: LineState,
     },
+}
+
+/// What became of a frame on the line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameStatus {
+    /// Every edge went out within the late-edge guard.
+    Whole,
+    /// Every edge went out, but one that receivers time reached the line
+    /// later than the guard (the timing thread was held up during its
+    /// write): the values are as the line carried them.
+    Glitched,
+    /// An edge that receivers time was found later than the guard before
+    /// its write: it and the rest of the frame were not written. `at` is
+    /// the first channel (1-based) the line did not carry; the channels
+    /// before it are within the guard, unless `glitched`.
+    Aborted {
+        /// The first channel not carried, 1-based.
+        at: u8,
+        /// Before the abort, an edge reached the line later than the guard.
+        glitched: bool,
+    },
+}
+
+impl FrameStatus {
+    /// Its name in the log: `whole`, `glitched` or `aborted`.
+    pub fn name(self) -> &'static str {
+        match self {
+            FrameStatus::Whole => "whole",
+            FrameStatus::Glitched => "glitched",
+            FrameStatus::Aborted { .. } => "aborted",
+        }
+    }
+
+    /// Whether an edge receivers time reached the line later than the guard.
+    pub fn glitched(self) -> bool {
+        matches!(
+            self,
+            FrameStatus::Glitched | FrameStatus::Aborted { glitched: true, .. }
+        )
+    }
 }
 
 /// Where a frame's command came from.
@@ -81,6 +126,7 @@ impl Record {
                 state,
                 timing,
                 command,
+                status,
                 channels,
                 values_ns,
             } => {
@@ -100,6 +146,12 @@ impl Record {
                     "ingress_seq": c.map(|c| c.ingress_seq),
                     "recv_mono_ns": c.map(|c| c.recv_mono_ns),
                     "recv_real_ns": c.map(|c| c.recv_real_ns),
+                    "status": status.name(),
+                    "aborted_at": match status {
+                        FrameStatus::Aborted { at, .. } => Some(*at),
+                        _ => None,
+                    },
+                    "glitched": status.glitched(),
                     "ch_us": ch,
                 })
                 .to_string()
@@ -170,6 +222,7 @@ mod tests {
                 recv_mono_ns: 5,
                 recv_real_ns: 6,
             }),
+            status: FrameStatus::Whole,
             channels: 2,
             values_ns,
         }
@@ -182,12 +235,29 @@ mod tests {
         assert_eq!(v["ch_us"], serde_json::json!([1500.25, 1000.0]));
         assert_eq!((v["seq"].as_u64(), v["frame"].as_u64()), (Some(7), Some(1)));
         assert_eq!(v["timing"], "follow");
-        let Record::Frame { timing, .. } = &mut grid else {
+        assert_eq!(v["status"], "whole");
+        assert_eq!(v["aborted_at"], serde_json::Value::Null);
+        let Record::Frame {
+            timing,
+            status,
+            channels,
+            ..
+        } = &mut grid
+        else {
             unreachable!()
         };
         *timing = Timing::Grid;
+        *status = FrameStatus::Aborted {
+            at: 2,
+            glitched: false,
+        };
+        *channels = 1;
         let v: serde_json::Value = serde_json::from_str(&grid.to_json()).unwrap();
         assert_eq!(v["timing"], "grid");
+        assert_eq!(v["status"], "aborted");
+        assert_eq!(v["aborted_at"], 2);
+        assert_eq!(v["glitched"], false);
+        assert_eq!(v["ch_us"], serde_json::json!([1500.25]), "what it carried");
         let t = Record::Transition {
             mono_ns: 1,
             real_ns: 2,

@@ -1,26 +1,47 @@
 //! Opening every output's line: simulated, GPIO (lines of one chip share one
 //! request, a bank), or SPI.
 
-use crate::emitter;
-use crate::output::{Output, SimOutput};
+use crate::emitter::{self, LineRef};
+use crate::line::{FrameLine, Line, SimLine};
 use anyhow::{Context, Result};
-use ppm_shared::config::{Config, OutputSpec, Timing};
-use ppm_shared::frame::{FrameModel, Level};
+use ppm_shared::config::{OutputPlan, OutputSpec, Shared, Timing};
+use ppm_shared::frame::Level;
 use std::path::PathBuf;
 
-/// One output's line, as the timing thread owns it.
-pub enum Line {
-    /// A line of its own (sim, or the only one of ours on its GPIO chip).
-    Own(Box<dyn Output>),
-    /// Line `bit` of bank `bank` of [`Lines::banks`].
+/// One output's line, as the timing thread owns it, by the way its frames
+/// leave.
+pub enum OpenLine {
+    /// Edge by edge, on a line of its own (sim, or the only one of ours on
+    /// its GPIO chip).
+    Edges(Box<dyn Line>),
+    /// Edge by edge, on line `bit` of bank `bank` of [`Lines::banks`].
     Banked { bank: usize, bit: u32 },
+    /// Whole frames (SPI).
+    Whole(Box<dyn FrameLine>),
 }
 
-/// Every output's line, and the banks (several lines of one GPIO chip in
-/// one request) some of them are in.
+impl OpenLine {
+    /// The line as the loop writes it.
+    pub fn line_ref(&mut self) -> LineRef<'_> {
+        match self {
+            OpenLine::Edges(line) => LineRef::Edges(line.as_mut()),
+            OpenLine::Banked { bank, bit } => LineRef::Banked {
+                bank: *bank,
+                bit: *bit,
+            },
+            OpenLine::Whole(line) => LineRef::Whole(line.as_mut()),
+        }
+    }
+}
+
+/// Every output's plan with its line, and the banks (several lines of one
+/// GPIO chip in one request) some of the lines are in.
 pub struct Lines {
-    pub each: Vec<Line>,
-    pub banks: Vec<crate::output::gpio::GpioBank>,
+    /// Each output's plan and line, in the plan's order.
+    pub each: Vec<(OutputPlan, OpenLine)>,
+    /// The banks [`OpenLine::Banked`] lines point into, shared by their
+    /// outputs.
+    pub banks: Vec<crate::line::gpio::GpioBank>,
 }
 
 /// `NAME: ` in front of a log line when there are several outputs.
@@ -32,18 +53,20 @@ pub fn tag(several: bool, name: &str) -> String {
     }
 }
 
-/// Opens every output's line. GPIO lines on one chip (however the chip is
-/// named) share one request, a bank, so their simultaneous edges are written
-/// in one call; a chip with one of our lines gets a request of its own.
-pub fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
-    let mut each: Vec<Option<Line>> = outputs.iter().map(|_| None).collect();
+/// Opens every output's line, with the `shared` settings, and hands each
+/// back with its output. GPIO lines on one chip (however the chip is named)
+/// share one request, a bank, so their simultaneous edges are written in one
+/// call; a chip with one of our lines gets a request of its own.
+pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
+    let mut each: Vec<Option<OpenLine>> = outputs.iter().map(|_| None).collect();
     /// A chip's path, its CHIP as first given, and its outputs (index, LINE).
     type Chip = (PathBuf, String, Vec<(usize, String)>);
     let mut chips: Vec<Chip> = Vec::new();
-    for (i, (cfg, model)) in outputs.iter().enumerate() {
-        match cfg.output()? {
+    for (i, cfg) in outputs.iter().enumerate() {
+        let model = &cfg.model;
+        match cfg.output.clone() {
             OutputSpec::Sim { path } => {
-                each[i] = Some(Line::Own(open_sim(cfg, model, path)?));
+                each[i] = Some(OpenLine::Edges(open_sim(cfg, shared.trace_max_mb, path)?));
             }
             OutputSpec::Spi { device } => {
                 // The longest frame: the lead-in pulse after silence, every
@@ -53,18 +76,18 @@ pub fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
                         .map(|c| model.max_ns(c) as u64)
                         .sum::<u64>()
                     + model.pulse_ns();
-                let out = crate::output::spi::SpiOutput::open(&device, cfg.ppmd.spi_hz, longest)
-                    .with_context(|| format!("output `{}`: spi:{}", cfg.name, device.display()))?;
+                let out = crate::line::spi::SpiLine::open(&device, shared.spi_hz, longest)
+                    .with_context(|| format!("output `{}`", cfg.name))?;
                 log::info!(
                     "output `{}`: spi {} (each frame one transfer, edges to {} ns)",
                     cfg.name,
                     out.description(),
-                    1_000_000_000 / cfg.ppmd.spi_hz as u64
+                    1_000_000_000 / shared.spi_hz as u64
                 );
-                each[i] = Some(Line::Own(Box::new(out)));
+                each[i] = Some(OpenLine::Whole(Box::new(out)));
             }
             OutputSpec::Gpio { chip, line } => {
-                let (_, summary, _) = crate::output::gpio::resolve_line(&chip, &line)
+                let (_, summary, _) = crate::line::gpio::resolve_line(&chip, &line)
                     .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
                 match chips.iter_mut().find(|c| c.0 == summary.path) {
                     Some(c) => c.2.push((i, line)),
@@ -76,48 +99,53 @@ pub fn open_lines(outputs: &[(Config, FrameModel)]) -> Result<Lines> {
     let mut banks = Vec::new();
     for (path, chip, members) in chips {
         if let [(i, line)] = members.as_slice() {
-            let (cfg, model) = &outputs[*i];
-            let out = crate::output::gpio::open(&chip, line, model.idle_level())
+            let cfg = &outputs[*i];
+            let out = crate::line::gpio::open(&chip, line, cfg.model.idle_level())
                 .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
             log::info!("output `{}`: gpio {}", cfg.name, out.description());
-            each[*i] = Some(Line::Own(Box::new(out)));
+            each[*i] = Some(OpenLine::Edges(Box::new(out)));
             continue;
         }
         let lines: Vec<(String, Level)> = members
             .iter()
-            .map(|(i, line)| (line.clone(), outputs[*i].1.idle_level()))
+            .map(|(i, line)| (line.clone(), outputs[*i].model.idle_level()))
             .collect();
         let names: Vec<&str> = members
             .iter()
-            .map(|(i, _)| outputs[*i].0.name.as_str())
+            .map(|(i, _)| outputs[*i].name.as_str())
             .collect();
-        let bank = crate::output::gpio::open_bank(&path.to_string_lossy(), &lines)
+        let bank = crate::line::gpio::open_bank(&path.to_string_lossy(), &lines)
             .with_context(|| format!("outputs {}: GPIO chip {chip}", names.join(", ")))?;
         for (bit, ((i, _), d)) in members.iter().zip(bank.descriptions()).enumerate() {
             log::info!(
                 "output `{}`: gpio {d} (one request with {})",
-                outputs[*i].0.name,
+                outputs[*i].name,
                 names.join(", ")
             );
-            each[*i] = Some(Line::Banked {
+            each[*i] = Some(OpenLine::Banked {
                 bank: banks.len(),
                 bit: bit as u32,
             });
         }
         banks.push(bank);
     }
-    let each = each
+    let each = outputs
         .into_iter()
-        .map(|l| l.expect("every output got a line above"))
+        .zip(each)
+        .map(|(o, l)| (o, l.expect("every output got a line above")))
         .collect();
     Ok(Lines { each, banks })
 }
 
+/// Opens output `cfg`'s simulated line: its trace at `path` (by default
+/// `ppm-NAME.trace`, with a header saying the model), rotated at
+/// `trace_max_mb` MiB.
 pub fn open_sim(
-    cfg: &Config,
-    model: &FrameModel,
+    cfg: &OutputPlan,
+    trace_max_mb: u64,
     path: Option<PathBuf>,
-) -> Result<Box<dyn Output>> {
+) -> Result<Box<dyn Line>> {
+    let model = &cfg.model;
     let path = path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", cfg.name)));
     let header = [
         "ppm simulated line: <scheduled_ns> <actual_ns> <level>, CLOCK_MONOTONIC".to_string(),
@@ -128,7 +156,7 @@ pub fn open_sim(
         format!("pulse_ns {}", model.pulse_ns()),
         format!("receiver {}", model.receiver().name()),
     ];
-    let sim = SimOutput::create(&path, &header, cfg.ppmd.trace_max_mb << 20)
+    let sim = SimLine::create(&path, &header, trace_max_mb << 20)
         .with_context(|| format!("creating sim trace {}", path.display()))?;
     log::info!("output `{}`: sim, trace in {}", cfg.name, path.display());
     Ok(Box::new(sim))
@@ -137,7 +165,8 @@ pub fn open_sim(
 /// One output's signal and settings, for the start-up log: channels,
 /// timing, pulse, idle level, where its commands come from, failsafe and
 /// the spin margin.
-pub fn describe(c: &Config, model: &FrameModel) -> String {
+pub fn describe(shared: &Shared, c: &OutputPlan) -> String {
+    let model = &c.model;
     let timing = match model.timing() {
         Timing::Grid => format!("grid timing, frame {} us", model.frame_ns() as f64 / 1e3),
         Timing::Follow => {
@@ -156,9 +185,9 @@ pub fn describe(c: &Config, model: &FrameModel) -> String {
         model.pulse_ns() as f64 / 1e3,
         model.idle_level(),
         ppm_shared::ipc::command_service_name(&c.name),
-        c.ipc.root.display(),
+        shared.ipc.root.display(),
         c.failsafe.action,
         c.failsafe.after_ms,
-        c.rt.spin_margin_us,
+        shared.rt.spin_margin_us,
     )
 }

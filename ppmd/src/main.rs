@@ -7,12 +7,12 @@
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Parser;
-use ppm_shared::logging::Chain;
+use ppm_shared::config::Plan;
 use ppmd::cli::Cli;
-use ppmd::lines::{describe, open_lines};
-use ppmd::monitor::{HdrLog, SnapshotPublisher};
+use ppmd::lines::{describe, open_lines, Lines};
+use ppmd::monitor::HdrLog;
 use ppmd::rt::RtSetup;
-use ppmd::startup::{self, Output};
+use ppmd::startup::{self, Output, Watched};
 use ppmd::watchdog::Systemd;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
@@ -31,32 +31,34 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    let outputs = cli.config()?.validate_outputs()?;
+    let Plan { shared, outputs } = cli.plan()?;
     let several = outputs.len() > 1;
-    // Shared settings (rt, ipc) are the same in every output.
-    let shared = outputs[0].0.clone();
-    let lines = open_lines(&outputs)?;
+    // Each output name is this ppmd's alone, before any line is opened.
+    let _claims = outputs
+        .iter()
+        .map(|o| ppmd::instance::claim(&shared.ipc.root, &o.name))
+        .collect::<Result<Vec<_>>>()?;
+    let Lines { each, banks } = open_lines(&shared, outputs)?;
 
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;
     }
     let margin = startup::spin_margin(&shared.rt);
-    let mut setups = outputs
+    let (outputs, timed): (Vec<Output>, Vec<_>) = each
         .into_iter()
-        .map(|(c, model)| Output::open(c, model, margin, several))
-        .collect::<Result<Vec<_>>>()?;
-    let publishers = setups
-        .iter()
-        .map(|s| SnapshotPublisher::open(&shared.ipc.root, &s.cfg.name))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|(o, line)| Output::open(o, line, &shared, several))
+        .collect::<Result<Vec<_>>>()?
+        .into_iter()
+        .unzip();
 
     let (ready_tx, ready_rx) = std::sync::mpsc::channel();
     let timing = ppmd::timing::spawn(
-        setups.iter_mut().map(Output::lane).collect(),
-        lines,
+        timed,
+        banks,
         shared.ipc.root.clone(),
         RtSetup::from_config(&shared.rt),
+        margin,
         stop.clone(),
         ready_tx,
     )
@@ -71,8 +73,8 @@ fn run(cli: Cli) -> Result<()> {
     for s in &obtained.shortfalls {
         log::warn!("DEGRADED RUN: {s}");
     }
-    for s in &setups {
-        log::info!("{}{}", s.tag, describe(&s.cfg, &s.model));
+    for o in &outputs {
+        log::info!("{}{}", o.tag, describe(&shared, &o.plan));
     }
 
     let mut hdr = match &cli.hdr_log {
@@ -82,26 +84,27 @@ fn run(cli: Cli) -> Result<()> {
         ),
         None => None,
     };
-    let mut monitors = startup::monitors(&mut setups, &obtained);
-    let progress = || -> u64 { setups.iter().map(|s| s.stats.decisions.load(Relaxed)).sum() };
-    let mut systemd = Systemd::start(progress(), Instant::now());
+    let mut watched = startup::watch_all(outputs, &obtained);
+    let progress = |watched: &[Watched]| -> u64 {
+        watched
+            .iter()
+            .map(|w| w.stats.decisions.load(Relaxed))
+            .sum()
+    };
+    let mut systemd = Systemd::start(progress(&watched), Instant::now());
     while !stop.load(Relaxed) && !timing.is_finished() {
         std::thread::sleep(MONITOR_EVERY);
-        systemd.tick(progress(), Instant::now());
-        for ((monitor, publisher), s) in monitors.iter_mut().zip(&publishers).zip(&setups) {
-            if let Some(snapshot) = monitor.tick(hdr.as_mut(), s.log_writer.as_ref()) {
-                if let Err(e) = publisher.publish(snapshot) {
-                    log::debug!("publishing timing snapshot: {}", Chain(&e));
-                }
-            }
+        systemd.tick(progress(&watched), Instant::now());
+        for w in &mut watched {
+            w.tick(hdr.as_mut());
         }
     }
     systemd.stopping();
-    let receive_errors = timing
+    timing
         .join()
         .map_err(|_| anyhow!("the timing thread panicked"))??;
-    for ((s, monitor), errors) in setups.iter_mut().zip(&mut monitors).zip(receive_errors) {
-        s.finish(monitor, hdr.as_mut(), errors);
+    for w in &mut watched {
+        w.finish(hdr.as_mut());
     }
     Ok(())
 }

@@ -36,6 +36,10 @@ pub struct Interval {
     pub wake_late: Histogram<u64>,
     /// Time spent spinning, per frame.
     pub frame_spin: Histogram<u64>,
+    /// Per aborted frame: how late the edge that aborted it was found.
+    pub aborted: Histogram<u64>,
+    /// Per glitched frame: how late its latest timed edge reached the line.
+    pub glitched: Histogram<u64>,
     /// Total spin time in the interval.
     pub spin_total_ns: u64,
 }
@@ -49,6 +53,8 @@ impl Interval {
             write: histogram(),
             wake_late: histogram(),
             frame_spin: histogram(),
+            aborted: histogram(),
+            glitched: histogram(),
             spin_total_ns: 0,
         }
     }
@@ -58,6 +64,8 @@ impl Interval {
         self.write.reset();
         self.wake_late.reset();
         self.frame_spin.reset();
+        self.aborted.reset();
+        self.glitched.reset();
         self.spin_total_ns = 0;
     }
 }
@@ -121,6 +129,18 @@ impl Meter {
         self.current.write.saturating_record(write_ns);
     }
 
+    /// Records one aborted frame: how late its edge was found.
+    #[inline]
+    pub fn aborted(&mut self, late_ns: u64) {
+        self.current.aborted.saturating_record(late_ns);
+    }
+
+    /// Records one glitched frame: how late its latest timed edge was.
+    #[inline]
+    pub fn glitched(&mut self, late_ns: u64) {
+        self.current.glitched.saturating_record(late_ns);
+    }
+
     /// Records one sleep's wake-up lateness.
     #[inline]
     pub fn wake(&mut self, late_ns: u64) {
@@ -139,6 +159,12 @@ impl Meter {
         if now_ns < self.current.start_ns.saturating_add(self.every_ns) {
             return;
         }
+        self.hand_over(now_ns);
+    }
+
+    /// Hands the interval over now, due or not: when the loop ends, so the
+    /// reader gets what was measured since the last hand-over.
+    pub fn hand_over(&mut self, now_ns: u64) {
         match self.empty.pop() {
             Ok(mut next) => {
                 next.start_ns = now_ns;
@@ -167,6 +193,18 @@ impl MeterReader {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_last_interval_is_handed_over_when_the_loop_ends() {
+        let (mut m, mut r) = meter(1_000);
+        m.start(0);
+        m.aborted(5_000);
+        m.maybe_hand_over(999);
+        m.hand_over(999);
+        let mut aborted = vec![];
+        r.drain(|iv| aborted.push((iv.start_ns, iv.end_ns, iv.aborted.len())));
+        assert_eq!(aborted, [(0, 999, 1)]);
+    }
 
     #[test]
     fn intervals_circulate() {

@@ -54,6 +54,7 @@ pub struct Monitor {
     pub next_log_ns: u64,
     pub state: LineState,
     pub mismatched: u64,
+    pub expired: u64,
     /// HdrHistogram intervals, and frame-log rows, that could not be written.
     pub hdr_lost: u64,
     pub frame_log_lost: u64,
@@ -100,6 +101,7 @@ impl Monitor {
             next_log_ns: start_ns + LOG_EVERY_NS,
             state: LineState::Silent,
             mismatched: 0,
+            expired: 0,
             hdr_lost: 0,
             frame_log_lost: 0,
             next_log_failure_ns: [0; 2],
@@ -136,7 +138,7 @@ impl Monitor {
     pub fn summary(&self, receive_errors: u64) -> String {
         let t = &self.snapshot;
         format!(
-            "stopped{}: {} frames{}, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} late frames, {} overruns, {} write errors, {} mismatched samples, {} receive errors",
+            "stopped{}: {} frames{}, {} commands; edge error p50 {:.2} us, p99 {:.2} us, p99.9 {:.2} us, max {:.1} us; {} late edges (> {} us), {} aborted frames, {} glitched frames, {} late frames, {} overruns, {} write errors, {} mismatched samples, {} expired samples, {} receive errors",
             if t.degraded != 0 { " (DEGRADED RUN)" } else { "" },
             t.frames,
             if t.timing == 1 {
@@ -151,10 +153,13 @@ impl Monitor {
             t.total.max as f64 / 1e3,
             t.late_edges,
             emitter::LATE_EDGE_NS / 1_000,
+            t.aborted_frames,
+            t.glitched_frames,
             t.late_frames,
             t.overruns,
             t.write_errors,
             self.stats.mismatched.load(Relaxed),
+            self.stats.expired.load(Relaxed),
             receive_errors,
         )
     }
@@ -224,9 +229,12 @@ impl Monitor {
         snap.overruns = s.overruns.load(Relaxed);
         snap.late_frames = s.late_frames.load(Relaxed);
         snap.late_edges = s.late_edges.load(Relaxed);
+        snap.aborted_frames = s.aborted_frames.load(Relaxed);
+        snap.glitched_frames = s.glitched_frames.load(Relaxed);
         snap.write_errors = s.write_errors.load(Relaxed);
         snap.failsafe_entries = s.failsafe_entries.load(Relaxed);
         snap.mismatched = s.mismatched.load(Relaxed);
+        snap.expired = s.expired.load(Relaxed);
         snap.repeats = s.repeats.load(Relaxed);
         snap.spin_share_ppm = s.spin_ns.load(Relaxed) * 1_000_000 / snap.uptime_ns.max(1);
         snap.state = s.state() as u32;
@@ -238,12 +246,14 @@ impl Monitor {
         if now >= self.next_log_ns {
             self.next_log_ns = now + LOG_EVERY_NS;
             log::info!(
-                "{}timing: {} frames; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} late frames, {} overruns; spin margin {} us, spinning {:.1}% of the time",
+                "{}timing: {} frames; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} aborted and {} glitched frames, {} late frames, {} overruns; spin margin {} us, spinning {:.1}% of the time",
                 self.tag_prefix.replace('.', ": "),
                 snap.frames,
                 snap.total.p50 as f64 / 1e3,
                 snap.total.p99 as f64 / 1e3,
                 snap.total.max as f64 / 1e3,
+                snap.aborted_frames,
+                snap.glitched_frames,
                 snap.late_frames,
                 snap.overruns,
                 snap.margin_ns / 1_000,
@@ -299,6 +309,15 @@ impl Monitor {
             );
             self.mismatched = m;
         }
+        let s = self.stats.expired.load(Relaxed);
+        if s != self.expired {
+            log::info!(
+                "{who}{} expired command(s) ignored: received before ppmd started (the shared-memory service keeps the last one) or older than failsafe.after_ms ({} ms); the line does what failsafe says until a fresh one comes",
+                s - self.expired,
+                self.failsafe_after_ms
+            );
+            self.expired = s;
+        }
     }
 }
 
@@ -334,6 +353,18 @@ impl SnapshotPublisher {
     pub fn publish(&self, snapshot: TimingSnapshot) -> Result<(), PublishError> {
         ipc::publish(&self.publisher, snapshot).map(|_| ())
     }
+
+    /// Hands the last snapshot published (the service's history) to
+    /// subscribers that came since: a restarted udp-ingress has ppmd's
+    /// timing within one monitor tick, not at the next snapshot, a second
+    /// later. iceoryx2 delivers history only from the publisher's side,
+    /// when it looks for new subscribers (here, or before a send).
+    pub fn serve_new_subscribers(&self) {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        if let Err(e) = self.publisher.update_connections() {
+            log::debug!("handing the last timing snapshot to new subscribers: {e}");
+        }
+    }
 }
 
 /// Summary of a histogram (all zero when empty).
@@ -354,7 +385,8 @@ pub fn summarize(h: &hdrhistogram::Histogram<u64>) -> Summary {
 
 /// An HdrHistogram interval log (the format of HdrHistogram's
 /// HistogramLogProcessor and plotting tools), values in nanoseconds, tags
-/// `edge_error` and `write`. Appended to, never rotated (no cap is given);
+/// `edge_error` and `write`, and `aborted` and `glitched` (one value per
+/// such frame: how late its edge was; the count is the interval's frames). Appended to, never rotated (no cap is given);
 /// each interval goes to the file whole, flushed at once.
 pub struct HdrLog {
     pub file: crate::rotating::RotatingFile,
@@ -377,7 +409,8 @@ impl HdrLog {
     /// Appends one interval: the edge error untagged when `untagged` (the
     /// first output's: what HdrHistogram's log processor reads without
     /// `-tag`, written even when empty so that every interval has one), and
-    /// `[NAME.]edge_error` and `[NAME.]write` tagged when not empty. The
+    /// `[NAME.]edge_error`, `[NAME.]write`, `[NAME.]aborted` and
+    /// `[NAME.]glitched` tagged when not empty. The
     /// first write of a run starts with the headers Java's reader expects:
     /// the format version, start and base time, and the column legend (also
     /// the header of any file a rotation would start). An interval that
@@ -415,7 +448,12 @@ impl HdrLog {
             w.write_histogram(&iv.edge_error, from, length, None)
                 .context("serializing the edge error")?;
         }
-        for (h, tag) in [(&iv.edge_error, "edge_error"), (&iv.write, "write")] {
+        for (h, tag) in [
+            (&iv.edge_error, "edge_error"),
+            (&iv.write, "write"),
+            (&iv.aborted, "aborted"),
+            (&iv.glitched, "glitched"),
+        ] {
             if !h.is_empty() {
                 let tag = format!("{prefix}{tag}");
                 w.write_histogram(h, from, length, Tag::new(&tag))

@@ -1,18 +1,20 @@
 //! What the main thread sets up for each output around the timing thread:
-//! the emitter's settings, the meter and frame log the loop takes
-//! ([`Output::lane`]), the output's [`Monitor`] once the loop runs, and its
-//! last words at exit ([`Output::finish`]).
+//! the emitter's settings, the meter, frame log and line the loop takes
+//! ([`Output::open`] hands them over as a [`TimedOutput`]), the snapshot
+//! publisher, then, once the loop runs, the output's [`Monitor`]
+//! ([`Output::watch`]) and its last words at exit ([`Output::finish`]).
 
 use crate::clock::Margin;
 use crate::emitter::{EmitterConfig, Stats};
 use crate::framelog;
-use crate::lines::tag;
-use crate::meter::{self, Meter, MeterReader};
-use crate::monitor::{HdrLog, Monitor, Obtained, SNAPSHOT_EVERY_NS};
-use crate::timing::LanePart;
+use crate::lines::{tag, OpenLine};
+use crate::meter::{self, MeterReader};
+use crate::monitor::{HdrLog, Monitor, Obtained, SnapshotPublisher, SNAPSHOT_EVERY_NS};
+use crate::timing::TimedOutput;
 use anyhow::{Context, Result};
-use ppm_shared::config::{Config, RtSection, SpinMargin};
-use ppm_shared::frame::FrameModel;
+use ppm_shared::config::{FailsafeSection, OutputPlan, RtSection, Shared, SpinMargin};
+use ppm_shared::logging::Chain;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 
 /// The spin margin `[rt]` asks for: fixed, or automatic within its bounds.
@@ -26,47 +28,57 @@ pub fn spin_margin(rt: &RtSection) -> Margin {
     }
 }
 
-/// Output `c`'s loop settings: its `[failsafe]` and the spin `margin`.
-pub fn emitter_config(c: &Config, margin: Margin) -> EmitterConfig {
+/// An output's loop settings: its `failsafe`.
+pub fn emitter_config(failsafe: &FailsafeSection) -> EmitterConfig {
     EmitterConfig {
-        margin,
-        failsafe_after_ns: c.failsafe.after_ms * 1_000_000,
-        failsafe_action: c.failsafe.action,
-        startup: c.failsafe.startup,
+        failsafe_after_ns: failsafe.after_ms * 1_000_000,
+        failsafe_action: failsafe.action,
+        startup: failsafe.startup,
     }
 }
 
-/// One output as the main thread sets it up: the timing thread takes its
-/// [`Output::lane`], the main thread keeps the rest and reads the loop
-/// through [`Output::monitor`].
-pub struct Output {
-    /// Its configuration.
-    pub cfg: Config,
-    /// Its frame model.
-    pub model: FrameModel,
+/// One output as the main thread holds it: its plan and the pieces around
+/// its loop; the timing thread has its [`TimedOutput`]. `V` is the main
+/// thread's view of the loop: the meter's reading side ([`MeterReader`])
+/// until the loop runs, then its [`Monitor`] ([`Output::watch`] turns the
+/// one into the other), so one struct holds the output all along.
+pub struct Output<V = MeterReader> {
+    /// Its plan: name, frame model, line, failsafe.
+    pub plan: OutputPlan,
     /// `NAME: ` before its log lines when there are several outputs.
     pub tag: String,
     /// Its counters, which the loop updates.
     pub stats: Arc<Stats>,
     /// The writing end of its frame log, when it has one.
     pub log_writer: Option<framelog::Writer>,
-    ecfg: EmitterConfig,
+    /// The publisher of its timing snapshots.
+    pub publisher: SnapshotPublisher,
+    /// Its command source's receive errors, left by the timing thread once
+    /// the loop stopped.
+    pub receive_errors: Arc<AtomicU64>,
     several: bool,
-    /// Taken by [`Output::lane`].
-    meter: Option<Meter>,
-    log: Option<framelog::Producer>,
-    /// Taken by [`Output::monitor`].
-    reader: Option<MeterReader>,
+    /// The main thread's view of its loop.
+    view: V,
 }
 
+/// An output once its loop runs: watched through its [`Monitor`].
+pub type Watched = Output<Monitor>;
+
 impl Output {
-    /// Sets up output `cfg`, one of `several` or not, with the spin
-    /// `margin`: opens its frame log, if any (and says so), and its meter.
-    pub fn open(cfg: Config, model: FrameModel, margin: Margin, several: bool) -> Result<Output> {
-        let tag = tag(several, &cfg.name);
-        let (log, log_writer) = match &cfg.ppmd.frame_log {
+    /// Sets up output `plan`, one of `several` or not: opens its frame log,
+    /// if any (and says so, rotated at the `shared` size), its meter and its
+    /// snapshot publisher. The timing thread's part takes the meter's and
+    /// the frame log's writing sides and the output's `line`.
+    pub fn open(
+        plan: OutputPlan,
+        line: OpenLine,
+        shared: &Shared,
+        several: bool,
+    ) -> Result<(Output, TimedOutput)> {
+        let tag = tag(several, &plan.name);
+        let (log, log_writer) = match &plan.frame_log {
             Some(path) => {
-                let (p, w) = framelog::open(path, cfg.ppmd.frame_log_max_mb << 20)
+                let (p, w) = framelog::open(path, shared.frame_log_max_mb << 20)
                     .with_context(|| format!("opening the frame log {}", path.display()))?;
                 log::info!("{tag}frame log: {}", path.display());
                 (Some(p), Some(w))
@@ -74,82 +86,105 @@ impl Output {
             None => (None, None),
         };
         let (meter, reader) = meter::meter(SNAPSHOT_EVERY_NS);
-        Ok(Output {
-            ecfg: emitter_config(&cfg, margin),
-            cfg,
-            model,
-            tag,
-            stats: Arc::new(Stats::default()),
-            log_writer,
-            several,
-            meter: Some(meter),
+        let publisher = SnapshotPublisher::open(&shared.ipc.root, &plan.name)?;
+        let stats = Arc::new(Stats::default());
+        let receive_errors = Arc::new(AtomicU64::new(0));
+        let timed = TimedOutput {
+            name: plan.name.clone(),
+            model: plan.model.clone(),
+            ecfg: emitter_config(&plan.failsafe),
+            stats: stats.clone(),
+            meter,
             log,
-            reader: Some(reader),
-        })
+            line,
+            receive_errors: receive_errors.clone(),
+        };
+        let output = Output {
+            plan,
+            tag,
+            stats,
+            log_writer,
+            publisher,
+            receive_errors,
+            several,
+            view: reader,
+        };
+        Ok((output, timed))
     }
 
-    /// What the timing thread takes to run this output: its settings, its
-    /// counters, the meter's and the frame log's writing sides. Panics when
-    /// taken twice.
-    pub fn lane(&mut self) -> LanePart {
-        LanePart {
-            name: self.cfg.name.clone(),
-            model: self.model.clone(),
-            ecfg: self.ecfg,
-            stats: self.stats.clone(),
-            meter: self.meter.take().expect("an output's lane is taken once"),
-            log: self.log.take(),
-        }
-    }
-
-    /// The main thread's view of this output's loop, once the timing thread
-    /// said what it `obtained`. Panics when made twice.
-    pub fn monitor(&mut self, obtained: &Obtained) -> Monitor {
-        let reader = self.reader.take().expect("an output has one monitor");
+    /// This output once the timing thread said what it `obtained`: the
+    /// main thread's view of its loop.
+    pub fn watch(self, obtained: &Obtained) -> Watched {
         let prefix = if self.several {
-            format!("{}.", self.cfg.name)
+            format!("{}.", self.plan.name)
         } else {
             String::new()
         };
-        Monitor::new(
-            (&self.model, self.cfg.failsafe.after_ms),
+        let monitor = Monitor::new(
+            (&self.plan.model, self.plan.failsafe.after_ms),
             obtained,
-            reader,
+            self.view,
             self.stats.clone(),
             prefix,
-        )
+        );
+        Output {
+            plan: self.plan,
+            tag: self.tag,
+            stats: self.stats,
+            log_writer: self.log_writer,
+            publisher: self.publisher,
+            receive_errors: self.receive_errors,
+            several: self.several,
+            view: monitor,
+        }
+    }
+}
+
+impl Watched {
+    /// Reads the loop's measurements; publishes a snapshot when one is due,
+    /// else offers the last one to new subscribers.
+    pub fn tick(&mut self, hdr: Option<&mut HdrLog>) {
+        match self.view.tick(hdr, self.log_writer.as_ref()) {
+            Some(snapshot) => {
+                if let Err(e) = self.publisher.publish(snapshot) {
+                    log::debug!("publishing timing snapshot: {}", Chain(&e));
+                }
+            }
+            None => self.publisher.serve_new_subscribers(),
+        }
     }
 
     /// At exit, the loop stopped: finishes the frame log, reads what the
     /// loop handed over last, and says what went wrong with the frame log
-    /// and the summary (with the command source's `receive_errors`).
-    pub fn finish(&mut self, monitor: &mut Monitor, hdr: Option<&mut HdrLog>, receive_errors: u64) {
+    /// and the summary (with the command source's receive errors).
+    pub fn finish(&mut self, hdr: Option<&mut HdrLog>) {
         if let Some(w) = self.log_writer.as_mut() {
             w.finish();
         }
-        monitor.tick(hdr, self.log_writer.as_ref());
-        for line in monitor.final_report(self.log_writer.as_ref()) {
+        self.view.tick(hdr, self.log_writer.as_ref());
+        for line in self.view.final_report(self.log_writer.as_ref()) {
             log::warn!("{}{line}", self.tag);
         }
-        log::info!("{}{}", self.tag, monitor.summary(receive_errors));
+        let receive_errors = self.receive_errors.load(Relaxed);
+        log::info!("{}{}", self.tag, self.view.summary(receive_errors));
     }
 }
 
-/// The monitors of every output, in order; the first one's edge error also
-/// goes untagged into the HdrHistogram log (what its tools read by default).
-pub fn monitors(outputs: &mut [Output], obtained: &Obtained) -> Vec<Monitor> {
-    let mut monitors: Vec<Monitor> = outputs.iter_mut().map(|o| o.monitor(obtained)).collect();
-    if let Some(first) = monitors.first_mut() {
-        first.hdr_untagged = true;
+/// Every output once the timing thread said what it `obtained`, in order;
+/// the first one's edge error also goes untagged into the HdrHistogram log
+/// (what its tools read by default).
+pub fn watch_all(outputs: Vec<Output>, obtained: &Obtained) -> Vec<Watched> {
+    let mut watched: Vec<Watched> = outputs.into_iter().map(|o| o.watch(obtained)).collect();
+    if let Some(first) = watched.first_mut() {
+        first.view.hdr_untagged = true;
     }
-    monitors
+    watched
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ppm_shared::config::FailsafeAction;
-    use std::panic::{catch_unwind, AssertUnwindSafe};
+    use ppm_shared::config::{Config, FailsafeAction, Plan};
 
     #[test]
     fn the_loop_settings_come_from_the_configuration() {
@@ -167,27 +202,33 @@ mod tests {
                 max_ns: 400_000
             }
         );
-        let e = emitter_config(&c, Margin::Fixed(7));
-        assert_eq!(e.margin, Margin::Fixed(7));
+        let e = emitter_config(&c.failsafe);
         assert_eq!(e.failsafe_after_ns, 250_000_000);
         assert_eq!(e.failsafe_action, FailsafeAction::Hold);
         assert_eq!(e.startup, FailsafeAction::Default);
     }
 
-    /// An output named `name` with its frame log in `dir`.
-    fn output(dir: &std::path::Path, name: &str, several: bool) -> Output {
+    /// An output named `name` on `line`, with its frame log and ipc root in
+    /// `dir`.
+    fn output(
+        dir: &std::path::Path,
+        name: &str,
+        line: OpenLine,
+        several: bool,
+    ) -> (Output, TimedOutput) {
         let log = dir.join(format!("{name}.jsonl"));
         let cfg = Config::parse(&format!(
-            "name = \"{name}\"\n[ppmd]\nframe_log = {:?}\n[failsafe]\nafter_ms = 300",
-            log.to_str().unwrap()
+            "name = \"{name}\"\n[ppmd]\nframe_log = {:?}\n[failsafe]\nafter_ms = 300\n[ipc]\nroot = {:?}",
+            log.to_str().unwrap(),
+            dir.join("ipc").to_str().unwrap(),
         ))
         .unwrap();
-        let model = cfg.validate().unwrap();
-        Output::open(cfg, model, Margin::Fixed(5_000), several).unwrap()
+        let (shared, plan) = Plan::resolve_one(&cfg).unwrap();
+        Output::open(plan, line, &shared, several).unwrap()
     }
 
     #[test]
-    fn an_output_hands_its_lane_and_monitor_over_once() {
+    fn an_output_hands_its_timed_part_over_and_is_watched() {
         let dir = std::env::temp_dir().join(format!("ppm-startup-test-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let obtained = Obtained {
@@ -198,32 +239,35 @@ mod tests {
             preempt_rt: false,
         };
 
-        let mut one = output(&dir, "solo", false);
+        let (one, timed) = output(&dir, "solo", OpenLine::Banked { bank: 2, bit: 3 }, false);
         assert_eq!(one.tag, "");
         assert!(dir.join("solo.jsonl").exists(), "the frame log is opened");
-        let lane = one.lane();
-        assert_eq!(lane.name, "solo");
-        assert_eq!(lane.ecfg.margin, Margin::Fixed(5_000));
-        assert_eq!(lane.ecfg.failsafe_after_ns, 300_000_000);
-        assert!(lane.log.is_some());
-        assert!(Arc::ptr_eq(&lane.stats, &one.stats));
-        assert!(catch_unwind(AssertUnwindSafe(|| one.lane())).is_err());
-        let m = one.monitor(&obtained);
+        assert_eq!(timed.name, "solo");
+        assert_eq!(timed.ecfg.failsafe_after_ns, 300_000_000);
+        assert!(timed.log.is_some());
+        assert!(matches!(timed.line, OpenLine::Banked { bank: 2, bit: 3 }));
+        assert!(Arc::ptr_eq(&timed.stats, &one.stats));
+        timed.receive_errors.store(7, Relaxed);
+        let mut one = one.watch(&obtained);
+        assert_eq!(one.receive_errors.load(Relaxed), 7);
+        let m = &one.view;
         assert_eq!((m.tag_prefix.as_str(), m.failsafe_after_ms), ("", 300));
-        assert!(catch_unwind(AssertUnwindSafe(|| one.monitor(&obtained))).is_err());
+        assert!(Arc::ptr_eq(&m.stats, &one.stats));
 
-        let mut two = [output(&dir, "a", true), output(&dir, "b", true)];
+        let two = ["a", "b"].map(|n| output(&dir, n, OpenLine::Banked { bank: 0, bit: 0 }, true).0);
         assert_eq!((two[0].tag.as_str(), two[1].tag.as_str()), ("a: ", "b: "));
-        let ms = monitors(&mut two, &obtained);
-        let tags: Vec<(&str, bool)> = ms
+        let mut two = watch_all(two.into(), &obtained);
+        let tags: Vec<(&str, bool)> = two
             .iter()
-            .map(|m| (m.tag_prefix.as_str(), m.hdr_untagged))
+            .map(|w| (w.view.tag_prefix.as_str(), w.view.hdr_untagged))
             .collect();
         assert_eq!(tags, [("a.", true), ("b.", false)]);
 
-        for o in std::iter::once(&mut one).chain(two.iter_mut()) {
-            o.log_writer.as_mut().unwrap().finish();
+        for w in std::iter::once(&mut one).chain(two.iter_mut()) {
+            w.log_writer.as_mut().unwrap().finish();
         }
+        // Their publishers' files go before the directory.
+        drop((one, two));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

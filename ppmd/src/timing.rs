@@ -1,31 +1,34 @@
 //! The timing thread: it opens each output's command source, applies the
-//! real-time setup, says what it obtained, then runs the lanes
-//! ([`crate::emitter::run_lanes`]) until told to stop, and leaves the lines
-//! idle.
+//! real-time setup, says what it obtained, then runs the outputs
+//! ([`crate::emitter::run_outputs`]) until told to stop, and leaves the
+//! lines idle.
 
-use crate::emitter::{self, EmitterConfig, Lane, Sink, Stats};
-use crate::lines::{Line, Lines};
+use crate::clock::Margin;
+use crate::emitter::{self, EmitterConfig, Output, Recording, Stats};
+use crate::line::gpio::GpioBank;
+use crate::line::Bank;
+use crate::lines::OpenLine;
 use crate::meter::Meter;
 use crate::monitor::Obtained;
-use crate::output::Bank;
 use crate::rt::{RtSetup, RT_STACK_BYTES};
 use crate::source::{CommandSource, IpcSource};
 use anyhow::Result;
 use ppm_shared::config::Timing;
 use ppm_shared::frame::FrameModel;
-use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::mpsc::Sender;
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
-/// What the timing thread takes of one output to build its lane.
-pub struct LanePart {
+/// One output as the timing thread owns it (the main thread keeps the
+/// rest, see [`crate::startup::Output`]).
+pub struct TimedOutput {
     /// The output's name (its command service's).
     pub name: String,
     /// Its frame model.
     pub model: FrameModel,
-    /// Its failsafe settings and the loop's spin margin.
+    /// Its failsafe settings.
     pub ecfg: EmitterConfig,
     /// Its counters, also read by the main thread.
     pub stats: Arc<Stats>,
@@ -33,31 +36,70 @@ pub struct LanePart {
     pub meter: Meter,
     /// Its frame log, if any.
     pub log: Option<crate::framelog::Producer>,
+    /// Its line (or its place in a bank of the ones given to [`spawn`]).
+    pub line: OpenLine,
+    /// Where its command source's receive errors are left once the loop
+    /// stopped, for the main thread's summary.
+    pub receive_errors: Arc<AtomicU64>,
 }
 
-/// Starts the timing thread. It sends what its real-time setup obtained on
-/// `ready` (`None` when the sources or the setup failed: the thread then
-/// returns the error), runs until `stop`, and returns each source's
-/// receive errors.
+/// One output on the timing thread once its command source is open.
+struct Subscribed {
+    part: TimedOutput,
+    source: IpcSource,
+}
+
+impl TimedOutput {
+    /// Opens its command source under the shared-memory `root`.
+    fn subscribe(self, root: &Path) -> Result<Subscribed> {
+        let follow = self.model.timing() == Timing::Follow;
+        let source = IpcSource::open(root, &self.name, follow)?;
+        Ok(Subscribed { part: self, source })
+    }
+}
+
+impl Subscribed {
+    /// This output as the loop drives it.
+    fn emitter(&mut self) -> Output<'_> {
+        let p = &mut self.part;
+        Output {
+            model: &p.model,
+            cfg: p.ecfg,
+            source: &mut self.source,
+            line: p.line.line_ref(),
+            rec: Recording {
+                stats: &p.stats,
+                meter: &mut p.meter,
+                log: p.log.as_mut(),
+            },
+        }
+    }
+}
+
+/// Starts the timing thread with the `outputs` and the `banks` their lines
+/// may be in. It sends what its real-time setup obtained on `ready` (`None`
+/// when the sources or the setup failed: the thread then returns the
+/// error), runs with the spin `margin` until `stop`, and leaves each
+/// source's receive errors in its output's [`TimedOutput::receive_errors`].
 pub fn spawn(
-    mut parts: Vec<LanePart>,
-    mut lines: Lines,
+    outputs: Vec<TimedOutput>,
+    mut banks: Vec<GpioBank>,
     root: PathBuf,
     setup: RtSetup,
+    margin: Margin,
     stop: Arc<AtomicBool>,
     ready_tx: Sender<Option<Obtained>>,
-) -> std::io::Result<JoinHandle<Result<Vec<u64>>>> {
+) -> std::io::Result<JoinHandle<Result<()>>> {
     std::thread::Builder::new()
         .name("ppmd-timing".into())
         .stack_size(RT_STACK_BYTES)
-        .spawn(move || -> Result<Vec<u64>> {
-            let started = parts
-                .iter()
-                .map(|p| IpcSource::open(&root, &p.name, p.model.timing() == Timing::Follow))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(anyhow::Error::from)
-                .and_then(|sources| Ok((sources, setup.apply()?)));
-            let (mut sources, obtained) = match started {
+        .spawn(move || -> Result<()> {
+            let started = outputs
+                .into_iter()
+                .map(|o| o.subscribe(&root))
+                .collect::<Result<Vec<_>>>()
+                .and_then(|subscribed| Ok((subscribed, setup.apply()?)));
+            let (mut subscribed, obtained) = match started {
                 Ok(v) => v,
                 Err(e) => {
                     let _ = ready_tx.send(None);
@@ -66,38 +108,25 @@ pub fn spawn(
             };
             let _ = ready_tx.send(Some(Obtained::from(&obtained)));
             {
-                let Lines { each, banks } = &mut lines;
-                let mut lanes: Vec<Lane> = parts
-                    .iter_mut()
-                    .zip(sources.iter_mut())
-                    .zip(each.iter_mut())
-                    .map(|((p, source), line)| Lane {
-                        model: &p.model,
-                        cfg: p.ecfg,
-                        source,
-                        sink: match line {
-                            Line::Own(out) => Sink::Line(out.as_mut()),
-                            Line::Banked { bank, bit } => Sink::Bank {
-                                bank: *bank,
-                                bit: *bit,
-                            },
-                        },
-                        stats: &p.stats,
-                        meter: &mut p.meter,
-                        log: p.log.as_mut(),
-                    })
-                    .collect();
+                let mut outputs: Vec<Output> =
+                    subscribed.iter_mut().map(Subscribed::emitter).collect();
                 let mut bank_refs: Vec<&mut dyn Bank> =
                     banks.iter_mut().map(|b| b as &mut dyn Bank).collect();
-                emitter::run_lanes(
+                emitter::run_outputs(
                     &crate::clock::SystemClock,
-                    &mut lanes,
+                    margin,
+                    &mut outputs,
                     &mut bank_refs,
                     &stop,
                 );
             }
-            drop(lines); // sets the lines idle, flushes the sim traces
+            for s in &subscribed {
+                s.part.receive_errors.store(s.source.errors(), Relaxed);
+            }
+            // Sets the lines idle and flushes the sim traces.
+            drop(subscribed);
+            drop(banks);
             drop(obtained); // releases /dev/cpu_dma_latency
-            Ok(sources.iter().map(|s| s.errors()).collect())
+            Ok(())
         })
 }

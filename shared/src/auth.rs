@@ -4,11 +4,16 @@
 //! A signed datagram is a JSON object with exactly two strings:
 //! `{"msg": "<the command's JSON text>", "mac": "<hex HMAC-SHA256(key, msg)>"}`.
 //! The MAC covers the bytes of `msg` (its UTF-8 text once the JSON string is
-//! decoded), so the sender signs exactly the text it puts in `msg`. The key
+//! decoded), so the sender signs exactly the text it puts in `msg`. The
+//! command in `msg` names the output it is for (`"to": "rover"`, the
+//! output's `name`), so what is signed says which vehicle it may fly: a copy
+//! sent to another output with the same key is refused ([`Envelope::open`]).
+//! The key
 //! file holds the key as 64 hex characters and must not be readable or
 //! writable by group or others.
 
-use crate::protocol::{may_have_key, Reject, RejectReason};
+use crate::frame::FrameModel;
+use crate::protocol::{self, may_have_key, Command, Reject, RejectReason, To};
 use hmac::{Hmac, Mac};
 use serde_json::Value;
 use sha2::Sha256;
@@ -35,8 +40,8 @@ impl std::fmt::Debug for AuthKey {
 /// fix it.
 #[derive(Debug, thiserror::Error)]
 pub enum KeyError {
-    /// The file cannot be read (missing, no permission, ...).
-    #[error("cannot read auth key file {path}: {source}")]
+    /// The file cannot be read (missing, no permission, ...; why: its source).
+    #[error("cannot read auth key file {path}")]
     Read {
         path: PathBuf,
         #[source]
@@ -140,6 +145,40 @@ impl Envelope {
     pub fn verify(&self, key: &AuthKey) -> bool {
         key.verify(self.msg.as_bytes(), &self.mac)
     }
+
+    /// The signed command, for the output named `output` (its `name`), in
+    /// this order: the MAC must be `key`'s (`bad_mac`); the command must
+    /// name this output in `to` (`no_to`, `wrong_output`); it must be a
+    /// valid command of `model` (the usual reasons, detail prefixed with
+    /// "in the signed msg") and carry a `seq` (`no_seq`). Whether the `seq`
+    /// is new is the caller's to judge, after this: a command refused here
+    /// leaves the replay state alone.
+    pub fn open(&self, key: &AuthKey, output: &str, model: &FrameModel) -> Result<Command, Reject> {
+        let fail = |reason, detail: &str| {
+            Err(Reject {
+                reason,
+                detail: detail.into(),
+            })
+        };
+        if !self.verify(key) {
+            return fail(
+                RejectReason::BadMac,
+                "the MAC does not match `msg` (another key, or msg or mac changed)",
+            );
+        }
+        let command = protocol::parse_for(self.msg.as_bytes(), model, To::Exactly(output))
+            .map_err(|r| Reject {
+                reason: r.reason,
+                detail: format!("in the signed msg: {}", r.detail),
+            })?;
+        if command.seq.is_none() {
+            return fail(
+                RejectReason::NoSeq,
+                "a signed command needs a `seq`, greater than the last one's (replays are refused by it)",
+            );
+        }
+        Ok(command)
+    }
 }
 
 /// Recognises the signed form, before a datagram is parsed as a command.
@@ -216,9 +255,9 @@ mod tests {
     #[test]
     fn sign_and_verify_a_fixed_vector() {
         let k = test_key();
-        let msg = br#"{"ch":[1500,1500,1000,1500],"seq":1}"#;
+        let msg = br#"{"ch":[1500,1500,1000,1500],"seq":1,"to":"rover"}"#;
         // Computed independently with Python's hmac and hashlib.
-        let mac = "f3046abbe0b0d2ea2350d5e1c6835b82219c0f2bed8ba66cea13f82f14bb5519";
+        let mac = "19eef9dbcc55a46bd2faaba57d00dc42b04194b7b57493491f68d3032314e1fc";
         let got = k.sign(msg);
         assert_eq!(got, mac);
         assert_eq!(got.len(), MAC_HEX_LEN);
@@ -227,7 +266,17 @@ mod tests {
         let mut tampered = got.clone().into_bytes();
         tampered[10] = if tampered[10] == b'0' { b'1' } else { b'0' };
         assert!(!k.verify(msg, std::str::from_utf8(&tampered).unwrap()));
-        assert!(!k.verify(br#"{"ch":[1500,1500,1001,1500],"seq":1}"#, &got));
+        assert!(!k.verify(
+            br#"{"ch":[1500,1500,1001,1500],"seq":1,"to":"rover"}"#,
+            &got
+        ));
+        assert!(
+            !k.verify(
+                br#"{"ch":[1500,1500,1000,1500],"seq":1,"to":"plane"}"#,
+                &got
+            ),
+            "the output's name is signed"
+        );
         assert!(!k.verify(msg, &got[..62]));
         assert!(!k.verify(msg, "zz"));
         let other = AuthKey::new([7; KEY_LEN]);
@@ -309,12 +358,68 @@ mod tests {
             ),
         ] {
             let shown = path.display().to_string();
-            let e = crate::files::tests::within_10s(move || AuthKey::load(&path))
-                .unwrap_err()
-                .to_string();
+            let e = crate::files::tests::within_10s(move || AuthKey::load(&path)).unwrap_err();
+            let e = crate::logging::Chain(&e).to_string();
             assert!(e.contains(&shown) && e.contains(what), "{e}");
         }
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// What `open` refuses, and why, in its order: the MAC first, then the
+    /// output, then the command, then its `seq`.
+    #[test]
+    fn open_binds_a_signed_command_to_its_output() {
+        use RejectReason::*;
+        let k = test_key();
+        let m = crate::config::Config::default().validate().unwrap();
+        let open = |key: &AuthKey, msg: &str, output: &str| {
+            let d = key.envelope(msg);
+            envelope(d.as_bytes())
+                .unwrap()
+                .unwrap()
+                .open(&k, output, &m)
+                .map(|c| (c.seq, c.channels.as_ns()[0]))
+                .map_err(|r| r.reason)
+        };
+        let for_rover = r#"{"ch":[1100],"seq":5,"to":"rover"}"#;
+        assert_eq!(open(&k, for_rover, "rover"), Ok((Some(5), 1_100_000)));
+        // The same signed command at another output: refused, whatever its seq.
+        assert_eq!(open(&k, for_rover, "plane"), Err(WrongOutput));
+        assert_eq!(open(&k, r#"{"ch":[1100],"seq":5}"#, "rover"), Err(NoTo));
+        assert_eq!(open(&k, "[1100]", "rover"), Err(NoTo));
+        assert_eq!(
+            open(&k, r#"{"ch":[1100],"seq":5,"to":7}"#, "rover"),
+            Err(BadShape)
+        );
+        // The MAC is checked first: a forgery naming the output is bad_mac.
+        let other = AuthKey::new([7; KEY_LEN]);
+        assert_eq!(open(&other, for_rover, "rover"), Err(BadMac));
+        assert_eq!(open(&other, r#"{"ch":[1100]}"#, "plane"), Err(BadMac));
+        // Then the output, then the command and its seq.
+        assert_eq!(
+            open(&k, r#"{"ch":[9000],"seq":5,"to":"plane"}"#, "rover"),
+            Err(WrongOutput)
+        );
+        assert_eq!(
+            open(&k, r#"{"ch":[9000],"seq":5,"to":"rover"}"#, "rover"),
+            Err(OutOfRange)
+        );
+        assert_eq!(
+            open(&k, r#"{"ch":[1100],"to":"rover"}"#, "rover"),
+            Err(NoSeq)
+        );
+        let e = envelope(
+            k.envelope(r#"{"ch":[1100],"seq":5,"to":"plane"}"#)
+                .as_bytes(),
+        )
+        .unwrap()
+        .unwrap()
+        .open(&k, "rover", &m)
+        .unwrap_err();
+        assert_eq!(
+            e.detail,
+            "in the signed msg: the command is for output `plane`, this is `rover`"
+        );
     }
 
     #[test]

@@ -82,6 +82,16 @@ impl CommandSample {
         }
     }
 
+    /// Whether a daemon whose timing loop started at `started_ns` may fly
+    /// this command at `now_ns` with a failsafe limit of `after_ns`: only a
+    /// command received (by udp-ingress, CLOCK_MONOTONIC) since the start,
+    /// and no older than the limit. A service's history can offer the last
+    /// command of an earlier run to a daemon that starts later: that one
+    /// never flies.
+    pub fn fresh(&self, started_ns: u64, now_ns: u64, after_ns: u64) -> bool {
+        self.recv_mono_ns >= started_ns && now_ns.saturating_sub(self.recv_mono_ns) <= after_ns
+    }
+
     /// The sender's `seq`, if any.
     pub fn seq(&self) -> Option<u64> {
         (self.has_seq != 0).then_some(self.seq)
@@ -165,10 +175,19 @@ pub struct TimingSnapshot {
     pub late_frames: u64,
     /// Commands refused: made under another channel model.
     pub mismatched: u64,
+    /// Commands refused as expired: received before ppmd's loop started, or
+    /// older than `failsafe.after_ms` when taken.
+    pub expired: u64,
     /// Frame-log rows and HdrHistogram intervals that could not be written.
     pub log_errors: u64,
     /// Edges written more than 10 us late.
     pub late_edges: u64,
+    /// Frames aborted at an edge receivers time found later than
+    /// `ppm.late_edge_guard_us` (counted in `frames` too).
+    pub aborted_frames: u64,
+    /// Frames with an edge receivers time that reached the line later than
+    /// the guard (counted in `frames` too).
+    pub glitched_frames: u64,
     /// Failed writes.
     pub write_errors: u64,
     /// Entries into the failsafe action.
@@ -218,8 +237,11 @@ impl Default for TimingSnapshot {
             overruns: 0,
             late_frames: 0,
             mismatched: 0,
+            expired: 0,
             log_errors: 0,
             late_edges: 0,
+            aborted_frames: 0,
+            glitched_frames: 0,
             write_errors: 0,
             failsafe_entries: 0,
             repeats: 0,
@@ -435,6 +457,12 @@ mod tests {
         let cmd = parse(br#"{"ch": [1100, 1200.5], "seq": 9}"#, &m).unwrap();
         let s = CommandSample::new(&cmd, m.fingerprint(), 1, 5, 6);
         assert_eq!(s.seq(), Some(9));
+        // Received at 5: fresh from a start at or before it, while no
+        // older than the limit.
+        assert!(s.fresh(5, 5, 0));
+        assert!(s.fresh(0, 105, 100));
+        assert!(!s.fresh(0, 106, 100), "older than the limit");
+        assert!(!s.fresh(6, 6, 100), "received before the start");
         assert_eq!(s.channels(&m), Some(cmd.channels));
         let four =
             Config::parse("[ppm]\nchannels = 4\nframe_us = 12500\nreceiver = 'edgetx'").unwrap();

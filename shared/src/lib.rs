@@ -1,13 +1,18 @@
 //! Logic shared by `ppmd` and `udp-ingress`: no I/O beyond reading the
 //! configuration file, and [`sched`]'s scheduling of the calling thread.
 //!
-//! - [`config`]: the TOML configuration both binaries read, and its validation.
+//! - [`config`]: the TOML configuration both binaries read: its schema, the
+//!   `[[outputs]]` entries, the checks, and the [`config::Plan`] the file and
+//!   a program's flags resolve into.
 //! - [`signal`]: line levels, channel and edge limits, frame timing.
-//! - [`frame`]: the PPM frame model built from that configuration, and the
-//!   encoder that turns channel values into one frame's edge schedule.
+//! - [`frame`]: the PPM frame model, built and checked from the `[ppm]`
+//!   section ([`FrameModel::build`]), and the encoder that turns channel
+//!   values into one frame's edge schedule.
 //! - [`decode`]: a decoder with transmitter semantics that reads any waveform back.
 //! - [`receiver`]: PPM input as EdgeTX, OpenTX, Betaflight and ArduPilot
 //!   decode it, each modelled on its firmware.
+//! - [`sbus`]: the SBUS frame, its encoder, and SBUS input as EdgeTX,
+//!   Betaflight and ArduPilot frame and read it, each modelled on its firmware.
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
 //! - [`files`]: bounded reads of the configuration, key and seq files.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
@@ -15,6 +20,7 @@
 //! - [`daemon`]: the options both daemons take, and their logs' set-up.
 //! - [`line`](mod@line): the line's state and its names.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
+//! - [`status`]: the reply to a status query, written by udp-ingress and read by the tools.
 //! - [`trace`]: the simulated line's trace format.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
 //! - [`sched`]: CPU pinning and SCHED_FIFO of the calling thread (ppmd's
@@ -31,12 +37,14 @@ pub mod line;
 pub mod logging;
 pub mod protocol;
 pub mod receiver;
+pub mod sbus;
 pub mod sched;
 pub mod signal;
+pub mod status;
 pub mod time;
 pub mod trace;
 
-pub use config::{Config, ConfigError};
+pub use config::{Config, ConfigError, Plan};
 pub use frame::{Channels, Edge, EdgeSchedule, FrameModel, Level, MAX_CHANNELS};
 
 /// Nanoseconds per microsecond.

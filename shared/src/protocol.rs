@@ -12,9 +12,15 @@
 //! - Named channels normalised to -1..=1 (-1 is the channel's minimum, so
 //!   throttle's zero actuation): `{"norm": {"ail": 0.2, "thr": -1}}`.
 //!
+//! An object form may name the output it is for: `"to": "rover"` (the
+//! output's `name`). [`parse_for`] checks it as [`To`] says: a signed command
+//! must name its output ([`To::Exactly`]), an unsigned one may
+//! ([`To::AbsentOr`]).
+//!
 //! One form per command. `units` and `norm` values outside their range are
-//! clamped and counted like microsecond values, never rejected; see
-//! [`FrameModel::units_to_ns`] and [`FrameModel::norm_to_ns`].
+//! clamped and counted like microsecond values, never rejected (except a
+//! number beyond a 64-bit float, such as `1e400`: `out_of_range` in every
+//! form); see [`FrameModel::units_to_ns`] and [`FrameModel::norm_to_ns`].
 //!
 //! Channels a command does not give take their configured default. Values may
 //! be fractional and are kept to the nanosecond. A value outside its channel's
@@ -49,7 +55,8 @@ pub enum RejectReason {
     InvalidJson,
     /// A channel value is not a number.
     NotANumber,
-    /// A channel value lies outside 500..=2500 us.
+    /// A channel value lies outside 500..=2500 us, or any value beyond a
+    /// 64-bit float (`1e400`).
     OutOfRange,
     /// More values than the frame has channels.
     TooManyValues,
@@ -67,11 +74,17 @@ pub enum RejectReason {
     Replay,
     /// A datagram from a source outside `ingress.allow`.
     NotAllowed,
+    /// A command for another output: its `to` is not this output's name (a
+    /// signed command copied to another output, or sent to the wrong port).
+    WrongOutput,
+    /// A signed command without `to` (the output it is for): a signature
+    /// alone does not say which vehicle it may fly.
+    NoTo,
 }
 
 impl RejectReason {
     /// Every reason, in counter order.
-    pub const ALL: [RejectReason; 12] = [
+    pub const ALL: [RejectReason; 14] = [
         RejectReason::InvalidUtf8,
         RejectReason::InvalidJson,
         RejectReason::NotANumber,
@@ -84,6 +97,8 @@ impl RejectReason {
         RejectReason::NoSeq,
         RejectReason::Replay,
         RejectReason::NotAllowed,
+        RejectReason::WrongOutput,
+        RejectReason::NoTo,
     ];
 
     /// The counter name (`snake_case`).
@@ -101,6 +116,8 @@ impl RejectReason {
             RejectReason::NoSeq => "no_seq",
             RejectReason::Replay => "replay",
             RejectReason::NotAllowed => "not_allowed",
+            RejectReason::WrongOutput => "wrong_output",
+            RejectReason::NoTo => "no_to",
         }
     }
 
@@ -135,10 +152,15 @@ pub const STATUS_QUERY: &str = r#"{"get":"status"}"#;
 /// asked for it, unless its source is in `ingress.status_allow`.
 pub const STATUS_REPLY_MAX_RATIO: usize = 3;
 
-/// The size ppm's tools pad their status queries to: a reply runs 600 to
-/// 900 bytes, and stays under 1800 (3 x 600) even with every counter at its
-/// largest.
-pub const STATUS_QUERY_PADDED_LEN: usize = 600;
+/// The largest status reply, in bytes, with room to spare for counters to
+/// come: a test builds the largest reply there can be (every counter at
+/// u64::MAX, the longest name, ...) and checks it fits.
+pub const STATUS_REPLY_MAX_LEN: usize = 2_100;
+
+/// The size ppm's tools pad their status queries to: a third of
+/// [`STATUS_REPLY_MAX_LEN`], so even the largest reply is no more than
+/// [`STATUS_REPLY_MAX_RATIO`] times the query and comes to any source.
+pub const STATUS_QUERY_PADDED_LEN: usize = STATUS_REPLY_MAX_LEN.div_ceil(STATUS_REPLY_MAX_RATIO);
 
 /// [`STATUS_QUERY`] padded with spaces to [`STATUS_QUERY_PADDED_LEN`]
 /// bytes: it earns the full reply from any source.
@@ -161,12 +183,35 @@ pub fn may_have_key(datagram: &[u8], key: &str) -> bool {
             .any(|w| w[0] == b'"' && w[k.len() + 1] == b'"' && &w[1..=k.len()] == k)
 }
 
-/// Parses one datagram against the frame model.
+/// What a command's `to` (the name of the output it is for) must be.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum To<'a> {
+    /// Anything, or nothing: not checked (a string if given).
+    Any,
+    /// Nothing, or this output's name: unsigned commands.
+    AbsentOr(&'a str),
+    /// This output's name: signed commands (the name in what is signed binds
+    /// the command to its output).
+    Exactly(&'a str),
+}
+
+/// Parses one datagram against the frame model; its `to`, if any, is not
+/// checked ([`To::Any`]).
 pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
+    parse_for(datagram, model, To::Any)
+}
+
+/// Parses one datagram against the frame model, for the output `to` says.
+///
+/// The `to` is checked right after the JSON is read, before the channels:
+/// a command for another output is `wrong_output` (and a signed one without
+/// `to`, `no_to`) whatever that output's channels are. A `to` that is not a
+/// string is `bad_shape`.
+pub fn parse_for(datagram: &[u8], model: &FrameModel, to: To) -> Result<Command, Reject> {
     let text = std::str::from_utf8(datagram)
         .map_err(|e| reject(RejectReason::InvalidUtf8, e.to_string()))?;
-    let value: Value =
-        serde_json::from_str(text).map_err(|e| reject(RejectReason::InvalidJson, e.to_string()))?;
+    let value: Value = serde_json::from_str(text).map_err(json_reject)?;
+    check_to(&value, to)?;
     let mut b = Builder::new(model);
     let seq = match value {
         Value::Array(items) => {
@@ -176,7 +221,10 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
         Value::Object(map) => {
             let seq = map.get("seq").map(parse_seq).transpose()?;
             if let Some(ch) = map.get("ch") {
-                if let Some(k) = map.keys().find(|k| *k != "ch" && *k != "seq") {
+                if let Some(k) = map
+                    .keys()
+                    .find(|k| !matches!(k.as_str(), "ch" | "seq" | "to"))
+                {
                     return Err(reject(
                         RejectReason::BadShape,
                         format!("unexpected key `{k}` beside `ch`"),
@@ -189,7 +237,7 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
             } else if let Some(form) = Mapped::find(&map) {
                 b.mapped(form, &map)?;
             } else {
-                for (k, v) in map.iter().filter(|(k, _)| *k != "seq") {
+                for (k, v) in map.iter().filter(|(k, _)| *k != "seq" && *k != "to") {
                     b.set(channel_index(model, k)?, Named::Key(k), v)?;
                 }
             }
@@ -213,6 +261,54 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
         channels: Channels::from_ns(&b.ns[..model.channels()]),
         clamped: b.clamped,
     })
+}
+
+/// Checks a command's `to` against what `to` asks (see [`parse_for`]).
+fn check_to(value: &Value, to: To) -> Result<(), Reject> {
+    let given = match value.get("to") {
+        None => None,
+        Some(Value::String(s)) => Some(s.as_str()),
+        Some(v) => {
+            return Err(reject(
+                RejectReason::BadShape,
+                format!(
+                    "`to` must be a string, the name of the output the command is for, got {}",
+                    kind(v)
+                ),
+            ))
+        }
+    };
+    match (to, given) {
+        (To::Any, _) | (To::AbsentOr(_), None) => Ok(()),
+        (To::AbsentOr(name) | To::Exactly(name), Some(g)) if g == name => Ok(()),
+        (To::AbsentOr(name) | To::Exactly(name), Some(g)) => Err(reject(
+            RejectReason::WrongOutput,
+            format!("the command is for output `{g}`, this is `{name}`"),
+        )),
+        (To::Exactly(name), None) => Err(reject(
+            RejectReason::NoTo,
+            format!(
+                "a signed command names the output it is for: add \"to\": \"{name}\" (ppm-send --name, ppm.Sender(name=...))"
+            ),
+        )),
+    }
+}
+
+/// The rejection for text serde_json does not parse: `out_of_range` for a
+/// number beyond a 64-bit float (`1e400`, in any form: such a number has no
+/// value to clamp, so `norm` and `units` reject it too), `invalid_json` for
+/// anything else.
+fn json_reject(e: serde_json::Error) -> Reject {
+    let detail = e.to_string();
+    // serde_json has no public error code; its message for this case is
+    // "number out of range at line L column C" (pinned by a test below).
+    if e.is_syntax() && detail.starts_with("number out of range") {
+        return reject(
+            RejectReason::OutOfRange,
+            format!("{detail}: a number beyond a 64-bit float (about 1.8e308) is no channel value in any form"),
+        );
+    }
+    reject(RejectReason::InvalidJson, detail)
 }
 
 /// The index of the channel named `name`, or the rejection that lists the
@@ -339,7 +435,7 @@ impl Builder<'_> {
     /// range are clamped and counted, never rejected.
     fn mapped(&mut self, form: Mapped, map: &serde_json::Map<String, Value>) -> Result<(), Reject> {
         let key = form.key();
-        if let Some(k) = map.keys().find(|k| *k != key && *k != "seq") {
+        if let Some(k) = map.keys().find(|k| *k != key && *k != "seq" && *k != "to") {
             return Err(reject(
                 RejectReason::BadShape,
                 format!("unexpected key `{k}` beside `{key}` (one form per command)"),
@@ -532,6 +628,20 @@ mod tests {
             (b"[2500.1]", Err(OutOfRange)),
             (b"[-1500]", Err(OutOfRange)),
             (b"[1e300]", Err(OutOfRange)),
+            // Beyond a 64-bit float: out of range in every form, even the
+            // clamped ones (there is no value to clamp).
+            (b"[1e400]", Err(OutOfRange)),
+            (b"[-1e400]", Err(OutOfRange)),
+            (br#"{"ch": [1500, 1e400]}"#, Err(OutOfRange)),
+            (br#"{"ail": 1e400}"#, Err(OutOfRange)),
+            (br#"{"norm": {"thr": 1e400}}"#, Err(OutOfRange)),
+            (br#"{"norm": {"thr": -1e400}}"#, Err(OutOfRange)),
+            (br#"{"units": {"ail": 1e400}}"#, Err(OutOfRange)),
+            // Below a 64-bit float's precision: zero, a valid value.
+            (
+                br#"{"norm": {"thr": 1e-400}}"#,
+                Ok((None, with(&[(2, 1500.0)]), 0)),
+            ),
             (br#"{"ele": 3000}"#, Err(OutOfRange)),
             // Rejected: more values than channels.
             (
@@ -609,6 +719,24 @@ mod tests {
             ),
             (br#"{"ch": [1500], "norm": {"ail": 0}}"#, Err(BadShape)),
             (br#"{"norm": {"ail": 0}, "seq": -1}"#, Err(BadShape)),
+            // `to`, the output a command is for, beside any object form
+            // (parse checks no name: see to_names_the_output).
+            (
+                br#"{"to": "rover", "ch": [1100], "seq": 9}"#,
+                Ok((Some(9), with(&[(0, 1100.0)]), 0)),
+            ),
+            (
+                br#"{"ail": 1600, "to": "rover"}"#,
+                Ok((None, with(&[(0, 1600.0)]), 0)),
+            ),
+            (
+                br#"{"norm": {"thr": -1}, "to": "rover"}"#,
+                Ok((None, with(&[(2, 1000.0)]), 0)),
+            ),
+            (br#"{"ch": [1500], "to": 5}"#, Err(BadShape)),
+            (br#"{"ail": 1500, "to": null}"#, Err(BadShape)),
+            (br#"{"to": "rover"}"#, Err(BadShape)),
+            (br#"{"to": "rover", "seq": 3}"#, Err(BadShape)),
         ];
         let m = units_model();
         for (input, want) in rows {
@@ -636,6 +764,20 @@ mod tests {
         let nine = format!("[{}]", vec![f64::MAX.to_string(); 9].join(","));
         let got = parse(nine.as_bytes(), &m).map_err(|r| r.reason);
         assert_eq!(got.err(), Some(TooManyValues));
+    }
+
+    #[test]
+    fn a_number_beyond_f64_is_out_of_range_and_says_so() {
+        let e = parse(br#"{"norm": {"thr": 1e400}}"#, &model()).unwrap_err();
+        assert_eq!(e.reason, RejectReason::OutOfRange);
+        assert_eq!(
+            e.to_string(),
+            "out_of_range: number out of range at line 1 column 22: a number beyond a \
+             64-bit float (about 1.8e308) is no channel value in any form"
+        );
+        // Other bad JSON stays invalid_json.
+        let e = parse(b"[1e]", &model()).unwrap_err();
+        assert_eq!(e.reason, RejectReason::InvalidJson, "{e}");
     }
 
     #[test]
@@ -703,6 +845,62 @@ mod tests {
             parse(br#"{"\u0061il":1100}"#, &m).unwrap(),
             parse(br#"{"ail":1100}"#, &m).unwrap()
         );
+    }
+
+    #[test]
+    fn to_names_the_output() {
+        use RejectReason::*;
+        let m = model();
+        let reason = |d: &[u8], to: To| parse_for(d, &m, to).map(|c| c.seq).map_err(|r| r.reason);
+        let rover = br#"{"ch":[1100],"seq":5,"to":"rover"}"#;
+        let plane = br#"{"ch":[1100],"seq":5,"to":"plane"}"#;
+        let none = br#"{"ch":[1100],"seq":5}"#;
+        // Signed commands: exactly this output's name.
+        assert_eq!(reason(rover, To::Exactly("rover")), Ok(Some(5)));
+        assert_eq!(reason(plane, To::Exactly("rover")), Err(WrongOutput));
+        assert_eq!(reason(none, To::Exactly("rover")), Err(NoTo));
+        assert_eq!(reason(b"[1100]", To::Exactly("rover")), Err(NoTo));
+        assert_eq!(
+            reason(br#"{"ch":[1100],"to":"Rover"}"#, To::Exactly("rover")),
+            Err(WrongOutput),
+            "names are compared exactly"
+        );
+        // Unsigned commands: this output's name, or none.
+        assert_eq!(reason(rover, To::AbsentOr("rover")), Ok(Some(5)));
+        assert_eq!(reason(none, To::AbsentOr("rover")), Ok(Some(5)));
+        assert_eq!(reason(b"[1100]", To::AbsentOr("rover")), Ok(None));
+        assert_eq!(reason(plane, To::AbsentOr("rover")), Err(WrongOutput));
+        // Not checked.
+        assert_eq!(reason(plane, To::Any), Ok(Some(5)));
+        // `to` is checked before the channels: a copy of a command for an
+        // output with other channels is wrong_output, not unknown_channel.
+        let other_model = br#"{"aux7":1100,"seq":6,"to":"plane"}"#;
+        assert_eq!(reason(other_model, To::Any), Err(UnknownChannel));
+        assert_eq!(reason(other_model, To::Exactly("rover")), Err(WrongOutput));
+        assert_eq!(
+            reason(br#"{"aux7":1100,"seq":6}"#, To::Exactly("rover")),
+            Err(NoTo)
+        );
+        // A `to` that is no string is bad_shape, whatever is asked.
+        for to in [To::Any, To::AbsentOr("rover"), To::Exactly("rover")] {
+            assert_eq!(
+                reason(br#"{"ch":[1100],"to":["rover"]}"#, to),
+                Err(BadShape)
+            );
+        }
+        // Escaped, `to` is the key it spells.
+        assert_eq!(
+            reason(br#"{"ch":[1100],"t\u006f":"plane"}"#, To::Exactly("rover")),
+            Err(WrongOutput)
+        );
+        // The detail says which output the command was for, and the fix.
+        let e = parse_for(plane, &m, To::Exactly("rover")).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "wrong_output: the command is for output `plane`, this is `rover`"
+        );
+        let e = parse_for(none, &m, To::Exactly("rover")).unwrap_err();
+        assert!(e.detail.contains(r#""to": "rover""#), "{e}");
     }
 
     #[test]

@@ -3,8 +3,10 @@
 //! flight controllers, each modelled on its firmware's decoder (the file and
 //! function are named on each [`Receiver`]).
 //!
-//! All of them time one direction of edges only (the edges that start a
-//! pulse, here the `leading` level), as periods of their capture clock, and
+//! All of them time one direction of edges only ([`TIMED_EDGE`], the rising
+//! edge at the pin: with the line idle high, the edge that ends a pulse; the
+//! decoders here take it as their `leading` level), as periods of their
+//! capture clock, and
 //! find frames by their sync period alone: none looks at the frame length.
 //! They differ in the capture resolution, in whether the bounds are strict,
 //! in the channel counts they take, in what an invalid period does and in
@@ -15,6 +17,10 @@
 use crate::decode::{DecodedFrame, LeadingEdges};
 use crate::signal::{Level, CHANNEL_MAX_US, CHANNEL_MIN_US, SYNC_MAX_US, SYNC_MIN_US};
 use serde::Deserialize;
+
+/// The edge every modelled receiver times: rising at the pin, whatever the
+/// line's idle level.
+pub const TIMED_EDGE: Level = Level::High;
 
 /// A receiver whose PPM decoding is modelled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize)]

@@ -44,8 +44,8 @@ pub enum TraceError {
     /// A line that is neither a comment nor three numbers.
     #[error("trace line {line}: `{text}` is not `<scheduled_ns> <actual_ns> <0|1>`")]
     Malformed { line: usize, text: String },
-    /// Reading failed.
-    #[error("reading trace: {0}")]
+    /// Reading failed (why: its source).
+    #[error("reading trace")]
     Io(#[from] std::io::Error),
 }
 
@@ -123,16 +123,16 @@ impl Trace {
     }
 
     /// The frames `receiver` hands on, decoded as its firmware does (see
-    /// [`crate::receiver`]), by scheduled or actual time.
+    /// [`crate::receiver`]: timing the rising edges), by scheduled or actual
+    /// time.
     pub fn decode_as(&self, receiver: Receiver, actual: bool) -> Vec<DecodedFrame> {
-        let leading = self.idle_level.unwrap_or(Level::Low).opposite();
         crate::receiver::decode_as(
             receiver,
             self.edges.iter().map(|e| {
                 let t = if actual { e.actual_ns } else { e.scheduled_ns };
                 (t, e.level)
             }),
-            leading,
+            crate::receiver::TIMED_EDGE,
         )
         .0
     }

@@ -106,7 +106,7 @@ fn ppm_section() -> impl Strategy<Value = PpmSection> {
 /// A model and values for every channel within its limits (ns).
 fn model_and_values() -> impl Strategy<Value = (FrameModel, Vec<u32>)> {
     ppm_section()
-        .prop_map(|s| ppm_shared::config::frame_model(&s).expect("generated config is valid"))
+        .prop_map(|s| ppm_shared::frame::FrameModel::build(&s).expect("generated config is valid"))
         .prop_flat_map(|m| {
             let ranges: Vec<_> = (0..m.channels())
                 .map(|i| m.min_ns(i)..=m.max_ns(i))
@@ -238,8 +238,7 @@ proptest! {
             8 => { bad.order = ["AETRA", "AER", "XETR", "aetr x"][pick % 4].into(); "ppm.order".into() }
             _ => { bad.channel.insert(format!("aux{}", 13 + pick), ChannelOverride::default()); format!("ppm.channel.aux{}", 13 + pick) }
         };
-        let mut cfg = Config::default();
-        cfg.ppm = bad;
+        let cfg = Config { ppm: bad, ..Config::default() };
         let err = cfg.validate().expect_err("mutated config must be refused");
         prop_assert_eq!(err.key(), Some(key.as_str()), "{}", err);
         prop_assert!(err.to_string().contains(&key), "{}", err);
@@ -277,7 +276,7 @@ fn units_model() -> impl Strategy<Value = (FrameModel, f64, f64)> {
                 receiver: ReceiverChoice::One(Receiver::EdgeTx),
                 ..PpmSection::default()
             };
-            let m = ppm_shared::config::frame_model(&ppm).expect("generated config is valid");
+            let m = ppm_shared::frame::FrameModel::build(&ppm).expect("generated config is valid");
             (m, lo, lo + span)
         })
 }

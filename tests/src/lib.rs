@@ -1,14 +1,24 @@
 //! Helpers for the whole-system tests: build and locate the real binaries,
 //! run them as separate processes in an isolated temporary directory (own
 //! shared-memory root, own output name, own UDP port), and stop them.
+//!
+//! - [`Sandbox`]: one test's directory, configuration, port and processes.
+//! - [`Scratch`], [`Proc`], [`free_udp_port`]: the process harness,
+//!   `ppm_tools::harness` (the one `ppm-bench` runs its programs with),
+//!   re-exported.
+//! - [`status`], [`StatusReply`], [`reply_of`]: a status query and its typed reply.
+//! - Traces, frames, pacing, Python and systemd helpers.
 
 use std::fs::File;
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::OnceLock;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+pub use ppm_shared::status::StatusReply;
+pub use ppm_tools::harness::{free_udp_port, Proc, Scratch};
 
 /// The directory holding the workspace's binaries, built once per test run
 /// with the same profile as the tests.
@@ -60,32 +70,67 @@ pub const GENTLE_RT: &str =
 /// How long a program may take to start (debug builds on a busy machine).
 const STARTUP: Duration = Duration::from_secs(30);
 
-/// A fresh directory for one test, removed when the test passes.
+/// A fresh directory for one test, removed when the test passes: a
+/// [`Scratch`] (its `dir` and `port`, through `Deref`) with a unique
+/// output name, and the test's turn.
 pub struct Sandbox {
-    /// The directory.
-    pub dir: PathBuf,
+    scratch: Scratch,
     /// A unique output name for this test.
     pub name: String,
-    /// A free UDP port on 127.0.0.1 for udp-ingress.
-    pub port: u16,
+    _turn: Turn,
+}
+
+impl std::ops::Deref for Sandbox {
+    type Target = Scratch;
+
+    fn deref(&self) -> &Scratch {
+        &self.scratch
+    }
+}
+
+/// The tests of one test binary take turns, one whole-system test at a
+/// time: each test's ppmd pins its SCHED_FIFO timing thread to the same CPU
+/// (`rt.cpu = "last"`), and two spinning there at one priority hold each
+/// other up for milliseconds, which now cuts their frames short at late
+/// edges. A test that makes several sandboxes (on one thread) takes one
+/// turn.
+struct Turn(#[allow(dead_code)] Option<std::sync::MutexGuard<'static, ()>>);
+
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+thread_local! {
+    static TURNS_HELD: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+impl Turn {
+    fn take() -> Turn {
+        let held = TURNS_HELD.with(|h| h.replace(h.get() + 1));
+        Turn((held == 0).then(|| ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())))
+    }
+}
+
+impl Drop for Turn {
+    fn drop(&mut self) {
+        TURNS_HELD.with(|h| h.set(h.get() - 1));
+    }
 }
 
 impl Sandbox {
     /// A new sandbox for the test `label`.
     pub fn new(label: &str) -> Sandbox {
+        let turn = Turn::take();
         static NEXT: AtomicU32 = AtomicU32::new(0);
         let name = format!(
             "t{}x{}",
             std::process::id(),
             NEXT.fetch_add(1, Ordering::Relaxed)
         );
-        let dir = std::env::temp_dir().join(format!("ppm-test-{label}-{name}"));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("creating the test directory");
+        let scratch =
+            Scratch::new(&format!("ppm-test-{label}-{name}")).expect("creating the test directory");
         Sandbox {
-            dir,
+            scratch,
             name,
-            port: free_udp_port(),
+            _turn: turn,
         }
     }
 
@@ -105,6 +150,18 @@ impl Sandbox {
             ""
         } else {
             "[rt]\nallow_degraded = true\n"
+        };
+        // The late-edge guard at its widest (20 us) unless the test sets it:
+        // on a loaded test machine a few-us guard cuts frames short often,
+        // which the tests of the guard cover; elsewhere it would only make
+        // frame counts vary with the load.
+        let extra = if extra.contains("late_edge_guard_us") {
+            extra.to_string()
+        } else if let Some(at) = extra.find("[ppm]\n") {
+            let (head, tail) = extra.split_at(at + "[ppm]\n".len());
+            format!("{head}late_edge_guard_us = 20\n{tail}")
+        } else {
+            format!("{extra}\n[ppm]\nlate_edge_guard_us = 20\n")
         };
         let text = format!(
             "name = \"{}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\n{ingress}\n[ipc]\nroot = \"{}\"\n{rt}{extra}\n",
@@ -165,129 +222,15 @@ impl Sandbox {
         env: &[(&str, &str)],
         log: &str,
     ) -> Proc {
-        let log_path = self.dir.join(format!("{log}.log"));
-        let child = Command::new(bin(binary))
-            .args(args)
+        let mut cmd = Command::new(bin(binary));
+        cmd.args(args)
             .envs(env.iter().copied())
             .current_dir(&self.dir)
             .env("RUST_LOG", "info")
             .stdin(Stdio::null())
-            .stdout(File::create(self.dir.join(format!("{log}.out"))).unwrap())
-            .stderr(File::create(&log_path).unwrap())
-            .spawn()
-            .unwrap_or_else(|e| panic!("starting {binary}: {e}"));
-        Proc {
-            child: Some(child),
-            log: log_path,
-        }
-    }
-}
-
-impl Drop for Sandbox {
-    /// Removes the directory unless the test failed (then it is kept for a look).
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            let _ = std::fs::remove_dir_all(&self.dir);
-        }
-    }
-}
-
-/// A port that was free a moment ago.
-pub fn free_udp_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .expect("binding an ephemeral port")
-        .port()
-}
-
-/// A running process, killed when dropped.
-pub struct Proc {
-    child: Option<Child>,
-    /// Its stderr log.
-    pub log: PathBuf,
-}
-
-impl Proc {
-    /// Sends `signal` and waits up to `timeout` for the exit.
-    pub fn signal_and_wait(
-        &mut self,
-        signal: nix::sys::signal::Signal,
-        timeout: Duration,
-    ) -> ExitStatus {
-        let child = self.child.as_mut().expect("process already reaped");
-        let pid = nix::unistd::Pid::from_raw(child.id() as i32);
-        nix::sys::signal::kill(pid, signal).expect("sending a signal");
-        self.wait(timeout)
-    }
-
-    /// Waits up to `timeout` for the process to exit by itself.
-    pub fn wait(&mut self, timeout: Duration) -> ExitStatus {
-        let mut child = self.child.take().expect("process already reaped");
-        let end = Instant::now() + timeout;
-        loop {
-            if let Some(status) = child.try_wait().expect("waiting") {
-                return status;
-            }
-            if Instant::now() > end {
-                let _ = child.kill();
-                let _ = child.wait();
-                panic!(
-                    "process did not exit within {timeout:?}; log:\n{}",
-                    self.log_text()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(10));
-        }
-    }
-
-    /// Its process id.
-    pub fn pid(&self) -> u32 {
-        self.child.as_ref().expect("process already reaped").id()
-    }
-
-    /// Its resident memory (VmRSS) in KiB.
-    pub fn rss_kib(&self) -> u64 {
-        std::fs::read_to_string(format!("/proc/{}/status", self.pid()))
-            .ok()
-            .and_then(|s| {
-                s.lines()
-                    .find(|l| l.starts_with("VmRSS:"))
-                    .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
-            })
-            .expect("VmRSS of a running process")
-    }
-
-    /// Kills the process with SIGKILL (as a crash would).
-    pub fn kill(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-
-    /// Its stderr so far.
-    pub fn log_text(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    /// Waits until its log contains `needle`.
-    pub fn wait_for_log(&self, needle: &str, timeout: Duration) {
-        let end = Instant::now() + timeout;
-        while !self.log_text().contains(needle) {
-            assert!(
-                Instant::now() < end,
-                "`{needle}` did not appear in {} within {timeout:?}:\n{}",
-                self.log.display(),
-                self.log_text()
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        self.kill();
+            .stdout(File::create(self.dir.join(format!("{log}.out"))).unwrap());
+        Proc::start(cmd, self.dir.join(format!("{log}.log")))
+            .unwrap_or_else(|e| panic!("starting {binary}: {e}"))
     }
 }
 
@@ -313,7 +256,7 @@ impl Sender {
 }
 
 /// One status query to an ingress at `to`, and its reply.
-pub fn status(to: SocketAddr) -> serde_json::Value {
+pub fn status(to: SocketAddr) -> StatusReply {
     let socket = UdpSocket::bind("127.0.0.1:0").expect("binding a socket");
     socket
         .set_read_timeout(Some(Duration::from_secs(5)))
@@ -323,28 +266,30 @@ pub fn status(to: SocketAddr) -> serde_json::Value {
         .unwrap();
     let mut buf = [0u8; 65_536];
     let (n, _) = socket.recv_from(&mut buf).expect("a status reply");
-    serde_json::from_slice(&buf[..n]).expect("a JSON status reply")
+    serde_json::from_slice(&buf[..n]).unwrap_or_else(|e| {
+        panic!(
+            "not a status reply ({e}): {}",
+            String::from_utf8_lossy(&buf[..n])
+        )
+    })
+}
+
+/// A status reply read as its type from JSON that carried it (the reply
+/// parsed for its wire form, or as the Python package hands it on).
+pub fn reply_of(raw: &serde_json::Value) -> StatusReply {
+    serde_json::from_value(raw.clone())
+        .unwrap_or_else(|e| panic!("not a status reply ({e}): {raw}"))
 }
 
 /// How many commands a status reply counts as taken in: applied, or
 /// superseded by a newer one before it was published.
-pub fn handed_over(status: &serde_json::Value) -> u64 {
-    let d = &status["datagrams"];
-    let count = |k: &str| {
-        d[k].as_u64()
-            .unwrap_or_else(|| panic!("no datagrams.{k}: {status}"))
-    };
-    count("applied") + count("superseded")
+pub fn handed_over(status: &StatusReply) -> u64 {
+    status.datagrams.applied + status.datagrams.superseded
 }
 
 /// How many datagrams a status reply counts as rejected, for any reason.
-pub fn rejected_total(status: &serde_json::Value) -> u64 {
-    status["datagrams"]["rejected"]
-        .as_object()
-        .unwrap_or_else(|| panic!("no datagrams.rejected: {status}"))
-        .values()
-        .map(|v| v.as_u64().expect("a count"))
-        .sum()
+pub fn rejected_total(status: &StatusReply) -> u64 {
+    status.datagrams.rejected.total()
 }
 
 /// Writes `ppm.toml` with two outputs, `<name>a` (the defaults, on the
@@ -415,6 +360,42 @@ pub fn stop_all(ppmd: &mut Proc, ingresses: &mut [&mut Proc]) {
 pub fn read_trace(path: &Path) -> ppm_shared::trace::Trace {
     let f = File::open(path).unwrap_or_else(|e| panic!("opening {}: {e}", path.display()));
     ppm_shared::trace::Trace::read(std::io::BufReader::new(f)).expect("reading the trace")
+}
+
+/// Whether frame `f` carries `want`: its channels are `want`'s first ones
+/// (all of them for a whole frame; a frame cut short at a late edge has only
+/// the channels before that edge, exact) and, past `want`, anything.
+pub fn carries(f: &ppm_shared::decode::DecodedFrame, want: &[u64]) -> bool {
+    let got = f.channels_us();
+    let n = got.len().min(want.len());
+    got[..n] == want[..n]
+}
+
+/// Channel `i` (from 0) of every frame of a sim trace that carried it,
+/// decoded by scheduled time: whole frames and those cut short after it.
+pub fn channel_of_frames(trace: &ppm_shared::trace::Trace, i: usize) -> Vec<u64> {
+    trace
+        .decode(false)
+        .iter()
+        .filter_map(|f| f.channels_us().get(i).copied())
+        .collect()
+}
+
+/// The frames a sim trace carries whole, decoded by scheduled time. ppmd
+/// runs these tests without real-time priority, so on a loaded machine a
+/// frame is now and then aborted at a late edge: it shows as a short frame
+/// (the channels before the abort, exact), left out here.
+pub fn whole_frames(trace: &ppm_shared::trace::Trace) -> Vec<ppm_shared::decode::DecodedFrame> {
+    let frames = trace.decode(false);
+    let n = frames
+        .iter()
+        .map(|f| f.channels_ns.len())
+        .max()
+        .unwrap_or(0);
+    frames
+        .into_iter()
+        .filter(|f| f.channels_ns.len() == n)
+        .collect()
 }
 
 /// Calls `send(i)` for i = 0..n, one call every 20 ms (50 Hz) from now, on

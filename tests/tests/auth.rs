@@ -2,13 +2,18 @@
 //! udp-ingress and ppmd: signed commands fly the line, forged, unsigned and
 //! replayed ones (also after an ingress restart or crash) never do; a key
 //! file others can read stops the ingress at start; datagrams from outside
-//! `ingress.allow` are dropped and counted. Also the test vector and the Python
-//! signed sender of docs/security.md.
+//! `ingress.allow` are dropped and counted. Two outputs sharing one key: a
+//! copy of one's signed commands sent to the other is refused as
+//! `wrong_output` and never flies it, nor locks out its own commands; a
+//! keyed output left at the default name is warned about. Also
+//! the test vector and the Python signed sender of docs/security.md.
 
 use nix::sys::signal::Signal;
 use ppm_shared::auth::AuthKey;
+use ppm_shared::protocol::RejectReason::{self, *};
 use ppm_tests::{
-    handed_over, python3, read_trace, rejected_total, Proc, Sandbox, GENTLE_RT, PYTHON_PACKAGE,
+    free_udp_port, handed_over, python3, read_trace, rejected_total, start_outputs, stop_all, Proc,
+    Sandbox, StatusReply, GENTLE_RT, PYTHON_PACKAGE,
 };
 use serde_json::{json, Value};
 use std::net::{SocketAddr, UdpSocket};
@@ -38,7 +43,7 @@ impl Client {
         self.socket.send_to(bytes, self.to).unwrap();
     }
 
-    fn status(&self) -> Value {
+    fn status(&self) -> StatusReply {
         self.send(br#"{"get":"status"}"#);
         let mut buf = [0u8; 65_536];
         let (n, _) = self.socket.recv_from(&mut buf).expect("a status reply");
@@ -62,10 +67,14 @@ fn start_ingress(sb: &Sandbox, cfg: &str, log: &str) -> Proc {
     p
 }
 
-fn rejected(status: &Value, reason: &str) -> u64 {
-    status["datagrams"]["rejected"][reason]
-        .as_u64()
-        .unwrap_or_else(|| panic!("no counter {reason}: {status}"))
+fn rejected(status: &StatusReply, reason: RejectReason) -> u64 {
+    let name = reason.as_str();
+    *status
+        .datagrams
+        .rejected
+        .0
+        .get(name)
+        .unwrap_or_else(|| panic!("no counter {name}: {status}"))
 }
 
 #[test]
@@ -80,7 +89,9 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
     // Logged just after "listening on", which start_ingress waited for.
     ingress.wait_for_log("commands must be signed", 10 * SECOND);
     let k = key();
-    let signed = |ch: u64, seq: u64| k.envelope(&json!({"ch": [ch], "seq": seq}).to_string());
+    let to = sb.name.as_str();
+    let signed =
+        |ch: u64, seq: u64| k.envelope(&json!({"ch": [ch], "seq": seq, "to": to}).to_string());
     let c = Client::new("127.0.0.1", sb.addr());
 
     // 1 s of signed commands (1100), with forgeries (1900) in between.
@@ -108,28 +119,35 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
             // A replay of an earlier signed datagram.
             c.send(history[i as usize - 5].as_bytes());
             // Signed, but without a seq.
-            c.send(k.envelope(r#"{"ch": [1900]}"#).as_bytes());
+            c.send(
+                k.envelope(&json!({"ch": [1900], "to": to}).to_string())
+                    .as_bytes(),
+            );
             // Signed with another key.
             let other = AuthKey::new([3; 32]);
-            c.send(other.envelope(r#"{"ch": [1900], "seq": 9900}"#).as_bytes());
+            c.send(
+                other
+                    .envelope(&json!({"ch": [1900], "seq": 9900, "to": to}).to_string())
+                    .as_bytes(),
+            );
         }
     });
     // Status queries need no signature.
     let s = c.status();
-    let d = &s["datagrams"];
+    let d = &s.datagrams;
     assert_eq!(handed_over(&s), 50, "{s}");
     assert_eq!(
         (
-            rejected(&s, "unsigned"),
-            rejected(&s, "bad_mac"),
-            rejected(&s, "replay"),
-            rejected(&s, "no_seq")
+            rejected(&s, Unsigned),
+            rejected(&s, BadMac),
+            rejected(&s, Replay),
+            rejected(&s, NoSeq)
         ),
         (5, 15, 5, 5),
         "{s}"
     );
-    assert_eq!(d["received"], json!(50 + 5 * 6), "{s}");
-    assert_eq!(s["newest_seq"], json!(1_049));
+    assert_eq!(d.received, 50 + 5 * 6, "{s}");
+    assert_eq!(s.newest_seq, Some(1_049));
 
     // A clean restart: the last accepted seq was kept, old datagrams stay refused.
     assert!(ingress
@@ -149,7 +167,7 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
     c.send(history[49].as_bytes());
     let s = c.status();
     assert_eq!(
-        (rejected(&s, "replay"), s["datagrams"]["applied"].as_u64()),
+        (rejected(&s, Replay), Some(s.datagrams.applied)),
         (2, Some(0)),
         "{s}"
     );
@@ -171,17 +189,13 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
     c.send(history[49].as_bytes());
     at_50hz(25, |i| c.send(signed(1300, 3_000 + i).as_bytes()));
     let s = c.status();
-    assert_eq!(rejected(&s, "replay"), 3, "{s}");
-    assert_eq!(s["newest_seq"], json!(3_024), "{s}");
+    assert_eq!(rejected(&s, Replay), 3, "{s}");
+    assert_eq!(s.newest_seq, Some(3_024), "{s}");
     std::thread::sleep(Duration::from_millis(100));
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
     drop(ingress);
 
-    let ch1: Vec<u64> = read_trace(&trace)
-        .decode(false)
-        .iter()
-        .map(|f| f.channels_us()[0])
-        .collect();
+    let ch1 = ppm_tests::channel_of_frames(&read_trace(&trace), 0);
     assert!(ch1.iter().all(|&v| v == 1100 || v == 1300), "{ch1:?}");
     assert!(ch1.iter().filter(|&&v| v == 1100).count() >= 30, "{ch1:?}");
     assert!(ch1.iter().filter(|&&v| v == 1300).count() >= 30, "{ch1:?}");
@@ -270,7 +284,14 @@ fn key_files_others_can_read_and_bad_settings_stop_the_ingress() {
 
     // ppm-send refuses the same key file.
     let out = std::process::Command::new(ppm_tests::bin("ppm-send"))
-        .args(["--to", &sb.addr().to_string(), "--count", "1"])
+        .args([
+            "--to",
+            &sb.addr().to_string(),
+            "--count",
+            "1",
+            "--name",
+            "x",
+        ])
         .args(["--auth-key", open.to_str().unwrap(), "[1500]"])
         .output()
         .unwrap();
@@ -307,15 +328,15 @@ fn allowlist_drops_other_sources_before_parsing() {
     // Without a key a signed datagram is bad_shape.
     insider.send(key().envelope(r#"{"ch":[1900],"seq":5000}"#).as_bytes());
     let s = insider.status();
-    assert_eq!(rejected(&s, "not_allowed"), 51, "{s}");
-    assert_eq!(rejected(&s, "bad_shape"), 1, "{s}");
+    assert_eq!(rejected(&s, NotAllowed), 51, "{s}");
+    assert_eq!(rejected(&s, BadShape), 1, "{s}");
     assert_eq!(handed_over(&s), 50, "{s}");
-    assert_eq!(s["newest_seq"], json!(50));
+    assert_eq!(s.newest_seq, Some(50));
     std::thread::sleep(Duration::from_millis(100));
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
     let frames = read_trace(&trace).decode(false);
     assert!(frames.len() >= 30, "{} frames", frames.len());
-    assert!(frames.iter().all(|f| f.channels_us()[0] == 1100));
+    assert!(frames.iter().all(|f| ppm_tests::carries(f, &[1100])));
     // Not one log line per datagram: at most one per second for the reason.
     let lines = ingress
         .log_text()
@@ -327,6 +348,146 @@ fn allowlist_drops_other_sources_before_parsing() {
         "{lines} lines:\n{}",
         ingress.log_text()
     );
+}
+
+/// The report: a plane (AETR, 8 channels) and a rover (TAER, 6) from one
+/// configuration, both inheriting one `ingress.auth_key`; a ppm-send
+/// groundstation for each. A passive listener between the plane's
+/// groundstation and its ingress copies every plane datagram (throttle
+/// 1800, `seq` ahead of the rover's) to the rover's port. The rover refuses
+/// the copies as `wrong_output`, flies only its own throttle (1000), and
+/// keeps accepting its own commands: no `replay`.
+#[test]
+fn a_signed_command_copied_to_another_output_with_the_same_key_is_refused() {
+    let sb = Sandbox::new("authcopy");
+    let key_path = sb.write_file("auth.key", &format!("{KEY_HEX}\n"), 0o600);
+    let (plane, rover) = (format!("{}plane", sb.name), format!("{}rover", sb.name));
+    let (plane_port, rover_port) = (sb.port, free_udp_port());
+    let cfg = sb.dir.join("ppm.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[ingress]\nauth_key = {key_path:?}\n[ipc]\nroot = {:?}\n{GENTLE_RT}\n\
+             [[outputs]]\nname = \"{plane}\"\noutput = \"sim:plane.trace\"\n\
+             ingress.listen = \"127.0.0.1:{plane_port}\"\n\n\
+             [[outputs]]\nname = \"{rover}\"\noutput = \"sim:rover.trace\"\n\
+             [outputs.ingress]\nlisten = \"127.0.0.1:{rover_port}\"\n\
+             [outputs.ppm]\nchannels = 6\norder = \"TAER\"\n",
+            sb.dir.join("ipc"),
+        ),
+    )
+    .unwrap();
+    let (mut ppmd, mut ings) = start_outputs(&sb, &cfg, &[&plane, &rover]);
+    for ing in &ings {
+        ing.wait_for_log("commands must be signed", 10 * SECOND);
+    }
+    let plane_addr = SocketAddr::from(([127, 0, 0, 1], plane_port));
+    let rover_addr = SocketAddr::from(([127, 0, 0, 1], rover_port));
+
+    // The listener: passes every datagram on to the plane, and a copy to the rover.
+    let tap = UdpSocket::bind("127.0.0.1:0").unwrap();
+    tap.set_read_timeout(Some(Duration::from_millis(200)))
+        .unwrap();
+    let tap_addr = tap.local_addr().unwrap().to_string();
+    let copier = std::thread::spawn(move || {
+        let (mut copied, mut buf) = (vec![], [0u8; 65_536]);
+        let end = Instant::now() + 30 * SECOND;
+        while copied.len() < 100 && Instant::now() < end {
+            if let Ok((n, _)) = tap.recv_from(&mut buf) {
+                tap.send_to(&buf[..n], plane_addr).unwrap();
+                tap.send_to(&buf[..n], rover_addr).unwrap();
+                copied.push(buf[..n].to_vec());
+            }
+        }
+        copied
+    });
+    let ppm_send = |to: &str, name: &str, command: &str| {
+        std::process::Command::new(ppm_tests::bin("ppm-send"))
+            .args(["--to", to, "--name", name])
+            .args(["--auth-key", key_path.to_str().unwrap()])
+            .args(["--count", "100", "--rate", "50", command])
+            .spawn()
+            .unwrap()
+    };
+    let mut rover_gs = ppm_send(&rover_addr.to_string(), &rover, r#"{"thr": 1000}"#);
+    // Started later, the plane's seq (from the time in us) is ahead of the rover's.
+    std::thread::sleep(Duration::from_millis(300));
+    let mut plane_gs = ppm_send(&tap_addr, &plane, r#"{"thr": 1800}"#);
+    assert!(rover_gs.wait().unwrap().success());
+    assert!(plane_gs.wait().unwrap().success());
+    let copied = copier.join().unwrap();
+    assert_eq!(copied.len(), 100);
+    // The copies are the plane's signed commands, valid under the shared key.
+    let first = ppm_shared::auth::envelope(&copied[0]).unwrap().unwrap();
+    assert!(first.verify(&key()));
+    let msg: Value = serde_json::from_str(&first.msg).unwrap();
+    assert_eq!((&msg["to"], &msg["thr"]), (&json!(plane), &json!(1800)));
+
+    let (p, r) = (
+        Client::new("127.0.0.1", plane_addr).status(),
+        Client::new("127.0.0.1", rover_addr).status(),
+    );
+    assert_eq!(handed_over(&p), 100, "{p}");
+    assert_eq!(rejected_total(&p), 0, "{p}");
+    assert_eq!(r.name, rover, "{r}");
+    assert_eq!(rejected(&r, WrongOutput), 100, "{r}");
+    assert_eq!(rejected(&r, Replay), 0, "the copies moved no seq: {r}");
+    assert_eq!(rejected_total(&r), 100, "{r}");
+    assert_eq!(handed_over(&r), 100, "every own command taken: {r}");
+    assert_eq!(r.datagrams.received, 200, "{r}");
+    let (plane_seq, rover_seq) = (p.newest_seq.unwrap(), r.newest_seq.unwrap());
+    assert!(
+        rover_seq < plane_seq - 99,
+        "the rover's newest command is its own, behind every copy: {rover_seq} {plane_seq}"
+    );
+
+    std::thread::sleep(Duration::from_millis(100));
+    let [a, b] = &mut ings[..] else {
+        unreachable!()
+    };
+    stop_all(&mut ppmd, &mut [a, b]);
+    // The lines: the rover's throttle (channel 1, TAER) is its own, never the plane's.
+    let thr = |trace: &str, i: usize| -> Vec<u64> {
+        ppm_tests::whole_frames(&read_trace(&sb.dir.join(trace)))
+            .iter()
+            .map(|f| f.channels_us()[i])
+            .collect()
+    };
+    // Frames cut short at a late edge are left out of the values, not of
+    // the count.
+    let rover_frames = read_trace(&sb.dir.join("rover.trace")).decode(false).len();
+    // (About 90 frames each; ppmd runs here without real-time priority, so
+    // on a loaded machine many are cut short, some before their first
+    // channel: what is checked is what they carry.)
+    assert!(rover_frames >= 10, "{rover_frames} rover frames");
+    let rover_thr = thr("rover.trace", 0);
+    assert!(rover_thr.iter().all(|&v| v == 1000), "{rover_thr:?}");
+    let plane_frames = read_trace(&sb.dir.join("plane.trace")).decode(false).len();
+    assert!(plane_frames >= 10, "{plane_frames} plane frames");
+    let plane_thr = thr("plane.trace", 2);
+    assert!(plane_thr.iter().all(|&v| v == 1800), "{plane_thr:?}");
+}
+
+/// Signed commands are bound to the output's name: an ingress with a key
+/// whose output is left at the default name (as every board's would be)
+/// says so at start; one with a name of its own does not.
+#[test]
+fn a_signed_output_left_at_the_default_name_is_warned_about() {
+    const WARNING: &str = "another board with the same key and name accepts";
+    let sb = Sandbox::new("authname");
+    let key_path = sb.write_file("auth.key", &format!("{KEY_HEX}\n"), 0o600);
+    let cfg = sb.config_with_ingress(&format!("auth_key = {key_path:?}"), GENTLE_RT);
+    let mut named = start_ingress(&sb, cfg.to_str().unwrap(), "named");
+    named.wait_for_log("commands must be signed", 10 * SECOND);
+    assert!(!named.log_text().contains(WARNING), "{}", named.log_text());
+    named.kill();
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    let unnamed = text.replace(&format!("name = \"{}\"\n", sb.name), "");
+    assert_ne!(text, unnamed);
+    std::fs::write(&cfg, unnamed).unwrap();
+    let mut default = start_ingress(&sb, cfg.to_str().unwrap(), "default");
+    default.wait_for_log(WARNING, 10 * SECOND);
+    default.kill();
 }
 
 /// Where the documentation shows signed commands.
@@ -364,6 +525,17 @@ fn readme_test_vector_is_what_the_code_computes() {
         .unwrap();
     assert_eq!(env.msg, msg);
     assert!(env.verify(&k));
+    // It is a command for the output its `to` names, and for no other.
+    let to = serde_json::from_str::<Value>(msg).unwrap()["to"]
+        .as_str()
+        .expect("the vector's msg names its output")
+        .to_owned();
+    let model = ppm_shared::config::Config::default().validate().unwrap();
+    assert_eq!(env.open(&k, &to, &model).unwrap().seq, Some(1));
+    assert_eq!(
+        env.open(&k, "other", &model).unwrap_err().reason,
+        ppm_shared::protocol::RejectReason::WrongOutput
+    );
 }
 
 /// docs/security.md's Python signed sender, run as written (aimed at this test's
@@ -382,18 +554,21 @@ fn readme_python_signed_sender_is_accepted() {
     ingress.wait_for_log("listening on", 30 * SECOND);
     let code = block_after(&readme(), "<!-- signed-sender -->");
     assert!(
-        code.contains("/etc/ppm/auth.key") && code.contains("5005"),
+        code.contains("/etc/ppm/auth.key")
+            && code.contains("5005")
+            && code.contains(r#"name="rover""#),
         "{code}"
     );
     let code = code
         .replace("/etc/ppm/auth.key", key_path.to_str().unwrap())
-        .replace("5005", &sb.port.to_string());
+        .replace("5005", &sb.port.to_string())
+        .replace(r#"name="rover""#, &format!("name={:?}", sb.name));
     // The snippet imports the package from the source tree (`import ppm`).
     python3(&sb.dir, PYTHON_PACKAGE, &["-c", &code]);
     let s = Client::new("127.0.0.1", sb.addr()).status();
-    let d = &s["datagrams"];
-    assert_eq!(d["received"], json!(100), "{s}");
+    let d = &s.datagrams;
+    assert_eq!(d.received, 100, "{s}");
     assert_eq!(handed_over(&s), 100, "{s}");
     assert_eq!(rejected_total(&s), 0, "{s}");
-    assert!(s["newest_seq"].as_u64().is_some());
+    assert!(s.newest_seq.is_some());
 }

@@ -5,7 +5,7 @@
 
 use nix::sys::signal::Signal;
 use ppm_shared::time::now_ns;
-use ppm_tests::{at_50hz, read_trace, Sandbox, Sender};
+use ppm_tests::{at_50hz, read_trace, Sandbox, Sender, StatusReply};
 use std::net::UdpSocket;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
@@ -69,15 +69,15 @@ fn a_flood_leaves_only_the_newest_command() {
     let n = q
         .recv(&mut buf)
         .expect("udp-ingress answers after the flood");
-    let status: serde_json::Value = serde_json::from_slice(&buf[..n]).unwrap();
-    assert!(status["datagrams"]["received"].as_u64().unwrap() > 10_000);
+    let status: StatusReply = serde_json::from_slice(&buf[..n]).unwrap();
+    assert!(status.datagrams.received > 10_000);
     // Memory stays flat: no queue of stale commands builds up.
     assert!(
         rss_after <= rss_before + 2048,
         "udp-ingress grew from {rss_before} KiB to {rss_after} KiB"
     );
     // From two frames after the last datagram on, the line carries it.
-    let frames = read_trace(&trace).decode(false);
+    let frames = ppm_tests::whole_frames(&read_trace(&trace));
     let after: Vec<_> = frames
         .iter()
         .filter(|f| f.start_ns >= last + 2 * FRAME_NS && f.start_ns <= last + 150_000_000)

@@ -12,13 +12,22 @@ use std::time::Duration;
 
 const SECOND: Duration = Duration::from_secs(1);
 
-/// Per interval: the untagged histogram's count and the `edge_error`
-/// tagged one's (0 when absent); and the count of every histogram in the
-/// file's order.
-fn intervals(text: &str) -> (Vec<(u64, u64)>, Vec<u64>) {
+/// What the log holds: per interval, the untagged histogram's count and
+/// the `edge_error` tagged one's (0 when absent); the count of every
+/// histogram in the file's order; and the `aborted` and `glitched`
+/// histograms' counts over all intervals.
+struct Intervals {
+    edges: Vec<(u64, u64)>,
+    all: Vec<u64>,
+    aborted: u64,
+    glitched: u64,
+}
+
+fn intervals(text: &str) -> Intervals {
     let mut d = Deserializer::new();
     let mut out: Vec<(u64, u64)> = Vec::new();
     let mut all = Vec::new();
+    let (mut aborted, mut glitched) = (0, 0);
     let mut start = None;
     for e in IntervalLogIterator::new(text.as_bytes()) {
         match e.expect("the log parses") {
@@ -37,13 +46,22 @@ fn intervals(text: &str) -> (Vec<(u64, u64)>, Vec<u64>) {
                         assert_eq!(Some(iv.start_timestamp()), start, "same interval");
                         out.last_mut().expect("untagged first").1 = count;
                     }
+                    // Frames aborted or glitched at a late edge (this
+                    // ppmd runs without real-time priority), when any.
+                    Some(t) if t == "aborted" => aborted += count,
+                    Some(t) if t == "glitched" => glitched += count,
                     Some(t) => assert_eq!(t, "write"),
                 }
             }
             LogEntry::StartTime(_) | LogEntry::BaseTime(_) => {}
         }
     }
-    (out, all)
+    Intervals {
+        edges: out,
+        all,
+        aborted,
+        glitched,
+    }
 }
 
 fn base64_decode(s: &str) -> Vec<u8> {
@@ -67,6 +85,7 @@ fn the_hdr_log_is_read_by_rust_python_and_java_readers() {
     let sb = Sandbox::new("hdrlog");
     let cfg = sb.config("");
     let log = sb.dir.join("edge.hlog");
+    let frames = sb.dir.join("frames.jsonl");
     let output = format!("sim:{}", sb.dir.join("line.trace").display());
     let mut ppmd = sb.spawn(
         "ppmd",
@@ -77,6 +96,8 @@ fn the_hdr_log_is_read_by_rust_python_and_java_readers() {
             &output,
             "--hdr-log",
             log.to_str().unwrap(),
+            "--frame-log",
+            frames.to_str().unwrap(),
         ],
         "ppmd",
     );
@@ -99,11 +120,35 @@ fn the_hdr_log_is_read_by_rust_python_and_java_readers() {
     ));
 
     // Every interval has an untagged histogram, the same as its edge_error.
-    let (iv, all) = intervals(&text);
+    let Intervals {
+        edges: iv,
+        all,
+        aborted,
+        glitched,
+    } = intervals(&text);
     assert!(iv.len() >= 2, "{iv:?}");
     assert!(iv.iter().all(|(u, t)| u == t), "{iv:?}");
     let total: u64 = iv.iter().map(|(u, _)| u).sum();
     assert!(total > 9 * 100, "about 150 frames of 9 edges: {total}");
+
+    // The aborted and glitched histograms count the frames the frame log
+    // calls so, and ppmd's exit summary says the same.
+    let rows = std::fs::read_to_string(&frames).unwrap();
+    let status = |s: &str| rows.matches(&format!(r#""status":"{s}""#)).count() as u64;
+    let glitched_rows = rows.matches(r#""glitched":true"#).count() as u64;
+    assert_eq!(
+        (aborted, glitched),
+        (status("aborted"), glitched_rows),
+        "{rows}"
+    );
+    let summary = ppmd.log_text();
+    assert!(
+        summary.contains(&format!(
+            " {aborted} aborted frames, {glitched} glitched frames,"
+        )),
+        "{summary}"
+    );
+    eprintln!("{aborted} aborted and {glitched} glitched frames, in all three");
 
     // Python's hdrh, unchanged.
     let script = format!(

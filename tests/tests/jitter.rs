@@ -444,3 +444,28 @@ fn cyclictest_options_are_accepted() {
         "{bad:?}"
     );
 }
+
+/// A CPU that is not online (docs/real-time.md's `-a 3` on a smaller
+/// machine) fails with a fix in jitter's own options, not ppmd's
+/// `rt.cpu` or `--allow-degraded`, which jitter does not have.
+#[test]
+fn an_offline_cpu_names_a_fix_jitter_has() {
+    let out = Command::new(bin("jitter"))
+        .args(["-a", "4095", "-l", "5", "-q"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success(), "{out:?}");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.starts_with(
+            "jitter: CPU pinning: CPU 4095 does not exist or is offline (online: "
+        ) && err.trim_end().ends_with(
+            ". Fix: give -a (--affinity) CPUs from the online list, or leave -a out to run unpinned"
+        ),
+        "{err}"
+    );
+    assert!(
+        !err.contains("allow-degraded") && !err.contains("rt.cpu"),
+        "{err}"
+    );
+}

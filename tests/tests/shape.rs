@@ -6,9 +6,15 @@ use std::path::Path;
 
 const ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
 
-/// The top-level module a file of `src/` belongs to (`output/gpio.rs` is
-/// `output`), or `None` for the crate roots and binaries.
+/// The top-level module a file of `src/` belongs to (`line/gpio.rs` is
+/// `line`), or `None` for the crate roots, binaries and test files (a
+/// `tests.rs`, or any file under a `tests/` folder: tests out of line).
 fn module_of(rel: &Path) -> Option<String> {
+    let test_file = rel.file_stem().is_some_and(|s| s == "tests")
+        || rel.components().any(|c| c.as_os_str() == "tests");
+    if test_file {
+        return None;
+    }
     let first = rel.components().next()?.as_os_str().to_str()?.to_string();
     match first.as_str() {
         "lib.rs" | "main.rs" | "bin" => None,
@@ -16,12 +22,20 @@ fn module_of(rel: &Path) -> Option<String> {
     }
 }
 
-/// The `crate::MODULE` paths a file names outside its `#[cfg(test)]` part.
+/// The `crate::MODULE` paths a file names outside its `#[cfg(test)]` part:
+/// the item after the attribute, which is an inline test module to the end
+/// of the file, or one line (`mod tests;`, whose file is not read here).
 fn imports(text: &str) -> BTreeSet<String> {
-    let code = text.split("#[cfg(test)]").next().unwrap_or("");
     let mut found = BTreeSet::new();
-    for line in code.lines() {
+    let mut lines = text.lines();
+    while let Some(line) = lines.next() {
         let l = line.trim_start();
+        if l.starts_with("#[cfg(test)]") {
+            match lines.next().map(str::trim) {
+                Some(item) if item.ends_with(';') => continue,
+                _ => break,
+            }
+        }
         if l.starts_with("//") {
             continue;
         }
@@ -145,5 +159,18 @@ fn the_circle_finder_finds_circles() {
     assert_eq!(
         imports("use crate::frame::{Level, X};\nuse crate::{config, receiver::R};\n// crate::gone\n#[cfg(test)]\nuse crate::late;"),
         ["config", "frame", "receiver"].into_iter().map(String::from).collect()
+    );
+    // Tests out of line: the code after `mod tests;` is read, the test
+    // module's own file is not.
+    assert_eq!(
+        imports("use crate::a;\n#[cfg(test)]\nmod tests;\npub use crate::b;\n#[cfg(test)]\nmod inline {\n    use crate::c;\n}"),
+        ["a", "b"].into_iter().map(String::from).collect()
+    );
+    assert_eq!(module_of(Path::new("config/tests/units.rs")), None);
+    assert_eq!(module_of(Path::new("frame/tests.rs")), None);
+    assert_eq!(module_of(Path::new("tests.rs")), None);
+    assert_eq!(
+        module_of(Path::new("config/plan.rs")).as_deref(),
+        Some("config")
     );
 }

@@ -2,7 +2,7 @@
 //! a known mix of datagrams, ppmd's timing summary, and `ppm-status`.
 
 use nix::sys::signal::Signal;
-use ppm_tests::{bin, Proc, Sandbox};
+use ppm_tests::{bin, reply_of, Proc, Sandbox, StatusReply};
 use serde_json::{json, Value};
 use std::net::{SocketAddr, UdpSocket};
 use std::process::{Command, Output};
@@ -33,15 +33,21 @@ impl Client {
         self.socket.send_to(bytes, self.to).unwrap();
     }
 
-    /// One status query and its reply. The ingress answers after publishing
-    /// what it received before, so the reply counts everything sent so far.
-    fn status(&mut self) -> Value {
+    /// One status query and its reply as JSON, for what the wire carries.
+    /// The ingress answers after publishing what it received before, so
+    /// the reply counts everything sent so far.
+    fn status_json(&mut self) -> Value {
         self.send(br#"{"get":"status"}"#);
         self.queries += 1;
         let mut buf = [0u8; 65_536];
         let (n, from) = self.socket.recv_from(&mut buf).expect("a status reply");
         assert_eq!(from, self.to);
         serde_json::from_slice(&buf[..n]).expect("the reply is JSON")
+    }
+
+    /// One status query and its reply ([`Client::status_json`], typed).
+    fn status(&mut self) -> StatusReply {
+        reply_of(&self.status_json())
     }
 }
 
@@ -102,12 +108,12 @@ fn status_counts_every_datagram_and_reports_ppmd() {
     let mut c = Client::new(sb.addr());
 
     let first = c.status();
-    assert_eq!(first["name"], json!(sb.name));
-    assert_eq!(first["datagrams"]["received"], json!(0));
-    assert_eq!(first["datagrams"]["applied"], json!(0));
-    assert_eq!(first["newest_command_age_ms"], Value::Null);
-    assert_eq!(first["newest_seq"], Value::Null);
-    assert_eq!(first["status_requests"], json!(1));
+    assert_eq!(first.name, sb.name);
+    assert_eq!(first.datagrams.received, 0);
+    assert_eq!(first.datagrams.applied, 0);
+    assert_eq!(first.newest_command_age_ms, None);
+    assert_eq!(first.newest_seq, None);
+    assert_eq!(first.status_requests, 1);
 
     // 2 s of commands at 50 Hz, with malformed, stale and clamped ones; a
     // status round trip after each keeps every command in its own wake-up.
@@ -138,10 +144,11 @@ fn status_counts_every_datagram_and_reports_ppmd() {
 
     // ppmd publishes its timing once a second.
     let end = Instant::now() + 10 * SECOND;
-    let reply = loop {
-        let r = c.status();
-        if r["ppmd"]["frames"].as_u64().is_some_and(|f| f > 0) {
-            break r;
+    let (raw, reply) = loop {
+        let raw = c.status_json();
+        let r = reply_of(&raw);
+        if r.ppmd.as_ref().is_some_and(|p| p.frames > 0) {
+            break (raw, r);
         }
         assert!(
             Instant::now() < end,
@@ -151,8 +158,9 @@ fn status_counts_every_datagram_and_reports_ppmd() {
         std::thread::sleep(Duration::from_millis(200));
     };
 
+    // The counters as the wire carries them.
     assert_eq!(
-        reply["datagrams"],
+        raw["datagrams"],
         json!({
             "received": 114,
             "applied": 100,
@@ -174,52 +182,54 @@ fn status_counts_every_datagram_and_reports_ppmd() {
                 "no_seq": 0,
                 "replay": 0,
                 "not_allowed": 0,
+                "wrong_output": 0,
+                "no_to": 0,
             },
         }),
         "{reply}"
     );
-    assert_eq!(reply["status_requests"], json!(c.queries));
-    assert_eq!(reply["status_dropped"], json!(0));
-    assert_eq!(reply["newest_seq"], json!(100));
+    assert_eq!(reply.status_requests, c.queries);
+    assert_eq!(reply.status_dropped, 0);
+    assert_eq!(reply.newest_seq, Some(100));
     // The newest command's age: received after it was sent, reported before
     // the reply came back.
-    let age_ms = reply["newest_command_age_ms"].as_f64().unwrap();
+    let age_ms = reply.newest_command_age_ms.unwrap();
     let since_sent_ms = last_sent.elapsed().as_secs_f64() * 1e3;
     assert!(
         age_ms <= since_sent_ms,
         "age {age_ms} ms, but it was sent {since_sent_ms} ms ago"
     );
-    assert!(reply["uptime_s"].as_f64().unwrap() >= 2.0, "{reply}");
-    assert_eq!(reply["ppmd_stale"], json!(false));
-    let p = &reply["ppmd"];
+    assert!(reply.uptime_s >= 2.0, "{reply}");
+    assert!(!reply.ppmd_stale);
+    let typed_ppmd = reply.ppmd.as_ref().unwrap();
+    let p = &raw["ppmd"];
     assert!(
-        ["silent", "active", "failsafe"].contains(&p["state"].as_str().unwrap()),
+        ["silent", "active", "failsafe"].contains(&typed_ppmd.state.as_str()),
         "{p}"
     );
-    let e = &p["edge_error_us"];
-    let (p50, p99, max) = (
-        e["p50"].as_f64().unwrap(),
-        e["p99"].as_f64().unwrap(),
-        e["max"].as_f64().unwrap(),
-    );
-    assert!(0.0 <= p50 && p50 <= p99 && p99 <= max, "{e}");
+    let e = typed_ppmd.edge_error_us;
+    let (p50, p99, max) = (e.p50, e.p99, e.max);
+    assert!(0.0 <= p50 && p50 <= p99 && p99 <= max, "{e:?}");
     for k in [
         "overruns",
         "late_frames",
+        "aborted_frames",
+        "glitched_frames",
         "failsafe_entries",
         "repeats",
         "mismatched_commands",
+        "expired_commands",
         "log_errors",
     ] {
         assert!(p[k].is_u64(), "{k}: {p}");
     }
-    assert_eq!(p["timing"], "grid", "{p}");
+    assert_eq!(typed_ppmd.timing, "grid", "{p}");
     assert!(p["degraded"].is_boolean(), "{p}");
-    let age = p["snapshot_age_ms"].as_f64().unwrap();
+    let age = typed_ppmd.snapshot_age_ms;
     assert!((0.0..=3_000.0).contains(&age), "{p}");
     assert_eq!(
         p.as_object().unwrap().len(),
-        12,
+        15,
         "exactly the documented keys: {p}"
     );
 
@@ -233,11 +243,7 @@ fn status_counts_every_datagram_and_reports_ppmd() {
         .and_then(|s| s.split("```").next())
         .expect("docs/status.md shows an example status reply");
     let example: Value = serde_json::from_str(example).expect("the README's reply is JSON");
-    assert_eq!(
-        shape(&example),
-        shape(&reply),
-        "README's example vs {reply}"
-    );
+    assert_eq!(shape(&example), shape(&raw), "README's example vs {raw}");
 
     // ppm-status prints the same, readably and as JSON; queries change nothing.
     let addr = sb.addr().to_string();
@@ -253,16 +259,16 @@ fn status_counts_every_datagram_and_reports_ppmd() {
     ] {
         assert!(text.contains(&line), "`{line}` not in:\n{text}");
     }
-    let raw: Value = serde_json::from_str(&stdout_of(&["--to", &addr, "--json"])).unwrap();
-    assert_eq!(raw["datagrams"], reply["datagrams"]);
-    assert_eq!(raw["status_requests"], json!(c.queries + 2));
+    let printed: Value = serde_json::from_str(&stdout_of(&["--to", &addr, "--json"])).unwrap();
+    assert_eq!(printed["datagrams"], raw["datagrams"]);
+    assert_eq!(reply_of(&printed).status_requests, c.queries + 2);
     c.queries += 2;
 
     // ppmd gone: its last snapshot ages out after 3 s.
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
     std::thread::sleep(Duration::from_millis(3_500));
     let r = c.status();
-    assert_eq!((&r["ppmd"], &r["ppmd_stale"]), (&Value::Null, &json!(true)));
+    assert_eq!((&r.ppmd, r.ppmd_stale), (&None, true));
     assert!(stdout_of(&["--to", &addr]).contains("ppmd: no timing snapshot for more than 3 s"));
     drop(ingress);
 }
@@ -273,12 +279,9 @@ fn status_without_ppmd_and_ppm_status_errors() {
     let (_, _ingress) = start(&sb, false);
     let mut c = Client::new(sb.addr());
     let r = c.status();
+    assert_eq!((&r.ppmd, r.ppmd_stale), (&None, false));
     assert_eq!(
-        (&r["ppmd"], &r["ppmd_stale"]),
-        (&Value::Null, &json!(false))
-    );
-    assert_eq!(
-        r["datagrams"]["rejected"].as_object().unwrap().len(),
+        r.datagrams.rejected.0.len(),
         ppm_shared::protocol::RejectReason::ALL.len(),
         "every reason, zeros included: {r}"
     );
@@ -300,7 +303,7 @@ fn status_without_ppmd_and_ppm_status_errors() {
     assert!(started.elapsed() >= Duration::from_millis(300));
     let mut buf = [0u8; 1024];
     let (n, _) = silent.recv_from(&mut buf).unwrap();
-    assert_eq!(n, 600, "padded");
+    assert_eq!(n, ppm_shared::protocol::STATUS_QUERY_PADDED_LEN, "padded");
     assert_eq!(buf[..n].trim_ascii_end(), br#"{"get":"status"}"#);
 }
 
@@ -338,9 +341,9 @@ fn status_replies_are_at_most_three_times_their_query_outside_status_allow() {
     padded.resize(need, b' ');
     let reply = ask(&c, &padded);
     assert!(reply.len() <= 3 * padded.len() && reply.len() > 3 * (need - 1) - 3);
-    let reply: Value = serde_json::from_slice(&reply).unwrap();
-    assert_eq!(reply["status_short"], 1, "{reply}");
-    assert_eq!(reply["status_requests"], 2, "{reply}");
+    let reply: StatusReply = serde_json::from_slice(&reply).unwrap();
+    assert_eq!(reply.status_short, 1, "{reply}");
+    assert_eq!(reply.status_requests, 2, "{reply}");
     // The escaped spelling is a query too, and short as well.
     let escaped = br#"{"\u0067et":"status"}"#;
     let short = ask(&c, escaped);
@@ -348,8 +351,8 @@ fn status_replies_are_at_most_three_times_their_query_outside_status_allow() {
     assert!(String::from_utf8_lossy(&short).starts_with(r#"{"pad_to":"#));
     // ppm-status pads its query: the full reply from a non-allowed source.
     let out = stdout_of(&["--to", &sb.addr().to_string(), "--json"]);
-    let reply: Value = serde_json::from_str(&out).unwrap();
-    assert_eq!(reply["status_short"], 2, "{reply}");
+    let reply: StatusReply = serde_json::from_str(&out).unwrap();
+    assert_eq!(reply.status_short, 2, "{reply}");
     drop((ppmd, ingress));
 
     // The default status_allow (loopback): a bare query gets the reply.
@@ -357,8 +360,44 @@ fn status_replies_are_at_most_three_times_their_query_outside_status_allow() {
     let cfg = sb.config("");
     let ingress = sb.start_ingress(&cfg, &[]);
     let c = Client::new(sb.addr());
-    let reply: Value = serde_json::from_slice(&ask(&c, bare)).unwrap();
-    assert_eq!(reply["status_short"], 0, "{reply}");
-    assert!(reply["datagrams"].is_object(), "{reply}");
+    let raw: Value = serde_json::from_slice(&ask(&c, bare)).unwrap();
+    assert_eq!(reply_of(&raw).status_short, 0, "{raw}");
+    assert!(raw["datagrams"].is_object(), "{raw}");
     drop(ingress);
+}
+
+/// udp-ingress killed (SIGKILL) and started again while ppmd flies: its
+/// very first status reply has ppmd's timing, not `"ppmd": null` (ppmd
+/// hands its last snapshot to the new subscriber, and the ingress takes it
+/// before it answers).
+#[test]
+fn a_restarted_ingress_reports_ppmd_in_its_first_reply() {
+    let sb = Sandbox::new("restart-status");
+    let cfg = sb.config("");
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    let c = Client::new(sb.addr());
+    // Flying, and ppmd's timing seen through the first ingress.
+    let until = Instant::now() + 30 * SECOND;
+    loop {
+        c.send(b"[1500, 1500, 1200, 1500]");
+        let s = ppm_tests::status(sb.addr());
+        if s.ppmd.as_ref().is_some_and(|p| p.state == "active") {
+            break;
+        }
+        assert!(Instant::now() < until, "ppmd never showed active: {s}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for round in 0..3 {
+        ingress.kill();
+        ingress = sb.start_ingress(&cfg, &[]);
+        let s = ppm_tests::status(sb.addr());
+        assert!(s.ppmd.is_some(), "round {round}: {s}");
+        assert!(!s.ppmd_stale, "round {round}: {s}");
+        assert!(
+            s.ppmd.as_ref().map(|p| p.frames) > Some(0),
+            "round {round}: {s}"
+        );
+    }
+    assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
 }

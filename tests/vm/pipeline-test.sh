@@ -8,6 +8,8 @@
 #   - one ppmd with two outputs on GPIO19 and GPIO20 (one request), fed by
 #     two udp-ingress, traced with the calls that set the values.
 #   - ppmd in follow timing on GPIO18, commands from ppm-send at 50 Hz.
+#   - ppmd in grid and follow timing on GPIO18 while ppm-interfere holds its
+#     CPU in bursts: interfere_{grid,follow}_* files.
 # Results in /out: gpio_trace.txt, *.log, chip.txt, ppmd_exit.txt,
 # debug_gpio_after.txt, frames.jsonl, two_trace.txt, two_ppmd_exit.txt,
 # follow_trace.txt, follow_frames.jsonl, follow_ppmd_exit.txt.
@@ -125,6 +127,30 @@ sleep 0.5
 stop_ppmd "$fppmd" follow_ppmd_exit follow_trace
 kill -TERM "$fing"
 wait "$fing" || true
+
+# A held-up timing thread: ppm-interfere holds ppmd's CPU at SCHED_FIFO 90
+# (above ppmd's 80) for 100..500 us every 5..60 ms while ppmd runs grid, then
+# follow timing on GPIO18: interfere_TIMING_trace.txt, _frames.jsonl,
+# _ppmd.log, _ppmd_exit.txt, _bursts.txt (start and length of each burst).
+for timing in grid follow; do
+    start_gpio_trace gpio_value
+    udp-ingress --config /tmp/ppm.toml --listen 127.0.0.1:5009 \
+        2> "/out/interfere_${timing}_ingress.log" &
+    iing=$!
+    ppmd --config /tmp/ppm.toml --timing "$timing" --output "gpio:$chip:GPIO18" \
+        --frame-log "/out/interfere_${timing}_frames.jsonl" 2> "/out/interfere_${timing}_ppmd.log" &
+    ippmd=$!
+    sleep 1
+    ppm-interfere --cpu last --priority 90 --burst-us 100..500 --gap-ms 5..60 --duration 1500ms \
+        --log "/out/interfere_${timing}_bursts.txt" > "/out/interfere_${timing}.txt" 2>&1 &
+    interferer=$!
+    ppm-send --to 127.0.0.1:5009 --rate 50 --count 60 '[1000, 1200, 1700, 2000]'
+    wait "$interferer" || vmtest_die "ppm-interfere failed: $(cat "/out/interfere_${timing}.txt")"
+    sleep 0.5
+    stop_ppmd "$ippmd" "interfere_${timing}_ppmd_exit" "interfere_${timing}_trace"
+    kill -TERM "$iing"
+    wait "$iing" || true
+done
 
 # jitter --capture: GPIO17 requested as an input with edge detection, driven
 # from outside by pull-ppm (ppmd's timing loop writing gpio-sim's pull

@@ -3,7 +3,7 @@
 
 use anyhow::{bail, Context, Result};
 use ppm_shared::protocol::RejectReason;
-use serde_json::Value;
+use ppm_shared::status::{PpmdStatus, StatusReply};
 use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
 use std::time::Duration;
 
@@ -55,21 +55,20 @@ pub fn query(to: SocketAddr, timeout: Duration) -> Result<String> {
     Ok(String::from_utf8_lossy(&buf[..n]).into_owned())
 }
 
+/// Parses the text of a status reply from `from`: an error says whether it
+/// is not JSON at all or not the reply's shape.
+pub fn parse(text: &str, from: SocketAddr) -> Result<StatusReply> {
+    let v: serde_json::Value = serde_json::from_str(text)
+        .with_context(|| format!("the reply from {from} is not JSON: {text}"))?;
+    serde_json::from_value(v).with_context(|| format!("unexpected reply: {text}"))
+}
+
 /// A status reply as a few lines of text.
-pub fn readable(r: &Value) -> Result<String> {
-    let num = |v: &Value, what: &str| -> Result<u64> {
-        v.as_u64()
-            .with_context(|| format!("`{what}` is not a count"))
-    };
-    let d = &r["datagrams"];
-    let count = |k: &str| num(&d[k], k);
-    let rejected = d["rejected"]
-        .as_object()
-        .context("`datagrams.rejected` is not an object")?;
-    let mut rejected_total = 0;
-    let mut reasons = vec![];
+pub fn readable(r: &StatusReply) -> String {
+    let d = &r.datagrams;
     // In the protocol's order, then any reason this tool does not know.
     let known = RejectReason::ALL.map(|r| r.as_str());
+    let rejected = &d.rejected.0;
     let order = known
         .iter()
         .copied()
@@ -80,121 +79,106 @@ pub fn readable(r: &Value) -> Result<String> {
                 .map(String::as_str)
                 .filter(|k| !known.contains(k)),
         );
-    for reason in order {
-        let n = num(&rejected[reason], reason)?;
-        rejected_total += n;
-        if n > 0 {
-            reasons.push(format!("{reason} {n}"));
-        }
-    }
-    let mut out = format!(
-        "udp-ingress `{}`, up {}\n",
-        r["name"].as_str().unwrap_or("?"),
-        uptime(r["uptime_s"].as_f64().unwrap_or(0.0))
-    );
+    let reasons: Vec<String> = order
+        .filter_map(|reason| match rejected[reason] {
+            0 => None,
+            n => Some(format!("{reason} {n}")),
+        })
+        .collect();
+    let rejected_total = d.rejected.total();
+    let mut out = format!("udp-ingress `{}`, up {}\n", r.name, uptime(r.uptime_s));
     // Replies from before the receive thread's settings were reported lack it.
-    let t = &r["receiver"];
-    if t.is_object() {
+    if let Some(t) = &r.receiver {
         out += &format!(
             "receive thread: {}, {}, {}{}\n",
-            t["wait"].as_str().unwrap_or("?"),
-            match t["priority"].as_u64() {
-                Some(p) if p > 0 => format!("SCHED_FIFO {p}"),
+            t.wait,
+            match t.priority {
+                p if p > 0 => format!("SCHED_FIFO {p}"),
                 _ => "SCHED_OTHER".to_string(),
             },
-            t["cpu"]
-                .as_u64()
-                .map_or("any CPU".to_string(), |c| format!("CPU {c}")),
-            if t["degraded"].as_bool() == Some(true) {
-                " (DEGRADED RUN)"
-            } else {
-                ""
-            },
+            t.cpu.map_or("any CPU".to_string(), |c| format!("CPU {c}")),
+            if t.degraded { " (DEGRADED RUN)" } else { "" },
         );
     }
     out += &format!(
         "datagrams: received {}, applied {}, superseded {}, stale {}{}, clamped {} ({} values)\n",
-        count("received")?,
-        count("applied")?,
-        count("superseded")?,
-        count("stale")?,
-        match r["datagrams"]["seq_resets"].as_u64() {
-            Some(n) if n > 0 => format!(" (seq gate reset {n}x)"),
+        d.received,
+        d.applied,
+        d.superseded,
+        d.stale,
+        match d.seq_resets {
+            n if n > 0 => format!(" (seq gate reset {n}x)"),
             _ => String::new(),
         },
-        count("clamped")?,
-        count("clamped_values")?,
+        d.clamped,
+        d.clamped_values,
     );
     out += &if reasons.is_empty() {
         format!("rejected: {rejected_total}\n")
     } else {
         format!("rejected: {rejected_total} ({})\n", reasons.join(", "))
     };
-    out += &match r["newest_command_age_ms"].as_f64() {
+    out += &match r.newest_command_age_ms {
         None => "newest command: none yet\n".to_string(),
         Some(ms) => format!(
             "newest command: {} ago{}\n",
             age(ms),
-            r["newest_seq"]
-                .as_u64()
+            r.newest_seq
                 .map(|s| format!(", seq {s}"))
                 .unwrap_or_default()
         ),
     };
     out += &format!(
         "status queries: {} ({} replies dropped)\n",
-        num(&r["status_requests"], "status_requests")?,
-        num(&r["status_dropped"], "status_dropped")?
+        r.status_requests, r.status_dropped
     );
-    let p = &r["ppmd"];
-    out += &if p.is_null() {
-        if r["ppmd_stale"].as_bool() == Some(true) {
+    out += &match &r.ppmd {
+        None if r.ppmd_stale => {
             "ppmd: no timing snapshot for more than 3 s (stopped, or hanging?)\n".to_string()
-        } else {
+        }
+        None => {
             "ppmd: no timing snapshot yet (not running, or another name or ipc.root?)\n".to_string()
         }
-    } else {
-        let e = &p["edge_error_us"];
-        let us = |k: &str| e[k].as_f64().unwrap_or(f64::NAN);
-        format!(
-            "ppmd: {}{}, {} frames{}; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} overruns, {} late frames, {} failsafe entries{} (snapshot {} old)\n",
-            p["state"].as_str().unwrap_or("?"),
-            if p["degraded"].as_bool() == Some(true) {
-                " (DEGRADED RUN)"
-            } else {
-                ""
-            },
-            num(&p["frames"], "frames")?,
-            match p["timing"].as_str() {
-                Some("follow") => format!(
-                    " (follow timing, {} repeats)",
-                    p["repeats"].as_u64().unwrap_or(0)
-                ),
+        Some(p) => ppmd_line(p),
+    };
+    out
+}
+
+/// The `ppmd: ...` line of [`readable`].
+fn ppmd_line(p: &PpmdStatus) -> String {
+    let e = &p.edge_error_us;
+    format!(
+        "ppmd: {}{}, {} frames{}; edge error p50 {:.2} us, p99 {:.2} us, max {:.1} us; {} overruns, {} late frames, {} aborted frames, {} glitched frames, {} failsafe entries{} (snapshot {} old)\n",
+        p.state,
+        if p.degraded { " (DEGRADED RUN)" } else { "" },
+        p.frames,
+        match p.timing.as_str() {
+            "follow" => format!(" (follow timing, {} repeats)", p.repeats),
+            _ => String::new(),
+        },
+        e.p50,
+        e.p99,
+        e.max,
+        p.overruns,
+        p.late_frames,
+        p.aborted_frames,
+        p.glitched_frames,
+        p.failsafe_entries,
+        [
+            match p.mismatched_commands {
+                n if n > 0 => {
+                    format!("; {n} commands REFUSED: udp-ingress runs with another channel model")
+                }
                 _ => String::new(),
             },
-            us("p50"),
-            us("p99"),
-            us("max"),
-            num(&p["overruns"], "overruns")?,
-            num(&p["late_frames"], "late_frames")?,
-            num(&p["failsafe_entries"], "failsafe_entries")?,
-            [
-                match p["mismatched_commands"].as_u64() {
-                    Some(n) if n > 0 => format!(
-                        "; {n} commands REFUSED: udp-ingress runs with another channel model"
-                    ),
-                    _ => String::new(),
-                },
-                match p["log_errors"].as_u64() {
-                    Some(n) if n > 0 => format!("; {n} log rows or intervals not written"),
-                    _ => String::new(),
-                },
-            ]
-            .concat(),
-            age(p["snapshot_age_ms"].as_f64().unwrap_or(f64::NAN)),
-        )
-    };
-    Ok(out)
+            match p.log_errors {
+                n if n > 0 => format!("; {n} log rows or intervals not written"),
+                _ => String::new(),
+            },
+        ]
+        .concat(),
+        age(p.snapshot_age_ms),
+    )
 }
 
 /// `3d 04h 05m 06s`, `5m 06s`, `6.2s`.
@@ -233,6 +217,11 @@ mod tests {
     use super::*;
     use serde_json::Value;
 
+    /// The reply `r`, sent as text, parsed and made readable.
+    fn read(r: &Value) -> String {
+        readable(&parse(&r.to_string(), ([127, 0, 0, 1], 9).into()).unwrap())
+    }
+
     #[test]
     fn readable_reply() {
         let r: Value = serde_json::from_str(
@@ -244,19 +233,19 @@ mod tests {
             "stale":0,"seq_resets":2,"superseded":0},"status_requests":4,"status_dropped":0,
             "newest_command_age_ms":12.34,"newest_seq":41,
             "ppmd":{"state":"active","frames":5000,"edge_error_us":{"p50":0.031,"p99":0.05,"max":12.4},
-            "overruns":0,"late_frames":1,"failsafe_entries":2,"degraded":true,"snapshot_age_ms":420.0},
+            "overruns":0,"late_frames":1,"aborted_frames":3,"glitched_frames":1,"failsafe_entries":2,"degraded":true,"snapshot_age_ms":420.0},
             "ppmd_stale":false}"#,
         )
         .unwrap();
         assert_eq!(
-            readable(&r).unwrap(),
+            read(&r),
             "udp-ingress `ppm`, up 1h 02m 05s\n\
              receive thread: epoll, SCHED_FIFO 70, any CPU (DEGRADED RUN)\n\
              datagrams: received 12, applied 9, superseded 0, stale 0 (seq gate reset 2x), clamped 1 (2 values)\n\
              rejected: 3 (invalid_json 2, bad_shape 1)\n\
              newest command: 12.3 ms ago, seq 41\n\
              status queries: 4 (0 replies dropped)\n\
-             ppmd: active (DEGRADED RUN), 5000 frames; edge error p50 0.03 us, p99 0.05 us, max 12.4 us; 0 overruns, 1 late frames, 2 failsafe entries (snapshot 420.0 ms old)\n"
+             ppmd: active (DEGRADED RUN), 5000 frames; edge error p50 0.03 us, p99 0.05 us, max 12.4 us; 0 overruns, 1 late frames, 3 aborted frames, 1 glitched frames, 2 failsafe entries (snapshot 420.0 ms old)\n"
         );
         let mut r = r;
         r["ppmd"] = Value::Null;
@@ -266,7 +255,7 @@ mod tests {
         r["receiver"]["priority"] = 0.into();
         r["receiver"]["cpu"] = 1.into();
         r["receiver"]["degraded"] = false.into();
-        let text = readable(&r).unwrap();
+        let text = read(&r);
         assert!(
             text.contains("receive thread: busy_poll, SCHED_OTHER, CPU 1\n"),
             "{text}"
@@ -274,7 +263,7 @@ mod tests {
         assert!(text.contains("newest command: none yet"), "{text}");
         assert!(text.contains("more than 3 s"), "{text}");
         r["datagrams"] = Value::Null;
-        assert!(readable(&r).is_err());
+        assert!(parse(&r.to_string(), ([127, 0, 0, 1], 9).into()).is_err());
     }
 
     #[test]

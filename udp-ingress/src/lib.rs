@@ -6,14 +6,26 @@
 //! directly; the binary wires it to a non-blocking mio socket, an iceoryx2
 //! publisher and a subscriber to ppmd's timing snapshots.
 //!
-//! With a key ([`Intake::with_auth`]) only signed commands with a `seq`
-//! greater than the last accepted one are applied; [`seqfile`] keeps that
+//! With a key ([`Intake::with_auth`]) only signed commands for this output
+//! (their `to` is its name) with a `seq` greater than the last accepted one
+//! are applied; a signed command for another output is refused before the
+//! `seq` gate sees it. [`seqfile`] keeps that
 //! `seq` across restarts. Without a key, the `seq` gate forgets once no
 //! command was accepted for [`Intake::forget_seq_after`] (the failsafe's
 //! `after_ms`): one datagram with a huge `seq` cannot lock numbered commands
 //! out for longer. With an allowlist ([`Intake::with_allowlist`])
 //! datagrams from other sources are dropped before they are parsed.
+//!
+//! - [`Intake`], [`query`], [`status_answer`]: the logic, without I/O; its
+//!   status reply is [`ppm_shared::status::StatusReply`], the type the tools
+//!   read it back with.
+//! - [`cli`]: the command line, lowered with the file into what runs.
+//! - [`server`]: the receive loop around it: socket, publisher, replies.
+//! - [`seqfile`]: the last accepted `seq`, kept across restarts.
+//!
+//! Its unit tests are in `src/tests.rs`.
 
+pub mod cli;
 pub mod seqfile;
 pub mod server;
 
@@ -22,8 +34,13 @@ use ppm_shared::auth::{self, AuthKey};
 use ppm_shared::frame::FrameModel;
 use ppm_shared::ipc::TimingSnapshot;
 use ppm_shared::line::LineState;
-use ppm_shared::protocol::{self, Command, Reject, RejectReason, SeqGate, STATUS_REPLY_MAX_RATIO};
-use serde_json::{json, Value};
+use ppm_shared::protocol::{
+    self, Command, Reject, RejectReason, SeqGate, To, STATUS_REPLY_MAX_RATIO,
+};
+use ppm_shared::status::{
+    Datagrams, EdgeError, PpmdStatus, PublishLatency, ReceiverStatus, Rejected, StatusReply,
+};
+use serde_json::Value;
 use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
 
@@ -220,6 +237,8 @@ pub fn allowed(nets: &[IpNet], ip: IpAddr) -> bool {
 
 /// Parse, check and keep the newest command; count everything.
 pub struct Intake {
+    /// The output's name: what a command's `to` must be.
+    name: String,
     model: FrameModel,
     key: Option<AuthKey>,
     allow: Vec<IpNet>,
@@ -239,10 +258,12 @@ pub struct Intake {
 }
 
 impl Intake {
-    /// An intake for commands of `model`, logging each reject reason at most
-    /// once per `log_interval`.
-    pub fn new(model: FrameModel, log_interval: Duration) -> Intake {
+    /// An intake for the output named `name` (commands whose `to` names
+    /// another output are refused) with the channels of `model`, logging
+    /// each reject reason at most once per `log_interval`.
+    pub fn new(name: &str, model: FrameModel, log_interval: Duration) -> Intake {
         Intake {
+            name: name.to_owned(),
             model,
             key: None,
             allow: Vec::new(),
@@ -259,9 +280,12 @@ impl Intake {
         }
     }
 
-    /// Applies only commands signed with `key` ([`auth`]) that carry a
-    /// `seq` greater than the last accepted one and than `floor` (the last
-    /// one accepted before a restart). Status queries stay unsigned.
+    /// Applies only commands signed with `key` ([`auth`]) for this output
+    /// (`to` is its name) that carry a `seq` greater than the last accepted
+    /// one and than `floor` (the last one accepted before a restart). A
+    /// signed command for another output, or naming none, is refused before
+    /// its `seq` is looked at: it never moves the gate. Status queries stay
+    /// unsigned.
     pub fn with_auth(mut self, key: AuthKey, floor: Option<u64>) -> Intake {
         if floor.is_some() {
             self.gate.admit(floor);
@@ -402,7 +426,9 @@ impl Intake {
     }
 
     /// Parses a datagram that is not a query: a signed one (checked against
-    /// the key) or a plain command (refused as `unsigned` when a key is set).
+    /// the key and this output's name) or a plain command (refused as
+    /// `unsigned` when a key is set; without one, refused as `wrong_output`
+    /// when its `to` names another output).
     fn command(&self, datagram: &[u8]) -> Result<Command, Reject> {
         let fail = |reason, detail: &str| {
             Err(Reject {
@@ -416,46 +442,26 @@ impl Intake {
                     RejectReason::BadShape,
                     "signed datagram but no auth key configured (ingress.auth_key, --auth-key)",
                 ),
-                None => protocol::parse(datagram, &self.model),
+                None => protocol::parse_for(datagram, &self.model, To::AbsentOr(&self.name)),
             };
         };
-        let envelope = match auth::envelope(datagram) {
-            Some(e) => e?,
-            None => {
-                return match protocol::parse(datagram, &self.model) {
+        match auth::envelope(datagram) {
+            Some(envelope) => envelope?.open(key, &self.name, &self.model),
+            None => match protocol::parse(datagram, &self.model) {
+                Err(r)
+                    if matches!(
+                        r.reason,
+                        RejectReason::InvalidUtf8 | RejectReason::InvalidJson
+                    ) =>
+                {
                     Err(r)
-                        if matches!(
-                            r.reason,
-                            RejectReason::InvalidUtf8 | RejectReason::InvalidJson
-                        ) =>
-                    {
-                        Err(r)
-                    }
-                    _ => fail(
-                        RejectReason::Unsigned,
-                        r#"commands must be signed, {"msg": "<command>", "mac": "<hex HMAC-SHA256>"}: ingress.auth_key is set"#,
-                    ),
-                };
-            }
-        };
-        if !envelope.verify(key) {
-            return fail(
-                RejectReason::BadMac,
-                "the MAC does not match `msg` (another key, or msg or mac changed)",
-            );
+                }
+                _ => fail(
+                    RejectReason::Unsigned,
+                    r#"commands must be signed, {"msg": "<command>", "mac": "<hex HMAC-SHA256>"}: ingress.auth_key is set"#,
+                ),
+            },
         }
-        let command =
-            protocol::parse(envelope.msg.as_bytes(), &self.model).map_err(|r| Reject {
-                reason: r.reason,
-                detail: format!("in the signed msg: {}", r.detail),
-            })?;
-        if command.seq.is_none() {
-            return fail(
-                RejectReason::NoSeq,
-                "a signed command needs a `seq`, greater than the last one's (replays are refused by it)",
-            );
-        }
-        Ok(command)
     }
 
     /// The newest valid command since the last call (to be published).
@@ -494,55 +500,50 @@ impl Intake {
         &self.latency
     }
 
-    /// The reply to a status query: one JSON object (see docs/status.md,
-    /// "Status queries"). `uptime` is the ingress's, `receiver` how its
+    /// The reply to a status query ([`StatusReply::to_json`] is its text;
+    /// see docs/status.md, "Status queries"), named with the output's name. `uptime` is the ingress's, `receiver` how its
     /// receive thread runs, `now_mono_ns` the
     /// CLOCK_MONOTONIC time of the reply, `ppmd` the newest timing snapshot
     /// received from ppmd, if any; one older than [`PPMD_STALE_AFTER_NS`]
     /// gives `"ppmd": null` and `"ppmd_stale": true`.
     pub fn status(
         &self,
-        name: &str,
         uptime: Duration,
         receiver: &ReceiveThread,
         now_mono_ns: u64,
         ppmd: Option<&TimingSnapshot>,
-    ) -> Value {
+    ) -> StatusReply {
         let c = &self.counters;
-        let rejected: serde_json::Map<String, Value> = RejectReason::ALL
-            .iter()
-            .map(|r| (r.as_str().to_string(), json!(c.rejected[r.index()])))
-            .collect();
         let age_ns = |t: u64| now_mono_ns.saturating_sub(t);
         let fresh = ppmd.filter(|s| age_ns(s.mono_ns) <= PPMD_STALE_AFTER_NS);
-        json!({
-            "name": name,
-            "uptime_s": round3(uptime.as_secs_f64()),
-            "receiver": receiver.status(),
-            "datagrams": {
-                "received": c.received,
-                "applied": c.published,
-                "rejected": rejected,
-                "clamped": c.clamped_commands,
-                "clamped_values": c.clamped_values,
-                "stale": c.stale,
-            "seq_resets": c.seq_resets,
-                "superseded": c.superseded,
+        StatusReply {
+            name: self.name.clone(),
+            uptime_s: round3(uptime.as_secs_f64()),
+            receiver: Some(receiver.status()),
+            datagrams: Datagrams {
+                received: c.received,
+                applied: c.published,
+                rejected: Rejected::from_counts(&c.rejected),
+                clamped: c.clamped_commands,
+                clamped_values: c.clamped_values,
+                stale: c.stale,
+                seq_resets: c.seq_resets,
+                superseded: c.superseded,
             },
-            "status_requests": c.status_requests,
-            "status_dropped": c.status_dropped,
-            "status_short": c.status_short,
-            "newest_command_age_ms": self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
-            "newest_seq": self.latest.and_then(|r| r.command.seq),
-            "publish_latency_us": {
-                "count": self.latency.len(),
-                "p50": round3(self.latency.value_at_quantile(0.5) as f64 / 1e3),
-                "p99": round3(self.latency.value_at_quantile(0.99) as f64 / 1e3),
-                "max": round3(self.latency.max() as f64 / 1e3),
+            status_requests: c.status_requests,
+            status_dropped: c.status_dropped,
+            status_short: c.status_short,
+            newest_command_age_ms: self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
+            newest_seq: self.latest.and_then(|r| r.command.seq),
+            publish_latency_us: PublishLatency {
+                count: self.latency.len(),
+                p50: round3(self.latency.value_at_quantile(0.5) as f64 / 1e3),
+                p99: round3(self.latency.value_at_quantile(0.99) as f64 / 1e3),
+                max: round3(self.latency.max() as f64 / 1e3),
             },
-            "ppmd": fresh.map(|s| ppmd_status(s, age_ns(s.mono_ns))),
-            "ppmd_stale": ppmd.is_some() && fresh.is_none(),
-        })
+            ppmd: fresh.map(|s| ppmd_status(s, age_ns(s.mono_ns))),
+            ppmd_stale: ppmd.is_some() && fresh.is_none(),
+        }
     }
 }
 
@@ -582,39 +583,44 @@ impl std::fmt::Display for ReceiveThread {
 }
 
 impl ReceiveThread {
-    fn status(&self) -> Value {
-        json!({
-            "wait": if self.busy_poll { "busy_poll" } else { "epoll" },
-            "policy": if self.priority > 0 { "fifo" } else { "other" },
-            "priority": self.priority,
-            "cpu": self.cpu,
-            "degraded": self.degraded,
-        })
+    fn status(&self) -> ReceiverStatus {
+        ReceiverStatus {
+            wait: if self.busy_poll { "busy_poll" } else { "epoll" }.into(),
+            policy: if self.priority > 0 { "fifo" } else { "other" }.into(),
+            priority: self.priority.into(),
+            cpu: self.cpu.map(|c| c as u64),
+            degraded: self.degraded,
+        }
     }
 }
 
 /// The `ppmd` member of a status reply: a summary of one timing snapshot
 /// that is `age_ns` old.
-fn ppmd_status(s: &TimingSnapshot, age_ns: u64) -> Value {
+fn ppmd_status(s: &TimingSnapshot, age_ns: u64) -> PpmdStatus {
     let us = |ns: u64| round3(ns as f64 / 1e3);
-    json!({
-        "state": LineState::from_code(s.state).map_or("unknown", LineState::name),
-        "timing": if s.timing == 1 { "follow" } else { "grid" },
-        "frames": s.frames,
-        "repeats": s.repeats,
-        "edge_error_us": {
-            "p50": us(s.total.p50),
-            "p99": us(s.total.p99),
-            "max": us(s.total.max),
+    PpmdStatus {
+        state: LineState::from_code(s.state)
+            .map_or("unknown", LineState::name)
+            .into(),
+        timing: if s.timing == 1 { "follow" } else { "grid" }.into(),
+        frames: s.frames,
+        repeats: s.repeats,
+        edge_error_us: EdgeError {
+            p50: us(s.total.p50),
+            p99: us(s.total.p99),
+            max: us(s.total.max),
         },
-        "overruns": s.overruns,
-        "late_frames": s.late_frames,
-        "mismatched_commands": s.mismatched,
-        "log_errors": s.log_errors,
-        "failsafe_entries": s.failsafe_entries,
-        "degraded": s.degraded != 0,
-        "snapshot_age_ms": round3(age_ns as f64 / 1e6),
-    })
+        overruns: s.overruns,
+        late_frames: s.late_frames,
+        aborted_frames: s.aborted_frames,
+        glitched_frames: s.glitched_frames,
+        mismatched_commands: s.mismatched,
+        expired_commands: s.expired,
+        log_errors: s.log_errors,
+        failsafe_entries: s.failsafe_entries,
+        degraded: s.degraded != 0,
+        snapshot_age_ms: round3(age_ns as f64 / 1e6),
+    }
 }
 
 /// Rounded to three decimals (ms to the us, us to the ns).
@@ -659,567 +665,4 @@ impl RejectLog {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use ppm_shared::config::Config;
-
-    fn intake() -> Intake {
-        Intake::new(
-            Config::default().validate().unwrap(),
-            Duration::from_secs(1),
-        )
-    }
-
-    fn from() -> SocketAddr {
-        "127.0.0.1:9".parse().unwrap()
-    }
-
-    #[test]
-    fn newest_valid_wins_and_rejects_change_nothing() {
-        let mut i = intake();
-        let t = Instant::now();
-        assert_eq!(i.offer(b"[1100]", from(), 1, 1, t), Outcome::Accepted);
-        assert_eq!(i.offer(b"[1200]", from(), 2, 2, t), Outcome::Accepted);
-        assert!(matches!(
-            i.offer(b"[1300", from(), 3, 3, t),
-            Outcome::Rejected(RejectReason::InvalidJson, Some(_))
-        ));
-        assert!(matches!(
-            i.offer(b"[9999]", from(), 4, 4, t),
-            Outcome::Rejected(RejectReason::OutOfRange, Some(_))
-        ));
-        let r = i.take().unwrap();
-        assert_eq!(r.command.channels.as_ns()[0], 1_200_000);
-        assert_eq!(r.mono_ns, 2);
-        assert_eq!(i.take(), None, "published once");
-        let c = i.counters();
-        assert_eq!(
-            (c.received, c.published, c.superseded, c.rejected_total()),
-            (4, 1, 1, 2)
-        );
-    }
-
-    #[test]
-    fn stale_seq_is_dropped_across_wakeups() {
-        let mut i = intake();
-        let t = Instant::now();
-        assert_eq!(
-            i.offer(br#"{"ch":[1100],"seq":5}"#, from(), 1, 1, t),
-            Outcome::Accepted
-        );
-        i.take();
-        assert_eq!(
-            i.offer(br#"{"ch":[1200],"seq":5}"#, from(), 2, 2, t),
-            Outcome::Stale
-        );
-        assert_eq!(
-            i.offer(br#"{"ch":[1200],"seq":4}"#, from(), 3, 3, t),
-            Outcome::Stale
-        );
-        assert_eq!(i.take(), None);
-        assert_eq!(
-            i.offer(br#"{"ch":[1300],"seq":6}"#, from(), 4, 4, t),
-            Outcome::Accepted
-        );
-        assert_eq!(i.take().unwrap().command.seq, Some(6));
-        assert_eq!(i.counters().stale, 2);
-    }
-
-    /// One unsigned datagram with the largest `seq` used to make every
-    /// numbered command stale until the ingress restarted. Now the gate
-    /// forgets once nothing was accepted for the failsafe's interval.
-    #[test]
-    fn without_a_key_one_huge_seq_locks_out_for_the_failsafe_interval_at_most() {
-        let after = Duration::from_millis(200);
-        let ms = Duration::from_millis;
-        let mut i = intake().forget_seq_after(after);
-        let t = Instant::now();
-        let mut offer = |d: &[u8], at: Duration| i.offer(d, from(), 1, 1, t + at);
-        assert_eq!(offer(br#"{"ch":[1100],"seq":5}"#, ms(0)), Outcome::Accepted);
-        let huge = br#"{"ch":[1900],"seq":18446744073709551615}"#;
-        assert_eq!(offer(huge, ms(10)), Outcome::Accepted);
-        // The sender's next commands, every 20 ms: stale until 200 ms after
-        // the last accepted one, then applied, and counted from there.
-        for n in 0..9u64 {
-            let d = format!(r#"{{"ch":[1200],"seq":{}}}"#, 6 + n);
-            assert_eq!(offer(d.as_bytes(), ms(30 + 20 * n)), Outcome::Stale, "{n}");
-        }
-        assert_eq!(
-            offer(br#"{"ch":[1200],"seq":15}"#, ms(210)),
-            Outcome::Accepted
-        );
-        assert_eq!(
-            offer(br#"{"ch":[1200],"seq":16}"#, ms(230)),
-            Outcome::Accepted
-        );
-        assert_eq!(offer(br#"{"ch":[1200],"seq":15}"#, ms(240)), Outcome::Stale);
-        // Commands without a seq keep the line fresh: the gate holds.
-        assert_eq!(offer(br#"{"ch":[1300]}"#, ms(400)), Outcome::Accepted);
-        assert_eq!(offer(br#"{"ch":[1300],"seq":1}"#, ms(590)), Outcome::Stale);
-        assert_eq!(
-            offer(br#"{"ch":[1300],"seq":1}"#, ms(600)),
-            Outcome::Accepted
-        );
-        let c = i.counters();
-        assert_eq!((c.stale, c.seq_resets), (11, 2));
-        assert!(c.summary().contains("(seq resets 2)"), "{}", c.summary());
-    }
-
-    /// With a key the gate never forgets, however long the quiet.
-    #[test]
-    fn with_a_key_the_seq_gate_never_forgets() {
-        let k = key();
-        let mut i = intake()
-            .forget_seq_after(Duration::from_millis(200))
-            .with_auth(k.clone(), None);
-        let t = Instant::now();
-        let d = k.envelope(r#"{"ch":[1100],"seq":5}"#).into_bytes();
-        assert_eq!(i.offer(&d, from(), 1, 1, t), Outcome::Accepted);
-        let later = t + Duration::from_secs(3600);
-        assert_eq!(
-            reason(i.offer(&d, from(), 1, 1, later)),
-            RejectReason::Replay
-        );
-        let older = k.envelope(r#"{"ch":[1100],"seq":4}"#).into_bytes();
-        assert_eq!(
-            reason(i.offer(&older, from(), 1, 1, later)),
-            RejectReason::Replay
-        );
-        assert_eq!(i.counters().seq_resets, 0);
-    }
-
-    #[test]
-    fn clamps_are_counted() {
-        let mut i = intake();
-        i.offer(b"[900, 2100, 1500]", from(), 1, 1, Instant::now());
-        assert_eq!(
-            (i.counters().clamped_commands, i.counters().clamped_values),
-            (1, 2)
-        );
-        assert!(i.counters().summary().contains("clamped 1 (values 2)"));
-    }
-
-    #[test]
-    fn status_query_is_recognised_before_parsing() {
-        for q in [&br#"{"get":"status"}"#[..], br#" { "get" : "status" } "#] {
-            assert_eq!(query(q), Some(Ok(Query::Status)), "{q:?}");
-        }
-        for not_a_query in [
-            &b"[1500]"[..],
-            br#"{"ail": 1500}"#,
-            br#"{"get":"#,
-            br#"["get"]"#,
-            b"\xff\"get\"",
-        ] {
-            assert_eq!(query(not_a_query), None, "{not_a_query:?}");
-        }
-        let detail = |q: &[u8]| match query(q) {
-            Some(Err(r)) if r.reason == RejectReason::BadShape => r.detail,
-            other => panic!("{q:?}: {other:?}"),
-        };
-        let d = detail(br#"{"get":"config"}"#);
-        assert!(
-            d.contains("\"config\"") && d.contains(r#"{"get": "status"}"#),
-            "{d}"
-        );
-        assert!(detail(br#"{"get":1}"#).contains("unknown query 1"));
-        assert!(detail(br#"{"get":null}"#).contains("unknown query null"));
-        let d = detail(br#"{"get":"status","seq":1}"#);
-        assert!(d.contains("`seq`"), "{d}");
-        assert!(detail(br#"{"ail":1500,"get":"status"}"#).contains("`ail`"));
-    }
-
-    #[test]
-    fn status_answers_are_at_most_three_times_the_query_outside_status_allow() {
-        let lo: Vec<IpNet> = vec!["127.0.0.0/8".parse().unwrap(), "::1/128".parse().unwrap()];
-        let far: IpAddr = "203.0.113.9".parse().unwrap();
-        let near: IpAddr = "127.0.0.1".parse().unwrap();
-        let mapped: IpAddr = "::ffff:127.0.0.1".parse().unwrap();
-        use StatusAnswer::*;
-        assert_eq!(status_answer(700, 16, near, &lo), Full);
-        assert_eq!(status_answer(700, 16, mapped, &lo), Full);
-        assert_eq!(status_answer(700, 16, far, &lo), PadTo(234));
-        assert_eq!(status_answer(700, 16, near, &[]), PadTo(234));
-        assert_eq!(status_answer(700, 233, far, &lo), PadTo(234));
-        assert_eq!(status_answer(700, 234, far, &lo), Full);
-        assert_eq!(status_answer(702, 234, far, &lo), Full);
-        assert_eq!(pad_to_text(234), r#"{"pad_to":234}"#);
-        // Even {"pad_to": N} is more than 3 times a 4-byte datagram.
-        assert_eq!(status_answer(700, 4, far, &lo), Nothing);
-        assert_eq!(status_answer(700, 5, far, &lo), PadTo(234));
-    }
-
-    /// JSON is classified by its parsed keys: escaped spellings of `get`,
-    /// `msg` and `mac` behave as the plain ones (they were taken for
-    /// commands: `unknown_channel`, `unsigned`).
-    #[test]
-    fn escaped_keys_are_the_keys_they_spell() {
-        assert_eq!(query(br#"{"\u0067et":"status"}"#), Some(Ok(Query::Status)));
-        assert_eq!(
-            query(br#"{"g\u0065t":"st\u0061tus"}"#),
-            Some(Ok(Query::Status))
-        );
-        let mut i = intake();
-        let t = Instant::now();
-        assert_eq!(
-            i.offer(br#"{"\u0067et":"status"}"#, from(), 1, 1, t),
-            Outcome::Status
-        );
-        assert_eq!(i.counters().status_requests, 1);
-        assert_eq!(i.counters().received, 0);
-
-        let k = key();
-        let mut i = intake().with_auth(k.clone(), None);
-        let msg = r#"{"ch":[1100],"seq":7}"#;
-        let escaped = format!(
-            r#"{{"\u006dsg": {msg:?}, "m\u0061c": "{}"}}"#,
-            k.sign(msg.as_bytes())
-        );
-        assert_eq!(
-            i.offer(escaped.as_bytes(), from(), 1, 1, t),
-            Outcome::Accepted,
-            "{escaped}"
-        );
-        assert_eq!(i.take().unwrap().command.channels.as_ns()[0], 1_100_000);
-        // The same with a MAC of other bytes is a forgery, not unsigned.
-        let forged = escaped.replace(r#"\"ch\""#, r#"\"c\\u0068\""#);
-        assert_ne!(forged, escaped);
-        assert_eq!(
-            reason(i.offer(forged.as_bytes(), from(), 1, 1, t)),
-            RejectReason::BadMac
-        );
-    }
-
-    #[test]
-    fn status_query_is_counted_apart_and_changes_nothing() {
-        let mut i = intake();
-        let t = Instant::now();
-        i.offer(br#"{"ch":[1100],"seq":3}"#, from(), 1, 1, t);
-        let before = i.counters().clone();
-        assert_eq!(
-            i.offer(br#"{"get":"status"}"#, from(), 2, 2, t),
-            Outcome::Status
-        );
-        assert_eq!(
-            i.counters(),
-            &Counters {
-                status_requests: 1,
-                ..before
-            }
-        );
-        assert_eq!(i.take().unwrap().command.seq, Some(3), "still the newest");
-        assert!(matches!(
-            i.offer(br#"{"get":"everything"}"#, from(), 3, 3, t),
-            Outcome::Rejected(RejectReason::BadShape, Some(line)) if line.contains("everything")
-        ));
-        let c = i.counters();
-        assert_eq!(
-            (c.received, c.rejected_total(), c.status_requests),
-            (2, 1, 1)
-        );
-    }
-
-    fn snapshot(mono_ns: u64) -> TimingSnapshot {
-        let mut s = TimingSnapshot {
-            mono_ns,
-            frames: 400,
-            overruns: 1,
-            late_frames: 2,
-            failsafe_entries: 3,
-            degraded: 1,
-            state: 1,
-            ..TimingSnapshot::default()
-        };
-        s.total.p50 = 31;
-        s.total.p99 = 1_250;
-        s.total.max = 17_000_400;
-        s
-    }
-
-    #[test]
-    fn status_reply_is_built_from_the_counters() {
-        let mut i = intake();
-        let t = Instant::now();
-        let at = |ms: u64| 10_000_000_000 + ms * 1_000_000;
-        let plain = ReceiveThread::default();
-        let empty = i.status("pi", Duration::from_millis(1500), &plain, at(10), None);
-        assert_eq!(
-            empty["receiver"],
-            json!({"wait": "epoll", "policy": "other", "priority": 0, "cpu": null, "degraded": false})
-        );
-        assert_eq!(empty["newest_command_age_ms"], Value::Null);
-        assert_eq!(empty["newest_seq"], Value::Null);
-        assert_eq!(
-            (&empty["ppmd"], &empty["ppmd_stale"]),
-            (&Value::Null, &json!(false))
-        );
-
-        i.offer(br#"{"ch":[900,2100],"seq":7}"#, from(), at(100), 1, t);
-        i.take();
-        i.offer(br#"{"ch":[1200],"seq":6}"#, from(), at(101), 1, t);
-        i.offer(br#"{"ch":[1200],"seq":8}"#, from(), at(102), 1, t);
-        i.offer(b"[1300]", from(), at(103), 1, t);
-        i.offer(b"[1300", from(), at(104), 1, t);
-        i.offer(b"{}", from(), at(105), 1, t);
-        i.offer(br#"{"get":"status"}"#, from(), at(106), 1, t);
-        i.take();
-        i.status_dropped();
-        let now = at(110) + 400;
-        let rt = ReceiveThread {
-            busy_poll: true,
-            priority: 70,
-            cpu: Some(1),
-            degraded: true,
-        };
-        let reply = i.status(
-            "pi",
-            Duration::from_millis(2_345_678),
-            &rt,
-            now,
-            Some(&snapshot(now - 250_000_000)),
-        );
-        assert_eq!(
-            reply,
-            json!({
-                "name": "pi",
-                "uptime_s": 2345.678,
-                "receiver": {"wait": "busy_poll", "policy": "fifo", "priority": 70, "cpu": 1, "degraded": true},
-                "datagrams": {
-                    "received": 6,
-                    "applied": 2,
-                    "rejected": {
-                        "invalid_utf8": 0,
-                        "invalid_json": 1,
-                        "not_a_number": 0,
-                        "out_of_range": 0,
-                        "too_many_values": 0,
-                        "unknown_channel": 0,
-                        "bad_shape": 1,
-                        "unsigned": 0,
-                        "bad_mac": 0,
-                        "no_seq": 0,
-                        "replay": 0,
-                        "not_allowed": 0,
-                    },
-                    "clamped": 1,
-                    "clamped_values": 2,
-                    "stale": 1,
-                    "seq_resets": 0,
-                    "superseded": 1,
-                },
-                "status_requests": 1,
-                "status_dropped": 1,
-                "status_short": 0,
-                "newest_command_age_ms": 7.0,
-                "newest_seq": null,
-                "publish_latency_us": {"count": 0, "p50": 0.0, "p99": 0.0, "max": 0.0},
-                "ppmd": {
-                    "state": "active",
-                    "timing": "grid",
-                    "frames": 400,
-                    "repeats": 0,
-                    "edge_error_us": {"p50": 0.031, "p99": 1.25, "max": 17000.4},
-                    "overruns": 1,
-                    "late_frames": 2,
-                    "mismatched_commands": 0,
-                    "log_errors": 0,
-                    "failsafe_entries": 3,
-                    "degraded": true,
-                    "snapshot_age_ms": 250.0,
-                },
-                "ppmd_stale": false,
-            })
-        );
-        assert!(reply.to_string().len() < 1_000, "one small datagram");
-
-        let old = snapshot(now - PPMD_STALE_AFTER_NS - 1);
-        let reply = i.status("pi", Duration::ZERO, &plain, now, Some(&old));
-        assert_eq!(
-            (&reply["ppmd"], &reply["ppmd_stale"]),
-            (&Value::Null, &json!(true))
-        );
-        let at_limit = snapshot(now - PPMD_STALE_AFTER_NS);
-        let reply = i.status("pi", Duration::ZERO, &plain, now, Some(&at_limit));
-        assert_eq!(reply["ppmd"]["snapshot_age_ms"], json!(3000.0));
-    }
-
-    fn key() -> AuthKey {
-        AuthKey::new(*b"0123456789abcdef0123456789abcdef")
-    }
-
-    fn reason(o: Outcome) -> RejectReason {
-        match o {
-            Outcome::Rejected(r, _) => r,
-            other => panic!("not rejected: {other:?}"),
-        }
-    }
-
-    #[test]
-    fn with_a_key_only_signed_commands_with_a_new_seq_apply() {
-        use RejectReason::*;
-        let k = key();
-        let mut i = intake().with_auth(k.clone(), Some(100));
-        let t = Instant::now();
-        let signed = |msg: &str| k.envelope(msg).into_bytes();
-        let mut offer = |d: &[u8]| i.offer(d, from(), 1, 1, t);
-        // The floor from before a restart: 100 and below are replays.
-        assert_eq!(reason(offer(&signed(r#"{"ch":[1900],"seq":100}"#))), Replay);
-        assert_eq!(
-            offer(&signed(r#"{"ch":[1100],"seq":101}"#)),
-            Outcome::Accepted
-        );
-        let good = signed(r#"{"ch":[1200],"seq":102}"#);
-        assert_eq!(offer(&good), Outcome::Accepted);
-        assert_eq!(reason(offer(&good)), Replay, "the same datagram again");
-        assert_eq!(reason(offer(br#"{"ch":[1900],"seq":200}"#)), Unsigned);
-        assert_eq!(reason(offer(b"[1900]")), Unsigned);
-        assert_eq!(
-            reason(offer(br#"{"yaw":1}"#)),
-            Unsigned,
-            "unsigned before anything else"
-        );
-        assert_eq!(reason(offer(b"[1900")), InvalidJson);
-        assert_eq!(reason(offer(b"\xff")), InvalidUtf8);
-        let other_key = AuthKey::new([9; 32]);
-        assert_eq!(
-            reason(offer(
-                other_key.envelope(r#"{"ch":[1900],"seq":300}"#).as_bytes()
-            )),
-            BadMac
-        );
-        let text = String::from_utf8(signed(r#"{"ch":[1200],"seq":400}"#)).unwrap();
-        let tampered_msg = text.replace("1200", "1900");
-        assert_eq!(reason(offer(tampered_msg.as_bytes())), BadMac);
-        let mac_at = text.find("\"mac\":\"").unwrap() + 7;
-        let mut tampered_mac = text.clone().into_bytes();
-        tampered_mac[mac_at] = if tampered_mac[mac_at] == b'a' {
-            b'b'
-        } else {
-            b'a'
-        };
-        assert_eq!(reason(offer(&tampered_mac)), BadMac);
-        assert_eq!(reason(offer(&signed(r#"{"ch":[1900]}"#))), NoSeq);
-        assert_eq!(reason(offer(&signed("[1900]"))), NoSeq);
-        assert_eq!(
-            reason(offer(&signed(r#"{"ch":[9000],"seq":500}"#))),
-            OutOfRange
-        );
-        assert_eq!(reason(offer(br#"{"msg":"[1500]"}"#)), BadShape);
-        assert_eq!(
-            offer(br#"{"get":"status"}"#),
-            Outcome::Status,
-            "unsigned, read-only"
-        );
-        assert_eq!(i.last_seq(), Some(102));
-        let r = i.take().unwrap();
-        assert_eq!(
-            (r.command.seq, r.command.channels.as_ns()[0]),
-            (Some(102), 1_200_000)
-        );
-        let c = i.counters();
-        let n = |r: RejectReason| c.rejected[r.index()];
-        assert_eq!(
-            (n(Replay), n(Unsigned), n(BadMac), n(NoSeq), n(BadShape)),
-            (2, 3, 3, 2, 1)
-        );
-        assert_eq!(
-            (c.received, c.published, c.superseded, c.stale),
-            (16, 1, 1, 0)
-        );
-        assert_eq!(
-            c.received,
-            c.published + c.superseded + c.stale + c.rejected_total()
-        );
-    }
-
-    #[test]
-    fn without_a_key_signed_datagrams_are_bad_shape() {
-        let mut i = intake();
-        let d = key().envelope(r#"{"ch":[1100],"seq":1}"#);
-        match i.offer(d.as_bytes(), from(), 1, 1, Instant::now()) {
-            Outcome::Rejected(RejectReason::BadShape, Some(line)) => {
-                assert!(
-                    line.contains("signed datagram but no auth key configured"),
-                    "{line}"
-                )
-            }
-            other => panic!("{other:?}"),
-        }
-        assert_eq!(i.last_seq(), None);
-    }
-
-    #[test]
-    fn allowlist_matches_blocks() {
-        let nets: Vec<IpNet> = ["10.0.0.0/24", "127.0.0.2/32", "fd00::/8"]
-            .iter()
-            .map(|s| s.parse().unwrap())
-            .collect();
-        let ok = |ip: &str| allowed(&nets, ip.parse().unwrap());
-        assert!(ok("10.0.0.0") && ok("10.0.0.255") && ok("127.0.0.2") && ok("fd12::1"));
-        assert!(!ok("10.0.1.0") && !ok("127.0.0.1") && !ok("::1") && !ok("fe80::1"));
-        assert!(ok("::ffff:10.0.0.7"), "IPv4 on a dual-stack socket");
-        assert!(!ok("::ffff:10.0.1.7"));
-        assert!(
-            allowed(&[], "192.0.2.1".parse().unwrap()),
-            "empty: any source"
-        );
-    }
-
-    #[test]
-    fn other_sources_are_dropped_before_parsing_and_logged_rate_limited() {
-        let mut i = intake().with_allowlist(vec!["127.0.0.2/32".parse().unwrap()]);
-        let t = Instant::now();
-        let outsider: SocketAddr = "127.0.0.1:4000".parse().unwrap();
-        let insider: SocketAddr = "127.0.0.2:4000".parse().unwrap();
-        let mut lines = 0;
-        for k in 0..5 {
-            match i.offer(br#"{"get":"status"}"#, outsider, 1, 1, t) {
-                Outcome::Rejected(RejectReason::NotAllowed, line) => {
-                    lines += line.is_some() as u32;
-                    if k == 0 {
-                        assert!(line.unwrap().contains("127.0.0.1 is not in ingress.allow"));
-                    }
-                }
-                other => panic!("{other:?}"),
-            }
-        }
-        assert_eq!(lines, 1, "one log line per interval");
-        assert_eq!(i.offer(b"[1100]", insider, 1, 1, t), Outcome::Accepted);
-        assert_eq!(
-            i.offer(br#"{"get":"status"}"#, insider, 1, 1, t),
-            Outcome::Status
-        );
-        let c = i.counters();
-        assert_eq!(
-            (
-                c.received,
-                c.rejected[RejectReason::NotAllowed.index()],
-                c.status_requests
-            ),
-            (6, 5, 1)
-        );
-    }
-
-    #[test]
-    fn reject_log_is_rate_limited_per_reason() {
-        let mut l = RejectLog::new(Duration::from_secs(1));
-        let t = Instant::now();
-        assert_eq!(l.note(RejectReason::InvalidJson, t), Some(0));
-        assert_eq!(
-            l.note(RejectReason::InvalidJson, t + Duration::from_millis(10)),
-            None
-        );
-        assert_eq!(
-            l.note(RejectReason::InvalidJson, t + Duration::from_millis(20)),
-            None
-        );
-        assert_eq!(
-            l.note(RejectReason::BadShape, t + Duration::from_millis(30)),
-            Some(0)
-        );
-        assert_eq!(
-            l.note(RejectReason::InvalidJson, t + Duration::from_millis(1001)),
-            Some(2)
-        );
-    }
-}
+mod tests;

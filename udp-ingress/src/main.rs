@@ -11,53 +11,11 @@
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use ppm_shared::config::{parse_net, Config, IngressCpu};
-use ppm_shared::daemon::DaemonArgs;
-use std::net::SocketAddr;
-use std::path::PathBuf;
+use ppm_shared::config::DEFAULT_NAME;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
+use udp_ingress::cli::Cli;
 use udp_ingress::server::Server;
-
-/// UDP command receiver: keeps the newest valid command and hands it to ppmd
-/// through shared memory.
-#[derive(Parser, Debug)]
-#[command(version, about)]
-struct Cli {
-    #[command(flatten)]
-    daemon: DaemonArgs,
-    /// Output name; must match ppmd's. Overrides `name`; with `[[outputs]]`
-    /// in the configuration, picks that output (its listen address, channels
-    /// and units).
-    #[arg(long)]
-    name: Option<String>,
-    /// Address and port to receive on. Overrides `ingress.listen`.
-    #[arg(long, value_name = "ADDR:PORT")]
-    listen: Option<SocketAddr>,
-    /// Apply only commands signed with the key in FILE (64 hex characters,
-    /// mode 600). Overrides `ingress.auth_key`.
-    #[arg(long, value_name = "FILE")]
-    auth_key: Option<PathBuf>,
-    /// Take datagrams only from this address block (repeatable, e.g.
-    /// 10.0.0.0/24, ::1/128). Replaces `ingress.allow`.
-    #[arg(long, value_name = "CIDR", value_parser = parse_net)]
-    allow: Vec<ipnet::IpNet>,
-    /// SCHED_FIFO priority of the receive thread, 1..=99 and below
-    /// `rt.priority`; 0: the normal scheduler. Overrides `ingress.priority`.
-    #[arg(long, value_name = "PRIO")]
-    priority: Option<u8>,
-    /// Pin the receive thread to this CPU, or `none`. Overrides `ingress.cpu`.
-    #[arg(long, value_name = "CPU|none")]
-    cpu: Option<IngressCpu>,
-    /// Spin on the socket instead of sleeping: lower latency for one whole
-    /// CPU; pin it (--cpu) to a CPU other than ppmd's. Sets `ingress.busy_poll`.
-    #[arg(long)]
-    busy_poll: bool,
-    /// Run on when the receive thread's priority or CPU cannot be had,
-    /// logging DEGRADED RUN. Sets `rt.allow_degraded`.
-    #[arg(long)]
-    allow_degraded: bool,
-}
 
 fn main() {
     let cli = Cli::parse();
@@ -69,28 +27,18 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    // With [[outputs]] in the file, --name picks this ingress's output.
-    let mut cfg =
-        Config::load_or_default(cli.daemon.config.as_deref())?.select(cli.name.as_deref())?;
-    if let Some(listen) = cli.listen {
-        cfg.ingress.listen = listen;
+    let (shared, output) = cli.plan()?;
+    if output.ingress.auth_key.is_some() && output.name == DEFAULT_NAME {
+        // Signed commands are bound to the output's name: every board left
+        // at the default name accepts the others' commands under one key.
+        log::warn!(
+            "signed commands are bound to the output name '{DEFAULT_NAME}', the default: \
+             another board with the same key and name accepts this one's commands; \
+             give this output a name of its own (`name`, `udp-ingress --name`) \
+             or each board its own key"
+        );
     }
-    if let Some(key) = cli.auth_key {
-        cfg.ingress.auth_key = Some(key);
-    }
-    if !cli.allow.is_empty() {
-        cfg.ingress.allow = cli.allow.iter().map(|n| n.to_string()).collect();
-    }
-    if let Some(p) = cli.priority {
-        cfg.ingress.priority = p;
-    }
-    if let Some(cpu) = cli.cpu {
-        cfg.ingress.cpu = cpu;
-    }
-    cfg.ingress.busy_poll |= cli.busy_poll;
-    cfg.rt.allow_degraded |= cli.allow_degraded;
-    let model = cfg.validate()?;
-    let server = Server::open(&cfg, model)?;
+    let server = Server::open(&shared, output)?;
     let stop = Arc::new(AtomicBool::new(false));
     for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register(sig, stop.clone()).context("installing signal handler")?;

@@ -10,8 +10,7 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
 use mio::{Events, Interest, Poll, Token};
 use ppm_shared::auth::AuthKey;
-use ppm_shared::config::{Config, IngressSection};
-use ppm_shared::frame::FrameModel;
+use ppm_shared::config::{IngressSection, OutputPlan, Shared};
 use ppm_shared::ipc::{self, CommandSample, IpcError, PublishError, TimingSnapshot};
 use ppm_shared::logging::Chain;
 use ppm_shared::sched;
@@ -136,7 +135,6 @@ fn schedule_receive_thread(
 pub struct Server {
     /// mio's poll, `None` when busy-polling.
     poll: Option<Poll>,
-    name: String,
     socket: UdpSocket,
     publisher: Publisher,
     notifier: Notifier,
@@ -154,6 +152,14 @@ pub struct Server {
     /// `ingress.status_allow`.
     status_allow: Vec<ipnet::IpNet>,
     ppmd_snapshot: Option<TimingSnapshot>,
+    /// Set while ppmd runs (it had published the snapshot service when this
+    /// ingress started) but no snapshot of it has come yet: until then, at
+    /// most until this time, status queries wait, so that a restarted
+    /// ingress does not answer `"ppmd": null` while ppmd flies. ppmd hands
+    /// its last snapshot to a new subscriber within a tenth of a second
+    /// (one just started publishes its first a second after its start); one
+    /// that sends none in 3 s is stale anyway.
+    awaiting_ppmd: Option<Instant>,
     reply_budget: ReplyBudget,
     ingress_seq: u64,
     fingerprint: u64,
@@ -230,21 +236,33 @@ impl Server {
                 log::debug!("updating connections: {e}");
             }
         }
+        if let Some(until) = self.awaiting_ppmd {
+            if let Some(sub) = &self.stats {
+                newest_snapshot(sub, &mut self.ppmd_snapshot);
+            }
+            if self.ppmd_snapshot.is_some() {
+                self.awaiting_ppmd = None;
+            } else if Instant::now() >= until {
+                self.awaiting_ppmd = None;
+                log::warn!(
+                    "ppmd publishes its timing snapshots but sent none within 3 s of this start: status replies say \"ppmd\": null until one comes"
+                );
+            }
+        }
         // Answered after publishing, so the counters add up.
-        if !self.status_to.is_empty() {
+        if !self.status_to.is_empty() && self.awaiting_ppmd.is_none() {
             if let Some(sub) = &self.stats {
                 newest_snapshot(sub, &mut self.ppmd_snapshot);
             }
             let reply = self
                 .intake
                 .status(
-                    &self.name,
                     self.started.elapsed(),
                     &self.thread,
                     now_ns(),
                     self.ppmd_snapshot.as_ref(),
                 )
-                .to_string();
+                .to_json();
             for (to, query_len) in self.status_to.drain(..) {
                 if !self.reply_budget.take() {
                     self.intake.status_dropped();
@@ -312,15 +330,18 @@ impl Server {
     }
 }
 
-/// Subscribes to ppmd's timing snapshots for status replies. Status is not
-/// worth stopping for: on failure, replies say `"ppmd": null`.
-fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<StatsSubscriber> {
+/// Subscribes to ppmd's timing snapshots for status replies, and says
+/// whether ppmd publishes them (runs). Status is not worth stopping for: on
+/// failure, replies say `"ppmd": null`.
+fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<(StatsSubscriber, bool)> {
+    use iceoryx2::service::port_factory::PortFactory;
     let subscribed = ipc::open_stats_service(node, name).and_then(|service| {
-        service
+        let sub = service
             .subscriber_builder()
             .buffer_size(1)
             .create()
-            .map_err(|e| IpcError::new("creating the subscriber", e))
+            .map_err(|e| IpcError::new("creating the subscriber", e))?;
+        Ok((sub, service.dynamic_config().number_of_publishers() > 0))
     });
     match subscribed {
         Ok(sub) => Some(sub),
@@ -435,15 +456,16 @@ fn set_receive_buffer(socket: &std::net::UdpSocket, bytes: u32) -> Result<usize>
 }
 
 impl Server {
-    /// Sets up everything the receive loop needs from a checked
-    /// configuration (`cfg` and its `model`): the key and seq file, the
+    /// Sets up everything the receive loop needs from its resolved output
+    /// `cfg` (and the `shared` settings): the key and seq file, the
     /// socket, the shared-memory publisher, the wake-up notifier and the
     /// subscription to ppmd's snapshots, then the calling thread's priority
     /// and CPU (it is the receive thread). Says what it set up in the log.
-    pub fn open(cfg: &Config, model: FrameModel) -> Result<Server> {
-        cfg.check_busy_poll_cpu(sched::resolve_rt_cpu(cfg.rt.cpu))?;
-        let allow = cfg.allow()?;
-        let status_allow = cfg.status_allow()?;
+    pub fn open(shared: &Shared, cfg: OutputPlan) -> Result<Server> {
+        cfg.check_busy_poll_cpu(sched::resolve_rt_cpu(shared.rt.cpu))?;
+        let model = cfg.model.clone();
+        let allow = cfg.allow.clone();
+        let status_allow = cfg.status_allow.clone();
         let key = cfg
             .ingress
             .auth_key
@@ -452,7 +474,7 @@ impl Server {
             .transpose()?;
         let (seq_file, floor) = match &key {
             Some(_) => {
-                let (file, floor) = SeqFile::open(&cfg.seq_file(), SEQ_SAVE_EVERY)?;
+                let (file, floor) = SeqFile::open(&cfg.seq_file, SEQ_SAVE_EVERY)?;
                 (Some(file), floor)
             }
             None => (None, None),
@@ -474,7 +496,7 @@ impl Server {
         .context("enabling SO_TIMESTAMPNS")?;
         let mut socket = UdpSocket::from_std(std_socket);
 
-        let node = ipc::create_node(&cfg.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
+        let node = ipc::create_node(&shared.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
         let service = ipc::open_command_service(&node, &cfg.name)?;
         let publisher: Publisher = service.publisher_builder().create().map_err(|e| {
             IpcError::new(
@@ -500,6 +522,11 @@ impl Server {
         })?;
 
         let stats = subscribe_stats(&node, &cfg.name);
+        // With ppmd running, status replies wait for its snapshot (see
+        // `awaiting_ppmd`); commands never wait.
+        let awaiting_ppmd = matches!(stats, Some((_, true)))
+            .then(|| Instant::now() + Duration::from_nanos(crate::PPMD_STALE_AFTER_NS));
+        let stats = stats.map(|(sub, _)| sub);
 
         // The busy-polling loop never waits: it needs no poll.
         let poll = if cfg.ingress.busy_poll {
@@ -512,7 +539,7 @@ impl Server {
         };
         // This thread receives: its priority and CPU are set here, after the
         // start-up work.
-        let thread = schedule_receive_thread(&cfg.ingress, cfg.rt.allow_degraded)?;
+        let thread = schedule_receive_thread(&cfg.ingress, shared.rt.allow_degraded)?;
         log::info!("receive thread: {thread}");
         log::info!(
             "listening on {} (receive buffer {} bytes), {} channels ({}); publishing to `{}` (ipc root {})",
@@ -521,20 +548,22 @@ impl Server {
             model.channels(),
             model.names().join(" "),
             ipc::command_service_name(&cfg.name),
-            cfg.ipc.root.display()
+            shared.ipc.root.display()
         );
 
         // Stamped on every command: ppmd refuses one made under another model.
         let fingerprint = model.fingerprint();
         let mut intake = Intake::new(
+            &cfg.name,
             model,
             Duration::from_millis(cfg.ingress.reject_log_interval_ms),
         )
         .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms));
         if let (Some(key), Some(file)) = (key, &seq_file) {
             log::info!(
-                "commands must be signed with the key in {}; status queries need no signature; {} (the last accepted seq is kept in {})",
+                "commands must be signed with the key in {} and name this output (\"to\": \"{}\"); status queries need no signature; {} (the last accepted seq is kept in {})",
                 cfg.ingress.auth_key.as_ref().expect("key loaded").display(),
+                cfg.name,
                 match floor {
                     Some(f) => format!("seq {f} and below refused as replays"),
                     None => "no seq accepted before".into(),
@@ -556,7 +585,6 @@ impl Server {
         }
         let rx = Server {
             poll,
-            name: cfg.name.clone(),
             socket,
             publisher,
             notifier,
@@ -572,6 +600,7 @@ impl Server {
             status_to: Vec::with_capacity(MAX_STATUS_PER_WAKE),
             status_allow,
             ppmd_snapshot: None,
+            awaiting_ppmd,
             reply_budget: ReplyBudget::new(),
             ingress_seq: 0,
             fingerprint,

@@ -40,7 +40,7 @@ static A: Counting = Counting;
 /// Allocations of one accepted datagram, after a warm-up.
 fn allocations_of(datagram: &[u8]) -> u64 {
     let model = Config::default().validate().unwrap();
-    let mut intake = Intake::new(model, Duration::from_secs(1));
+    let mut intake = Intake::new("ppm", model, Duration::from_secs(1));
     let from = "127.0.0.1:9".parse().unwrap();
     let now = Instant::now();
     for _ in 0..3 {

@@ -141,6 +141,24 @@ impl Sim {
         s.stalls.sort_unstable();
     }
 
+    /// Holds the caller up for every stall due by now (as the next reading
+    /// would); returns how long. A test output calls it in a write: the
+    /// hold-up then comes before the edge reaches the line.
+    pub fn hold_due_stalls(&self) -> u64 {
+        let mut s = self.state();
+        let mut held = 0;
+        while let Some(&(from, ns)) = s.stalls.first() {
+            if from > s.now + held {
+                break;
+            }
+            s.stalls.remove(0);
+            held += ns;
+        }
+        let now = s.now + held;
+        s.set_now(now);
+        held
+    }
+
     /// Sets `flag` when the time reaches `at`.
     pub fn stop_at(&self, at: u64, flag: Arc<AtomicBool>) {
         self.state().stop = Some((at, flag));

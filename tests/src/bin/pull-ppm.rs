@@ -12,8 +12,8 @@ use ppm_shared::ipc::CommandSample;
 use ppm_shared::protocol::parse;
 use ppm_shared::trace::TraceEdge;
 use ppmd::clock::Margin;
-use ppmd::emitter::{self, EmitterConfig, Stats};
-use ppmd::output::{Output, OutputError};
+use ppmd::emitter::{self, EmitterConfig, LineRef, Stats};
+use ppmd::line::{Line, LineError};
 use ppmd::rt::RtSetup;
 use ppmd::source::RepeatSource;
 use std::fs::File;
@@ -23,18 +23,18 @@ use std::sync::Arc;
 
 struct PullOutput(File);
 
-impl Output for PullOutput {
-    fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError> {
+impl Line for PullOutput {
+    fn write(&mut self, edge: &TraceEdge) -> Result<(), LineError> {
         let value: &[u8] = match edge.level {
             Level::High => b"pull-up",
             Level::Low => b"pull-down",
         };
         self.0.write_at(value, 0).map(|_| ()).map_err(|e| {
-            OutputError::Write(nix::errno::Errno::from_raw(e.raw_os_error().unwrap_or(5)))
+            LineError::Write(nix::errno::Errno::from_raw(e.raw_os_error().unwrap_or(5)))
         })
     }
 
-    fn park(&mut self, level: Level) -> Result<(), OutputError> {
+    fn park(&mut self, level: Level) -> Result<(), LineError> {
         self.write(&TraceEdge {
             scheduled_ns: 0,
             actual_ns: 0,
@@ -70,11 +70,11 @@ fn main() {
         frames: frames.parse().expect("FRAMES"),
         stop: stop.clone(),
     };
+    let margin = Margin::Auto {
+        min_ns: 20_000,
+        max_ns: 1_000_000,
+    };
     let cfg = EmitterConfig {
-        margin: Margin::Auto {
-            min_ns: 20_000,
-            max_ns: 1_000_000,
-        },
         failsafe_after_ns: 1_000_000_000,
         failsafe_action: FailsafeAction::Silence,
         startup: FailsafeAction::Silence,
@@ -84,8 +84,9 @@ fn main() {
     emitter::run(
         &model,
         &cfg,
+        margin,
         &mut source,
-        &mut out,
+        LineRef::Edges(&mut out),
         &stop,
         &stats,
         &mut meter,

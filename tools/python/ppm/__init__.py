@@ -3,16 +3,18 @@
 One :class:`Sender` talks to one udp-ingress (``"host:port"``, or
 ``"[::1]:5005"`` for IPv6). It builds the JSON of each command form, numbers
 it with ``seq`` (microseconds since the epoch, so a restarted groundstation
-is never taken for a replay), signs it when given the ingress's key file,
-and checks every value before anything is sent. Several vehicles: one
-sender each. Pure standard library, Python 3.9 or newer.
+is never taken for a replay), names the output it is for (``name``, the
+output's name in the ingress's configuration; sent as ``to``), signs it when
+given the ingress's key file, and checks every value before anything is
+sent. Several vehicles: one sender each. Pure standard library, Python 3.9
+or newer.
 
 Example::
 
     import time
     import ppm
 
-    s = ppm.Sender("127.0.0.1:5005")            # key_file="/etc/ppm/auth.key" to sign
+    s = ppm.Sender("127.0.0.1:5005")            # key_file=..., name="rover" to sign
     for i in range(250):                        # 5 s at 50 Hz
         s.send([1500, 1500, 1000 + 2 * i, 1500])  # us, in the transmitter's order
         time.sleep(0.02)
@@ -64,13 +66,15 @@ VALUE_MAX_US = 2500.0
 MAX_CHANNELS = 16
 #: The status query as udp-ingress recognises it.
 STATUS_QUERY = b'{"get":"status"}'
-#: The size status queries are padded to: the reply (600 to 900 bytes) is never
-#: more than 3 times the query, so any source gets it.
-STATUS_QUERY_PADDED_LEN = 600
+#: The size status queries are padded to, as ppm's other tools pad theirs: a
+#: third of the largest reply (2100 bytes), which is never more than 3 times
+#: the query, so any source gets it.
+STATUS_QUERY_PADDED_LEN = 700
 #: The largest key file read, like udp-ingress (64 hex characters and whitespace).
 KEY_MAX_BYTES = 4096
 
 _NAME = re.compile(r"(ail|ele|thr|rud|aux([1-9]|1[0-2]))\Z")
+_OUTPUT = re.compile(r"[A-Za-z0-9_-]{1,64}\Z")
 _HEX = frozenset("0123456789abcdefABCDEF")
 
 Number = Union[int, float]
@@ -154,17 +158,18 @@ def _kind(mode: int) -> str:
 def sign(key: bytes, msg: str) -> str:
     """HMAC-SHA256 of the UTF-8 bytes of ``msg`` under ``key``, lowercase hex.
 
-    >>> sign(bytes(range(32)), '{"ch":[1500,1500,1000,1500],"seq":1}')
-    'f3046abbe0b0d2ea2350d5e1c6835b82219c0f2bed8ba66cea13f82f14bb5519'
+    >>> sign(bytes(range(32)), '{"ch":[1500,1500,1000,1500],"seq":1,"to":"rover"}')
+    '19eef9dbcc55a46bd2faaba57d00dc42b04194b7b57493491f68d3032314e1fc'
     """
     return hmac.new(key, msg.encode("utf-8"), hashlib.sha256).hexdigest()
 
 
 def envelope(key: bytes, msg: str) -> str:
-    """The signed datagram carrying the command text ``msg``.
+    """The signed datagram carrying the command text ``msg`` (which names
+    its output in ``to``: udp-ingress refuses a signed command without it).
 
-    >>> print(envelope(bytes(range(32)), '{"ch":[1500,1500,1000,1500],"seq":1}'))
-    {"msg":"{\\"ch\\":[1500,1500,1000,1500],\\"seq\\":1}","mac":"f3046abbe0b0d2ea2350d5e1c6835b82219c0f2bed8ba66cea13f82f14bb5519"}
+    >>> print(envelope(bytes(range(32)), '{"ch":[1500,1500,1000,1500],"seq":1,"to":"rover"}'))
+    {"msg":"{\\"ch\\":[1500,1500,1000,1500],\\"seq\\":1,\\"to\\":\\"rover\\"}","mac":"19eef9dbcc55a46bd2faaba57d00dc42b04194b7b57493491f68d3032314e1fc"}
     """
     return _dumps({"msg": msg, "mac": sign(key, msg)})
 
@@ -173,7 +178,7 @@ def status_query(size: int = STATUS_QUERY_PADDED_LEN) -> bytes:
     """``{"get":"status"}`` padded with trailing spaces to ``size`` bytes.
 
     >>> len(status_query()), status_query().rstrip()
-    (600, b'{"get":"status"}')
+    (700, b'{"get":"status"}')
     """
     return STATUS_QUERY.ljust(size, b" ")
 
@@ -230,6 +235,8 @@ def _named(channels: Dict[str, Any], check: Callable[[str, Any], Number]) -> Dic
     for name, v in channels.items():
         if name == "seq":
             raise ValueError("`seq` is not a channel: the Sender numbers commands itself (seq=True)")
+        if name == "to":
+            raise ValueError("`to` is not a channel: the Sender names the output itself (name=...)")
         if not _NAME.match(name):
             raise ValueError(f"no channel `{name}`: channels are ail, ele, thr, rud, aux1 .. aux12")
         out[name] = check(name, v)
@@ -239,9 +246,13 @@ def _named(channels: Dict[str, Any], check: Callable[[str, Any], Number]) -> Dic
 class Sender:
     """Sends channel commands to one udp-ingress, and asks it for its status.
 
-    ``target`` is ``"host:port"`` (``"[::1]:5005"`` for IPv6). With
-    ``key_file`` (the ingress's ``ingress.auth_key``: 64 hex characters,
-    mode 600) every command is signed. With ``seq`` (the default; a key
+    ``target`` is ``"host:port"`` (``"[::1]:5005"`` for IPv6). ``name`` is
+    the name of the output the commands are for (its ``name`` in the
+    ingress's configuration): every command carries it as ``to``, and
+    udp-ingress refuses a command for another output. With ``key_file``
+    (the ingress's ``ingress.auth_key``: 64 hex characters, mode 600) every
+    command is signed, name included, so a copy sent to another vehicle
+    with the same key is refused; a key needs ``name``. With ``seq`` (the default; a key
     needs it) every command carries a ``seq``: the time in microseconds, or
     one more than the last, whichever is greater, so it keeps growing across
     restarts. One sender per target; each numbers its own commands.
@@ -257,13 +268,25 @@ class Sender:
         target: str,
         key_file: Optional[Union[str, "os.PathLike[str]"]] = None,
         seq: bool = True,
+        name: Optional[str] = None,
     ) -> None:
         host, port = parse_target(target)
         if key_file is not None and not seq:
             raise ValueError(
                 "a key needs seq=True: udp-ingress refuses signed commands without a seq (no_seq)"
             )
+        if name is not None and not (isinstance(name, str) and _OUTPUT.match(name)):
+            raise ValueError(
+                f"name {name!r} is no output name: 1 to 64 letters, digits, `-` or `_`"
+            )
+        if key_file is not None and name is None:
+            raise ValueError(
+                "a key needs name=, the name of the output the commands are for (its `name` in "
+                "the ingress's configuration): it is signed with each command, and udp-ingress "
+                "refuses signed commands without it (no_to) or for another output (wrong_output)"
+            )
         self.target = target
+        self.name = name
         self._key = load_key(key_file) if key_file is not None else None
         self._numbered = seq
         self._seq = 0
@@ -310,12 +333,14 @@ class Sender:
         return self._send({"units": _named(channels, lambda k, v: _number(f"units `{k}`", v))})
 
     def _send(self, command: Union[List[Number], Dict[str, Any]]) -> bytes:
+        extra: Dict[str, Any] = {}
         if self._numbered:
             self._seq = max(self._seq + 1, time.time_ns() // 1000)
-            if isinstance(command, list):
-                command = {"ch": command, "seq": self._seq}
-            else:
-                command = {**command, "seq": self._seq}
+            extra["seq"] = self._seq
+        if self.name is not None:
+            extra["to"] = self.name
+        if extra:
+            command = {"ch": command, **extra} if isinstance(command, list) else {**command, **extra}
         text = _dumps(command)
         datagram = (envelope(self._key, text) if self._key is not None else text).encode("utf-8")
         self._socket.sendto(datagram, self.address)
@@ -325,11 +350,12 @@ class Sender:
         """Asks udp-ingress for its status and returns the reply (a dict with
         ``datagrams``, ``ppmd``, ...: see docs/status.md, "Status queries").
 
-        The query is padded to 600 bytes, so any source gets the reply (no
+        The query is padded to 700 bytes, so any source gets the reply (no
         reply is more than 3 times its query, unless the source is in
         ``ingress.status_allow``); when the answer is ``{"pad_to": N}`` the
         query is sent once more, padded to N. Raises :class:`StatusTimeout`
-        when no reply comes within ``timeout`` seconds.
+        when no reply comes within ``timeout`` seconds, and at once when the
+        target refuses the query (nothing listens there).
         """
         if not timeout > 0:
             raise ValueError(f"timeout must be more than 0 s, got {timeout!r}")
@@ -356,11 +382,11 @@ class Sender:
                 "listening there (ingress.listen)? A firewall, or an ingress.allow without this "
                 "machine, may also drop the datagrams"
             ) from None
-        except ConnectionRefusedError as e:
-            raise ConnectionRefusedError(
-                e.errno,
-                f"{self.target} refused the status query (port unreachable): nothing listens there; "
-                "is udp-ingress running, with this ingress.listen?",
+        except ConnectionRefusedError:
+            # No reply will come: the same StatusTimeout as for silence, at once.
+            raise StatusTimeout(
+                f"no status reply from {self.target}: it refused the query (port unreachable), "
+                "nothing listens there; is udp-ingress running, with this ingress.listen?"
             ) from None
         try:
             reply = json.loads(data)
@@ -382,4 +408,5 @@ class Sender:
 
     def __repr__(self) -> str:
         signed = ", signed" if self._key is not None else ""
-        return f"Sender({self.target!r}{signed}, seq={self._numbered})"
+        name = f", name={self.name!r}" if self.name is not None else ""
+        return f"Sender({self.target!r}{name}{signed}, seq={self._numbered})"

@@ -15,8 +15,8 @@ import unittest
 import ppm
 
 README_KEY = bytes(range(32))
-README_MSG = '{"ch":[1500,1500,1000,1500],"seq":1}'
-README_MAC = "f3046abbe0b0d2ea2350d5e1c6835b82219c0f2bed8ba66cea13f82f14bb5519"
+README_MSG = '{"ch":[1500,1500,1000,1500],"seq":1,"to":"rover"}'
+README_MAC = "19eef9dbcc55a46bd2faaba57d00dc42b04194b7b57493491f68d3032314e1fc"
 KEY_HEX = "8f2a55e0c1d94b7e3a6f0b1c2d3e4f5061728394a5b6c7d8e9f0a1b2c3d4e5f6"
 
 
@@ -153,7 +153,9 @@ class Signing(unittest.TestCase):
         self.assertEqual(ppm.sign(README_KEY, README_MSG), README_MAC)
         self.assertEqual(
             ppm.envelope(README_KEY, README_MSG),
-            '{"msg":"{\\"ch\\":[1500,1500,1000,1500],\\"seq\\":1}","mac":"' + README_MAC + '"}',
+            '{"msg":"{\\"ch\\":[1500,1500,1000,1500],\\"seq\\":1,\\"to\\":\\"rover\\"}","mac":"'
+            + README_MAC
+            + '"}',
         )
 
     def setUp(self) -> None:
@@ -171,15 +173,40 @@ class Signing(unittest.TestCase):
         rx = Receiver()
         self.addCleanup(rx.close)
         path = self.key_file(f"  {KEY_HEX.upper()}\n")
-        with ppm.Sender(rx.target, key_file=path) as s:
+        with ppm.Sender(rx.target, key_file=path, name="rover") as s:
             s.send(ail=1500)
             d = json.loads(rx.take())
             self.assertEqual(set(d), {"msg", "mac"})
             self.assertEqual(d["mac"], ppm.sign(bytes.fromhex(KEY_HEX), d["msg"]))
             cmd = json.loads(d["msg"])
-            self.assertEqual(cmd, {"ail": 1500, "seq": s.last_seq})
+            self.assertEqual(cmd, {"ail": 1500, "seq": s.last_seq, "to": "rover"})
+            s.send([1100])
+            cmd = json.loads(json.loads(rx.take())["msg"])
+            self.assertEqual(cmd, {"ch": [1100], "seq": s.last_seq, "to": "rover"})
+            self.assertIn("name='rover'", repr(s))
         with self.assertRaisesRegex(ValueError, "seq=True"):
-            ppm.Sender(rx.target, key_file=path, seq=False)
+            ppm.Sender(rx.target, key_file=path, seq=False, name="rover")
+        # The name is what binds a signed command to its vehicle: required.
+        with self.assertRaisesRegex(ValueError, "a key needs name="):
+            ppm.Sender(rx.target, key_file=path)
+        self.assertTrue(rx.nothing_pending())
+
+    def test_output_names(self) -> None:
+        rx = Receiver()
+        self.addCleanup(rx.close)
+        # Unsigned commands may name their output too (udp-ingress then checks it).
+        with ppm.Sender(rx.target, seq=False, name="plane-1") as s:
+            s.send([1500])
+            self.assertEqual(json.loads(rx.take()), {"ch": [1500], "to": "plane-1"})
+            s.send_norm(thr=-1)
+            self.assertEqual(json.loads(rx.take()), {"norm": {"thr": -1}, "to": "plane-1"})
+            with self.assertRaisesRegex(ValueError, "`to` is not a channel"):
+                s.send(to=1500)
+        for bad in ["", "a b", "x" * 65, 5, "rövér"]:
+            with self.subTest(name=bad):
+                with self.assertRaisesRegex(ValueError, "no output name"):
+                    ppm.Sender(rx.target, name=bad)
+        self.assertTrue(rx.nothing_pending())
 
     def test_key_files_refused_like_udp_ingress(self) -> None:
         good = self.key_file(KEY_HEX)
@@ -201,7 +228,7 @@ class Signing(unittest.TestCase):
         for path, words in cases:
             with self.subTest(path=path):
                 with self.assertRaises(ppm.KeyFileError) as e:
-                    ppm.Sender("127.0.0.1:9", key_file=path)
+                    ppm.Sender("127.0.0.1:9", key_file=path, name="rover")
                 self.assertIn(words, str(e.exception))
                 self.assertIn(path, str(e.exception))
 
@@ -228,19 +255,19 @@ class Status(unittest.TestCase):
 
     def test_padded_and_retried_once_at_pad_to(self) -> None:
         full = b'{"datagrams": {"received": 3}, "status_short": 0}'
-        target, sizes = self.serve([b'{"pad_to":700}', full])
+        target, sizes = self.serve([b'{"pad_to":800}', full])
         with ppm.Sender(target) as s:
             self.assertEqual(s.status(), json.loads(full))
-        self.assertEqual(sizes, [600, 700])
+        self.assertEqual(sizes, [700, 800])
 
     def test_answer_without_pad_to(self) -> None:
         target, sizes = self.serve([b'{"datagrams": {}}'])
         with ppm.Sender(target) as s:
             self.assertEqual(s.status(), {"datagrams": {}})
-        self.assertEqual(sizes, [600])
+        self.assertEqual(sizes, [700])
 
     def test_still_too_short_and_not_json(self) -> None:
-        target, _ = self.serve([b'{"pad_to":700}', b'{"pad_to":900}'])
+        target, _ = self.serve([b'{"pad_to":800}', b'{"pad_to":900}'])
         with ppm.Sender(target) as s, self.assertRaisesRegex(ppm.PpmError, "still answers"):
             s.status()
         target, _ = self.serve([b"[1, 2]"])
@@ -264,8 +291,12 @@ class Status(unittest.TestCase):
         rx = Receiver()
         target = rx.target
         rx.close()
-        with ppm.Sender(target) as s, self.assertRaisesRegex(ConnectionRefusedError, "nothing listens"):
+        # Refused (port unreachable): the documented StatusTimeout, saying why.
+        with ppm.Sender(target) as s, self.assertRaises(ppm.StatusTimeout) as e:
             s.status(timeout=2)
+        self.assertRegex(str(e.exception), f"^no status reply from {target}: it refused the query")
+        self.assertIn("nothing listens there", str(e.exception))
+        self.assertIsInstance(e.exception, TimeoutError)
 
 
 if __name__ == "__main__":

@@ -7,8 +7,8 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use ppm_shared::auth::AuthKey;
 use ppm_tools::send::{Sweep, Template};
-use ppm_tools::status::{query, readable, resolve};
-use ppm_tools::{parse_duration, with_seq};
+use ppm_tools::status::{parse, query, readable, resolve};
+use ppm_tools::{parse_duration, with_seq, with_to};
 use std::io::BufRead;
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
@@ -40,9 +40,16 @@ struct Cli {
     #[arg(long)]
     seq: bool,
     /// Sign every command with the key in FILE (64 hex characters, mode 600),
-    /// for a udp-ingress with `ingress.auth_key`. Implies --seq.
+    /// for a udp-ingress with `ingress.auth_key`. Implies --seq; needs --name.
     #[arg(long, value_name = "FILE")]
     auth_key: Option<PathBuf>,
+    /// The name of the output the commands are for (its `name` in the
+    /// ingress's configuration): every command carries it as `to`, and the
+    /// ingress refuses a command for another output. Needed with
+    /// --auth-key (the name is signed). Once for every --to, or once per
+    /// --to in the same order.
+    #[arg(long, value_name = "NAME")]
+    name: Vec<String>,
     /// Move channel CH (a number from 1, or a name such as thr or aux1) in a
     /// triangle between MIN and MAX us with period PERIOD, e.g. 3:1000:2000:4s.
     /// Repeatable. Other channels come from COMMAND, or take their defaults.
@@ -54,13 +61,13 @@ struct Cli {
     order: String,
     /// Ask each target for its status (`{"get": "status"}`) and print the
     /// replies, instead of sending commands.
-    #[arg(long, conflicts_with_all = ["command", "sweep", "seq", "auth_key", "raw", "count", "duration"])]
+    #[arg(long, conflicts_with_all = ["command", "sweep", "seq", "auth_key", "name", "raw", "count", "duration"])]
     status: bool,
     /// How long --status waits for each reply.
     #[arg(long, default_value = "1s", value_parser = parse_duration, value_name = "TIME", requires = "status")]
     timeout: Duration,
     /// Send COMMAND (or each line) as it is, without checking that it is JSON (for tests).
-    #[arg(long, conflicts_with_all = ["seq", "auth_key", "sweep"])]
+    #[arg(long, conflicts_with_all = ["seq", "auth_key", "name", "sweep"])]
     raw: bool,
     /// The command, e.g. '[1500, 1500, 1000, 1500]' or '{"thr": 1200}'.
     command: Option<String>,
@@ -78,9 +85,11 @@ fn main() {
     }
 }
 
-/// One destination with its own socket and `seq` numbering.
+/// One destination with its own socket, output name and `seq` numbering.
 struct Target {
     label: String,
+    /// The output its commands are for (`to`), if given.
+    output: Option<String>,
     addr: SocketAddr,
     socket: UdpSocket,
     seq: u64,
@@ -89,7 +98,7 @@ struct Target {
 }
 
 impl Target {
-    fn new(label: &str, first_seq: u64) -> Result<Target> {
+    fn new(label: &str, output: Option<String>, first_seq: u64) -> Result<Target> {
         let addr = resolve(label)?;
         let bind: SocketAddr = if addr.is_ipv4() {
             "0.0.0.0:0"
@@ -99,6 +108,7 @@ impl Target {
         .parse()?;
         Ok(Target {
             label: label.to_owned(),
+            output,
             addr,
             socket: UdpSocket::bind(bind).context("opening a UDP socket")?,
             seq: first_seq,
@@ -123,7 +133,7 @@ impl Target {
     }
 }
 
-/// How each command is finished for a target: numbered, signed.
+/// How each command is finished for a target: addressed, numbered, signed.
 struct Finish {
     numbered: bool,
     key: Option<AuthKey>,
@@ -131,6 +141,14 @@ struct Finish {
 
 impl Finish {
     fn datagram(&self, command: &serde_json::Value, target: &mut Target) -> Result<Vec<u8>> {
+        let addressed;
+        let command = match &target.output {
+            Some(name) => {
+                addressed = with_to(command, name)?;
+                &addressed
+            }
+            None => command,
+        };
         let v = if self.numbered {
             target.seq += 1;
             with_seq(command, target.seq)?
@@ -151,6 +169,7 @@ impl Cli {
         if self.status {
             return self.status_of_each();
         }
+        let outputs = self.outputs()?;
         let key = self.auth_key.as_deref().map(AuthKey::load).transpose()?;
         let finish = Finish {
             numbered: self.seq || key.is_some(),
@@ -160,7 +179,8 @@ impl Cli {
         let mut targets = self
             .to
             .iter()
-            .map(|t| Target::new(t, now_us))
+            .zip(outputs)
+            .map(|(t, output)| Target::new(t, output, now_us))
             .collect::<Result<Vec<_>>>()?;
         let deadline = self.duration.map(|d| Instant::now() + d);
         let done = |sent: u64| {
@@ -182,8 +202,14 @@ impl Cli {
                     &self.order,
                 )?),
             };
-            if let Some(t) = template.as_ref().filter(|_| finish.numbered) {
-                with_seq(&t.at(0.0), 0)?;
+            if let Some(t) = template.as_ref() {
+                let first = t.at(0.0);
+                if finish.numbered {
+                    with_seq(&first, 0)?;
+                }
+                for name in targets.iter().filter_map(|t| t.output.as_deref()) {
+                    with_to(&first, name).context("COMMAND")?;
+                }
             }
             let start = Instant::now();
             while !done(sent) {
@@ -249,6 +275,28 @@ impl Cli {
         Ok(all_sent)
     }
 
+    /// The output name of each `--to` target, in order: `--name` once for
+    /// all, once per target, or not at all (not with `--auth-key`).
+    fn outputs(&self) -> Result<Vec<Option<String>>> {
+        for name in &self.name {
+            if ppm_shared::config::validate_name(name).is_err() {
+                bail!("--name `{name}`: an output name is 1..=64 letters, digits, `-` or `_`");
+            }
+        }
+        match self.name.len() {
+            0 if self.auth_key.is_some() => bail!(
+                "--auth-key needs --name NAME, the name of the output the commands are for (its `name` in the ingress's configuration): it is signed with each command, and the ingress refuses commands for another output"
+            ),
+            0 => Ok(vec![None; self.to.len()]),
+            1 => Ok(vec![Some(self.name[0].clone()); self.to.len()]),
+            n if n == self.to.len() => Ok(self.name.iter().cloned().map(Some).collect()),
+            n => bail!(
+                "{n} --name for {} --to: give one name for every target, or one per --to in the same order",
+                self.to.len()
+            ),
+        }
+    }
+
     /// `--status`: one query to each target, each reply printed readably.
     fn status_of_each(&self) -> Result<bool> {
         let mut all = true;
@@ -258,9 +306,7 @@ impl Cli {
             }
             let reply = resolve(label).and_then(|to| {
                 let text = query(to, self.timeout)?;
-                let v: serde_json::Value = serde_json::from_str(&text)
-                    .with_context(|| format!("the reply from {to} is not JSON: {text}"))?;
-                readable(&v).with_context(|| format!("unexpected reply: {text}"))
+                Ok(readable(&parse(&text, to)?))
             });
             match reply {
                 Ok(text) => print!("{text}"),

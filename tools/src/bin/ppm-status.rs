@@ -4,8 +4,7 @@
 use anyhow::{Context, Result};
 use clap::Parser;
 use ppm_tools::parse_duration;
-use ppm_tools::status::{query, readable, resolve};
-use serde_json::Value;
+use ppm_tools::status::{parse, query, readable, resolve};
 use std::time::Duration;
 
 /// Ask udp-ingress (and, through it, ppmd) how things are going.
@@ -36,15 +35,12 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     let to = resolve(&cli.to)?;
     let text = query(to, cli.timeout)?;
-    let reply: Value = serde_json::from_str(&text)
-        .with_context(|| format!("the reply from {to} is not JSON: {text}"))?;
     if cli.json {
+        serde_json::from_str::<serde_json::Value>(&text)
+            .with_context(|| format!("the reply from {to} is not JSON: {text}"))?;
         println!("{text}");
     } else {
-        print!(
-            "{}",
-            readable(&reply).with_context(|| format!("unexpected reply: {text}"))?
-        );
+        print!("{}", readable(&parse(&text, to)?));
     }
     Ok(())
 }

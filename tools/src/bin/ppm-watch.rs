@@ -5,7 +5,7 @@ use anyhow::{Context, Result};
 use clap::Parser;
 use ppm_shared::decode::DecodedFrame;
 use ppm_shared::frame::Level;
-use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder};
+use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder, TIMED_EDGE};
 use ppm_shared::trace::{parse_line, Trace};
 use ppm_tools::parse_duration;
 use std::fs::File;
@@ -149,7 +149,7 @@ fn follow(cli: &Cli) -> Result<()> {
                     Some(ReceiverChoice::One(r)) => r,
                     _ => Receiver::EdgeTx,
                 });
-                ReceiverDecoder::new(receiver, header.idle.unwrap_or(Level::Low).opposite())
+                ReceiverDecoder::new(receiver, TIMED_EDGE)
             });
             let t = if cli.actual {
                 edge.actual_ns

@@ -1,14 +1,17 @@
 //! `timing-bench`: ppmd's emission loop against a plain absolute-sleep loop,
 //! in the same run and on the same frame schedule.
 //!
-//! Both run ppmd's emission loop (`ppmd::emitter::run_lanes`) on the sim
+//! Both run ppmd's emission loop (`ppmd::emitter::run_outputs`) on the sim
 //! backend with a constant command, on one real-time thread, in alternating
-//! blocks; the only difference is the spin margin (ppmd's `auto` versus 0,
-//! which makes the wait a plain `clock_nanosleep(TIMER_ABSTIME)`). A third
+//! blocks; the differences are the spin margin (ppmd's `auto` versus 0,
+//! which makes the wait a plain `clock_nanosleep(TIMER_ABSTIME)`) and the
+//! baseline's lifted late-edge guard (it writes every edge however late, so
+//! its lateness is measured rather than its frames aborted). A third
 //! kind of block drives a second output beside the first, and a fourth runs
 //! the output in follow timing, its frames started by commands that come at
 //! 50 Hz and wake the loop. Prints p50, p99, p99.9 and max edge error of
-//! each, the ratios, and the CPU share each costs.
+//! each, the frames found late and aborted, the ratios, and the CPU share
+//! each costs.
 
 use anyhow::{Context, Result};
 use clap::Parser;
@@ -18,8 +21,8 @@ use ppm_shared::ipc::CommandSample;
 use ppm_shared::protocol::parse;
 use ppm_tools::analysis::Percentiles;
 use ppmd::clock::{self, Margin};
-use ppmd::emitter::{self, EmitterConfig, Lane, Sink, Stats};
-use ppmd::output::SimOutput;
+use ppmd::emitter::{self, EmitterConfig, LineRef, Output, Recording, Stats};
+use ppmd::line::SimLine;
 use ppmd::rt::{RtSetup, RT_STACK_BYTES};
 use ppmd::source::{CommandSource, RepeatSource, TickSource};
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
@@ -29,10 +32,13 @@ use std::sync::Arc;
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Cli {
-    /// Total run time in seconds (split between the two loops).
+    /// Total run time in seconds, split block by block among the four loops
+    /// (ppmd's, the plain sleep, two outputs, follow timing); at least one
+    /// block each.
     #[arg(long, default_value_t = 20)]
     seconds: u64,
-    /// Length of one block in seconds; the loops alternate block by block.
+    /// Length of one block in seconds; the four loops take turns block by
+    /// block.
     #[arg(long, default_value_t = 2)]
     block: u64,
     /// SCHED_FIFO priority of the timing thread (0: normal scheduler).
@@ -56,6 +62,7 @@ struct Totals {
     wall_ns: u64,
     spin_ns: u64,
     late_frames: u64,
+    aborted_frames: u64,
     overruns: u64,
 }
 
@@ -67,6 +74,7 @@ impl Totals {
             wall_ns: 0,
             spin_ns: 0,
             late_frames: 0,
+            aborted_frames: 0,
             overruns: 0,
         }
     }
@@ -114,10 +122,9 @@ fn run_block(
     }
     let mut outs = outputs
         .iter()
-        .map(|_| SimOutput::create(std::path::Path::new("/dev/null"), &[], u64::MAX))
+        .map(|_| SimLine::create(std::path::Path::new("/dev/null"), &[], u64::MAX))
         .collect::<std::io::Result<Vec<_>>>()?;
     let cfg = EmitterConfig {
-        margin,
         failsafe_after_ns: 1_000_000_000,
         failsafe_action: FailsafeAction::Silence,
         startup: FailsafeAction::Silence,
@@ -129,28 +136,39 @@ fn run_block(
         .collect();
     let (cpu0, wall0) = (thread_cpu_ns(), clock::now_ns());
     {
-        let mut lanes: Vec<Lane> = outputs
+        let mut driven: Vec<Output> = outputs
             .iter()
             .zip(sources.iter_mut())
             .zip(outs.iter_mut())
             .zip(stats.iter().zip(meters.iter_mut()))
-            .map(|((((model, _), source), out), (stats, (meter, _)))| Lane {
-                model,
-                cfg,
-                source: source.as_mut(),
-                sink: Sink::Line(out),
-                stats,
-                meter,
-                log: None,
-            })
+            .map(
+                |((((model, _), source), out), (stats, (meter, _)))| Output {
+                    model,
+                    cfg,
+                    source: source.as_mut(),
+                    line: LineRef::Edges(out),
+                    rec: Recording {
+                        stats,
+                        meter,
+                        log: None,
+                    },
+                },
+            )
             .collect();
-        emitter::run_lanes(&ppmd::clock::SystemClock, &mut lanes, &mut [], &stop);
+        emitter::run_outputs(
+            &ppmd::clock::SystemClock,
+            margin,
+            &mut driven,
+            &mut [],
+            &stop,
+        );
     }
     totals.cpu_ns += thread_cpu_ns() - cpu0;
     totals.wall_ns += clock::now_ns() - wall0;
     for (s, (m, _)) in stats.iter().zip(&meters) {
         totals.spin_ns += s.spin_ns.load(Relaxed);
         totals.late_frames += s.late_frames.load(Relaxed);
+        totals.aborted_frames += s.aborted_frames.load(Relaxed);
         totals.overruns += s.overruns.load(Relaxed);
         totals
             .error
@@ -189,6 +207,9 @@ fn main() -> Result<()> {
         parse(b"[1900, 1111, 1333, 1555, 1777, 1050]", &other).context("bench command")?;
     let other_sample = CommandSample::new(&other_cmd, other.fingerprint(), 1, 0, 0);
     let m2 = model.clone();
+    // The baseline writes every edge however late, as a plain loop would:
+    // with the guard, its late frames would be aborted and not measured.
+    let plain = model.unguarded();
     let other2 = other.clone();
     let worker = std::thread::Builder::new()
         .name("timing-bench".into())
@@ -206,7 +227,12 @@ fn main() -> Result<()> {
                 let both = [(&m2, sample), (&other2, other_sample)];
                 match b % 4 {
                     0 => run_block(&one, auto, block_frames, &mut spin)?,
-                    1 => run_block(&one, Margin::Fixed(0), block_frames, &mut sleep)?,
+                    1 => run_block(
+                        &[(&plain, sample)],
+                        Margin::Fixed(0),
+                        block_frames,
+                        &mut sleep,
+                    )?,
                     2 => run_block(&both, auto, block_frames, &mut two)?,
                     _ => run_block(&[(&follow, sample)], auto, follow_commands, &mut fol)?,
                 }
@@ -232,8 +258,17 @@ fn main() -> Result<()> {
     println!("real-time: {summary}");
     println!();
     println!(
-        "{:<30} {:>8} {:>9} {:>9} {:>9} {:>10} {:>10} {:>6} {:>8}",
-        "loop", "edges", "p50 us", "p99 us", "p99.9 us", "max us", "CPU share", "late", "overrun"
+        "{:<30} {:>8} {:>9} {:>9} {:>9} {:>10} {:>10} {:>6} {:>8} {:>8}",
+        "loop",
+        "edges",
+        "p50 us",
+        "p99 us",
+        "p99.9 us",
+        "max us",
+        "CPU share",
+        "late",
+        "aborted",
+        "overrun"
     );
     for (name, t) in [
         ("ppmd (sleep, then spin)", &spin),
@@ -243,7 +278,7 @@ fn main() -> Result<()> {
     ] {
         let p = t.percentiles();
         println!(
-            "{name:<30} {:>8} {:>9.3} {:>9.3} {:>9.3} {:>10.3} {:>9.1}% {:>6} {:>8}",
+            "{name:<30} {:>8} {:>9.3} {:>9.3} {:>9.3} {:>10.3} {:>9.1}% {:>6} {:>8} {:>8}",
             p.count,
             p.p50 / 1e3,
             p.p99 / 1e3,
@@ -251,6 +286,7 @@ fn main() -> Result<()> {
             p.max / 1e3,
             t.cpu_share() * 100.0,
             t.late_frames,
+            t.aborted_frames,
             t.overruns
         );
     }

@@ -6,9 +6,23 @@
 //! which is what a transmitter measures. After the last pulse the line rests
 //! at its idle level until the next frame starts; that gap is the sync period
 //! `frame - sum(values)`.
+//!
+//! - [`section`]: the `[ppm]` section of the configuration file.
+//! - [`build`]: [`FrameModel::build`], which checks that section against
+//!   the receivers and builds the model in one step.
+//! - here: the model, and the encoder that turns channel values into one
+//!   frame's [`EdgeSchedule`].
 
 use crate::receiver::ReceiverChoice;
 pub use crate::signal::{Level, Timing, MAX_CHANNELS, MAX_EDGES};
+
+pub mod build;
+pub mod section;
+
+pub use build::{
+    channel_names, InvalidKey, FOLLOW_SYNC_CEILING_US, LATE_EDGE_GUARD_MAX_US, TRIM_MAX_US,
+};
+pub use section::{ChannelOverride, PpmSection, LATE_EDGE_GUARD_US};
 
 /// Shortest separator pulse accepted in the configuration, in microseconds.
 pub const PULSE_MIN_US: f64 = 50.0;
@@ -76,43 +90,8 @@ pub fn us_to_ns(us: f64) -> u64 {
     (us * 1_000.0).round() as u64
 }
 
-/// One channel of a [`FrameModel`]: its default and limits in ns and its
-/// unit mapping.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ChannelSpec {
-    /// Value when a command does not give it, ns.
-    pub default_ns: u32,
-    /// Lowest value sent, ns.
-    pub min_ns: u32,
-    /// Highest value sent, ns.
-    pub max_ns: u32,
-    /// Its engineering units, if any.
-    pub mapping: UnitMapping,
-}
-
-/// What a [`FrameModel`] is made of, as the configuration checked it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ModelSpec {
-    /// Channel names, in transmitter order.
-    pub names: Vec<String>,
-    /// The channels, in the same order.
-    pub channels: Vec<ChannelSpec>,
-    /// Grid timing's frame length, ns.
-    pub frame_ns: u64,
-    /// Separator pulse, ns.
-    pub pulse_ns: u64,
-    /// The level between pulses.
-    pub idle: Level,
-    /// When frames start.
-    pub timing: Timing,
-    /// Follow timing's shortest and longest sync, ns.
-    pub follow_sync_ns: (u64, u64),
-    /// The receivers the signal must suit.
-    pub receiver: ReceiverChoice,
-}
-
 /// The validated PPM signal: channel count, names, limits, timing, idle level.
-/// Built once at start from the checked configuration ([`FrameModel::new`]); encoding with it never
+/// Built once at start from the checked `[ppm]` section ([`FrameModel::build`]); encoding with it never
 /// allocates.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameModel {
@@ -129,44 +108,10 @@ pub struct FrameModel {
     follow_sync_ns: (u64, u64),
     receiver: ReceiverChoice,
     sync_window_ns: (u64, u64),
+    late_edge_guard_ns: u64,
 }
 
 impl FrameModel {
-    /// The model of a checked configuration ([`crate::config`] checks
-    /// `[ppm]` against what transmitters accept and builds it with this).
-    pub fn new(spec: ModelSpec) -> FrameModel {
-        assert!(
-            spec.channels.len() <= MAX_CHANNELS && spec.channels.len() == spec.names.len(),
-            "a model of at most {MAX_CHANNELS} named channels"
-        );
-        let mut m = FrameModel {
-            names: spec.names,
-            default_ns: [0; MAX_CHANNELS],
-            min_ns: [0; MAX_CHANNELS],
-            max_ns: [0; MAX_CHANNELS],
-            mapping: [UnitMapping::default(); MAX_CHANNELS],
-            channels: spec.channels.len(),
-            frame_ns: spec.frame_ns,
-            pulse_ns: spec.pulse_ns,
-            idle: spec.idle,
-            timing: spec.timing,
-            follow_sync_ns: spec.follow_sync_ns,
-            receiver: spec.receiver,
-            sync_window_ns: {
-                let rules = spec.receiver.rules();
-                let ns = |us: f64| (us * 1e3).round() as u64;
-                (ns(rules.sync_min_us.0), ns(rules.sync_max_us.0))
-            },
-        };
-        for (i, c) in spec.channels.iter().enumerate() {
-            m.default_ns[i] = c.default_ns;
-            m.min_ns[i] = c.min_ns;
-            m.max_ns[i] = c.max_ns;
-            m.mapping[i] = c.mapping;
-        }
-        m
-    }
-
     /// When frames start.
     pub fn timing(&self) -> Timing {
         self.timing
@@ -211,6 +156,37 @@ impl FrameModel {
     /// ns (4500..18500 us for `any`): how far a late frame may move.
     pub fn sync_window_ns(&self) -> (u64, u64) {
         self.sync_window_ns
+    }
+
+    /// How late an edge receivers time may be written, ns: a later one is
+    /// not written and its frame is aborted (`ppm.late_edge_guard_us`).
+    pub fn late_edge_guard_ns(&self) -> u64 {
+        self.late_edge_guard_ns
+    }
+
+    /// The same model without a late-edge guard: every edge is written,
+    /// however late. Only for measuring how late a loop writes (the
+    /// plain-sleep baseline of `timing-bench`); ppmd never runs one.
+    pub fn unguarded(&self) -> FrameModel {
+        FrameModel {
+            late_edge_guard_ns: u64::MAX,
+            ..self.clone()
+        }
+    }
+
+    /// Whether receivers time an edge to `level`: the rising edge at the pin
+    /// (the pulses' starts with idle low, their ends with idle high).
+    pub fn timed(&self, level: Level) -> bool {
+        level == Level::High
+    }
+
+    /// How long after its pulse's start a pulse's timed edge comes: 0 with
+    /// idle low, the pulse width with idle high.
+    pub fn timed_offset_ns(&self) -> u64 {
+        match self.idle {
+            Level::Low => 0,
+            Level::High => self.pulse_ns,
+        }
     }
 
     /// `follow` timing's shortest and longest sync gap, ns.
@@ -420,149 +396,4 @@ impl FrameModel {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::config::Config;
-
-    #[test]
-    fn default_frame_edges() {
-        let m = Config::default().validate().unwrap();
-        let s = m.encode(&Channels::from_ns(&[
-            1_000_000, 1_200_000, 1_700_000, 2_000_000,
-        ]));
-        let e = s.edges();
-        assert_eq!(e.len(), 18);
-        assert_eq!(
-            e[0],
-            Edge {
-                at_ns: 0,
-                level: Level::High
-            }
-        );
-        assert_eq!(
-            e[1],
-            Edge {
-                at_ns: 300_000,
-                level: Level::Low
-            }
-        );
-        let starts: Vec<u64> = e.iter().step_by(2).map(|e| e.at_ns).collect();
-        assert_eq!(
-            starts,
-            [
-                0, 1_000_000, 2_200_000, 3_900_000, 5_900_000, 7_400_000, 8_900_000, 10_400_000,
-                11_900_000
-            ]
-        );
-    }
-
-    #[test]
-    fn encode_clamps_and_fills_defaults() {
-        let m = Config::default().validate().unwrap();
-        let s = m.encode(&Channels::from_ns(&[3_000_000]));
-        let starts: Vec<u64> = s.edges().iter().step_by(2).map(|e| e.at_ns).collect();
-        assert_eq!(starts[1], 2_000_000, "clamped to max");
-        assert_eq!(starts[2] - starts[1], 1_500_000, "ele default");
-        assert_eq!(
-            starts[3] - starts[2],
-            1_000_000,
-            "thr default is its minimum"
-        );
-    }
-
-    #[test]
-    fn idle_high_inverts() {
-        let c = Config::parse("[ppm]\nidle_level = 'high'").unwrap();
-        let m = c.validate().unwrap();
-        let s = m.encode(&m.defaults());
-        assert_eq!(s.edges()[0].level, Level::Low);
-        assert_eq!(s.edges().last().unwrap().level, Level::High);
-    }
-}
-
-#[cfg(test)]
-mod units_tests {
-    use crate::config::Config;
-    use crate::frame::FrameModel;
-
-    /// The defaults plus `[ppm.channel.ail]` with a -15..15 degree range and `extra` keys.
-    fn ail_deg(extra: &str) -> FrameModel {
-        let text =
-            format!("[ppm.channel.ail]\nunit_min = -15.0\nunit_max = 15.0\nunit = 'deg'\n{extra}");
-        Config::parse(&text).unwrap().validate().unwrap()
-    }
-
-    #[test]
-    fn aileron_degrees_map_linearly() {
-        let m = ail_deg("");
-        assert_eq!(
-            m.units_to_ns(0, 3.0),
-            Some((1_600_000, false)),
-            "3 deg is 1600 us"
-        );
-        assert_eq!(m.units_to_ns(0, -15.0), Some((1_000_000, false)));
-        assert_eq!(m.units_to_ns(0, 0.0), Some((1_500_000, false)));
-        assert_eq!(m.units_to_ns(0, 15.0), Some((2_000_000, false)));
-        // A tenth of a microsecond (and finer) survives the mapping.
-        assert_eq!(m.units_to_ns(0, 3.0333), Some((1_601_110, false)));
-        assert_eq!(m.ns_to_units(0, 1_600_000), Some(3.0));
-        assert_eq!(m.units_to_ns(1, 3.0), None, "ele has no unit range");
-    }
-
-    #[test]
-    fn reverse_and_trim() {
-        assert_eq!(
-            ail_deg("reverse = true").units_to_ns(0, 3.0),
-            Some((1_400_000, false))
-        );
-        assert_eq!(
-            ail_deg("trim_us = 10.0").units_to_ns(0, 3.0),
-            Some((1_610_000, false))
-        );
-        assert_eq!(
-            ail_deg("trim_us = -2.5\nreverse = true").units_to_ns(0, 3.0),
-            Some((1_397_500, false))
-        );
-        let m = ail_deg("unit_us_min = 1100.0\nunit_us_max = 1900.0");
-        assert_eq!(m.units_to_ns(0, 3.0), Some((1_580_000, false)));
-        assert_eq!(m.norm_to_ns(0, -1.0), (1_100_000, false));
-        assert_eq!(m.norm_to_ns(0, 1.0), (1_900_000, false));
-    }
-
-    #[test]
-    fn range_ends_clamp_and_count() {
-        let m = ail_deg("");
-        assert_eq!(m.units_to_ns(0, 15.01), Some((2_000_000, true)));
-        assert_eq!(m.units_to_ns(0, -90.0), Some((1_000_000, true)));
-        assert_eq!(m.units_to_ns(0, f64::MAX), Some((2_000_000, true)));
-        // Trim past the channel's max_us is clamped to it, and counted.
-        let m = ail_deg("trim_us = 10.0");
-        assert_eq!(m.units_to_ns(0, 15.0), Some((2_000_000, true)));
-        assert_eq!(
-            m.units_to_ns(0, 14.0),
-            Some((1_976_667, false)),
-            "rounded to the ns"
-        );
-        assert_eq!(m.norm_to_ns(1, 1.5), (2_000_000, true));
-        assert_eq!(m.norm_to_ns(1, -1.000001), (1_000_000, true));
-    }
-
-    #[test]
-    fn norm_on_a_plain_channel_and_on_throttle() {
-        let m = Config::default().validate().unwrap();
-        // ele: -1 is min_us, 0 the midpoint, +1 max_us.
-        assert_eq!(m.norm_to_ns(1, -1.0), (1_000_000, false));
-        assert_eq!(m.norm_to_ns(1, 0.0), (1_500_000, false));
-        assert_eq!(m.norm_to_ns(1, 1.0), (2_000_000, false));
-        assert_eq!(m.norm_to_ns(0, 0.2), (1_600_000, false));
-        // thr: the same line; -1 is its minimum, zero actuation (its default).
-        assert_eq!(m.norm_to_ns(2, -1.0), (m.default_ns(2), false));
-        assert_eq!(m.norm_to_ns(2, 0.0), (1_500_000, false));
-        assert_eq!(m.norm_to_ns(2, 1.0), (2_000_000, false));
-        assert_eq!(m.ns_to_norm(2, 1_250_000), -0.5);
-        let c = "[ppm.channel.thr]\nmax_us = 1900.0\nreverse = true\ntrim_us = 5.0";
-        let m = Config::parse(c).unwrap().validate().unwrap();
-        assert_eq!(m.norm_to_ns(2, -1.0), (1_900_000, true), "1905 us clamped");
-        assert_eq!(m.norm_to_ns(2, 0.5), (1_230_000, false));
-    }
-}
+mod tests;

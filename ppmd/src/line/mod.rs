@@ -1,8 +1,13 @@
-//! Output backends: where the edges go. The timing loop calls
-//! [`Output::write`] once per edge; backends must not allocate, block, log
-//! or take a lock there.
+//! Lines: what physically carries an output's signal (a GPIO line, one
+//! line of a GPIO bank, an SPI device's MOSI, the simulated line's trace
+//! file; [`serial`], a tty for the coming SBUS output, not selectable
+//! yet). A frame leaves one of two ways: edge by edge, the timing loop
+//! calling [`Line::write`] (or [`Bank::write`]) at each edge's time, or
+//! whole, the loop handing the frame to a [`FrameLine`] at its start.
+//! Lines must not allocate, block, log or take a lock in those calls.
 
 pub mod gpio;
+pub mod serial;
 pub mod spi;
 
 use crate::rotating::{self, RotatingFile, WriterOptions};
@@ -11,22 +16,31 @@ use ppm_shared::trace::TraceEdge;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-/// A failed write in the timing loop (counted, never logged there).
+/// A failed line write in the timing loop (counted, never logged there).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-pub enum OutputError {
+pub enum LineError {
     /// The simulated line's trace buffer was full; the edge was not recorded.
     #[error("trace buffer full, edge not recorded")]
     BufferFull,
     /// The line could not be written.
     #[error("line write failed: {0}")]
     Write(nix::errno::Errno),
-    /// A frame longer than the output was opened for (not sent).
+    /// A frame longer than the line was opened for (not sent).
     #[error("frame longer than the transfer buffer, not sent")]
     FrameTooLong,
+    /// The device took only part of a frame (the rest is not sent, so no
+    /// frame goes out split in two).
+    #[error("short write: {written} of {len} bytes")]
+    ShortWrite {
+        /// Bytes the device took.
+        written: usize,
+        /// The frame's length.
+        len: usize,
+    },
 }
 
-/// One edge of a whole frame handed to [`Output::write_frame`]: its time
-/// after the frame's first edge, and the level after it.
+/// One edge of a whole PPM frame handed to a [`FrameLine`]: its time after
+/// the frame's first edge, and the level after it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameEdge {
     /// Time after the first edge (which is at 0), ns.
@@ -35,40 +49,59 @@ pub struct FrameEdge {
     pub level: Level,
 }
 
-/// One output line.
-pub trait Output: Send {
+/// One frame as a [`FrameLine`] takes it: what the frame is on the wire,
+/// one variant per protocol. A protocol sent whole (SBUS's 25 bytes on a
+/// UART, next) is one more variant here and one more [`FrameLine`]; the
+/// loop hands every whole frame over the same way, at its start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WholeFrame<'a> {
+    /// A PPM frame: every edge (the lead-in pulse's included), timed from
+    /// the first.
+    Ppm(&'a [FrameEdge]),
+}
+
+/// A line written edge by edge, each edge at its time as the loop keeps it
+/// (a GPIO line, the simulated line).
+pub trait Line: Send {
     /// Drives the line to `edge.level`. `edge` also carries the scheduled
     /// time and the time read just before this call.
-    fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError>;
+    fn write(&mut self, edge: &TraceEdge) -> Result<(), LineError>;
 
     /// Leaves the line at `level` (at start and at exit, outside the loop).
-    fn park(&mut self, level: Level) -> Result<(), OutputError>;
+    fn park(&mut self, level: Level) -> Result<(), LineError>;
 
-    /// True for an output that sends each frame whole, timed by its own
-    /// clock ([`spi::SpiOutput`]): the loop then calls
-    /// [`Output::write_frame`] at the frame's first edge instead of
-    /// [`Output::write`] for each.
-    fn whole_frames(&self) -> bool {
+    /// True for a line whose edge takes the time read just before the
+    /// call (`edge.actual_ns`), however long the call takes: the simulated
+    /// line, which records that time. For a real line (false) the edge
+    /// happens somewhere in the call, so a call held up may have put it
+    /// later.
+    fn stamped(&self) -> bool {
         false
-    }
-
-    /// Sends one frame, every edge (the lead-in pulse's included), returning
-    /// when it is out.
-    fn write_frame(&mut self, _edges: &[FrameEdge]) -> Result<(), OutputError> {
-        Err(OutputError::Write(nix::errno::Errno::ENOTSUP))
     }
 }
 
+/// A line that sends each frame whole, timed by its own clock (SPI,
+/// [`spi::SpiLine`]): the loop hands it the frame at the frame's first
+/// edge. Like [`Line`], must not allocate, block (beyond sending the
+/// frame), log or take a lock.
+pub trait FrameLine: Send {
+    /// Sends one frame, returning when it is out.
+    fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError>;
+
+    /// Leaves the line at `level` (at start and at exit, outside the loop).
+    fn park(&mut self, level: Level) -> Result<(), LineError>;
+}
+
 /// Several lines written together: bit `i` of a mask is the bank's line
-/// `i`. Like [`Output`], must not allocate, block, log or take a lock.
+/// `i`. Like [`Line`], must not allocate, block, log or take a lock.
 pub trait Bank: Send {
     /// Drives every line in `mask` to its bit in `levels` (1 is high), in
     /// one call; lines outside `mask` keep their level. `scheduled_ns` is
     /// when the edges were due.
-    fn write(&mut self, scheduled_ns: u64, mask: u64, levels: u64) -> Result<(), OutputError>;
+    fn write(&mut self, scheduled_ns: u64, mask: u64, levels: u64) -> Result<(), LineError>;
 
     /// Leaves line `bit` at `level` (at exit, outside the loop).
-    fn park(&mut self, bit: u32, level: Level) -> Result<(), OutputError>;
+    fn park(&mut self, bit: u32, level: Level) -> Result<(), LineError>;
 }
 
 /// How many edges the simulated line buffers between the loop and the
@@ -82,20 +115,20 @@ const SIM_FLUSH_EVERY: Duration = Duration::from_millis(50);
 /// At a size cap the writer renames the file to `FILE.1` (replacing the one
 /// before) and starts `FILE` again, header included (see
 /// [`crate::rotating`]).
-pub struct SimOutput {
+pub struct SimLine {
     producer: rotating::Producer<TraceEdge>,
     writer: rotating::Writer,
     path: PathBuf,
 }
 
-impl SimOutput {
+impl SimLine {
     /// Creates (truncates) the trace file, writes `header` as `#` comment
     /// lines and starts the writer thread, which rotates the file once it
     /// would grow beyond `max_bytes`. Only a regular file is rotated (never
     /// `/dev/null` or a pipe); a rotation that fails is said once and the
     /// trace grows on; a write that fails is said, its edges are counted
     /// lost and the writer goes on.
-    pub fn create(path: &Path, header: &[String], max_bytes: u64) -> std::io::Result<SimOutput> {
+    pub fn create(path: &Path, header: &[String], max_bytes: u64) -> std::io::Result<SimLine> {
         let header: String = header.iter().map(|h| format!("# {h}\n")).collect();
         let file = RotatingFile::create("sim trace", path, header.as_bytes(), max_bytes, 1)?;
         let (producer, writer) = rotating::spawn(
@@ -111,7 +144,7 @@ impl SimOutput {
                 let _ = write!(line, "{e}");
             },
         )?;
-        Ok(SimOutput {
+        Ok(SimLine {
             producer,
             writer,
             path: path.to_owned(),
@@ -141,24 +174,28 @@ impl SimOutput {
     }
 }
 
-impl Drop for SimOutput {
+impl Drop for SimLine {
     fn drop(&mut self) {
         let _ = self.finish();
     }
 }
 
-impl Output for SimOutput {
-    fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError> {
+impl Line for SimLine {
+    fn write(&mut self, edge: &TraceEdge) -> Result<(), LineError> {
         if self.producer.push(*edge) {
             Ok(())
         } else {
-            Err(OutputError::BufferFull)
+            Err(LineError::BufferFull)
         }
     }
 
-    fn park(&mut self, _level: Level) -> Result<(), OutputError> {
+    fn park(&mut self, _level: Level) -> Result<(), LineError> {
         // The trace records edges only; between pulses the line is already idle.
         Ok(())
+    }
+
+    fn stamped(&self) -> bool {
+        true
     }
 }
 
@@ -173,7 +210,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("ppmd-sim-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("t.trace");
-        let mut out = SimOutput::create(&path, &["idle_level 1".into()], u64::MAX).unwrap();
+        let mut out = SimLine::create(&path, &["idle_level 1".into()], u64::MAX).unwrap();
         for i in 0..1000u64 {
             let level = Level::from_bit(i % 2 == 1);
             out.write(&TraceEdge {
@@ -206,7 +243,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("t.trace");
         let header = ["idle_level 1".to_string(), "frame_ns 22500000".to_string()];
-        let mut out = SimOutput::create(&path, &header, 4_000).unwrap();
+        let mut out = SimLine::create(&path, &header, 4_000).unwrap();
         // About 26 bytes an edge: several rotations.
         for i in 0..1000 {
             out.write(&edge(i)).unwrap();
@@ -250,7 +287,7 @@ mod tests {
         std::fs::create_dir_all(dir.join("t.trace.1")).unwrap();
         std::fs::write(dir.join("t.trace.1/keep"), "x").unwrap();
         let path = dir.join("t.trace");
-        let mut out = SimOutput::create(&path, &["idle_level 1".into()], 2_000).unwrap();
+        let mut out = SimLine::create(&path, &["idle_level 1".into()], 2_000).unwrap();
         for i in 0..1000 {
             out.write(&edge(i)).unwrap();
         }
@@ -265,7 +302,7 @@ mod tests {
     fn sim_counts_the_edges_it_cannot_write_and_goes_on() {
         // /dev/full refuses every write: the writer counts, it does not end
         // (the loop's pushes go on succeeding).
-        let mut out = SimOutput::create(Path::new("/dev/full"), &[], u64::MAX).unwrap();
+        let mut out = SimLine::create(Path::new("/dev/full"), &[], u64::MAX).unwrap();
         for i in 0..20_000 {
             out.write(&edge(i)).unwrap();
             if i % 5_000 == 4_999 {
@@ -285,7 +322,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let link = dir.join("null.trace");
         std::os::unix::fs::symlink("/dev/null", &link).unwrap();
-        let mut out = SimOutput::create(&link, &["idle_level 1".into()], 100).unwrap();
+        let mut out = SimLine::create(&link, &["idle_level 1".into()], 100).unwrap();
         for i in 0..1000 {
             out.write(&edge(i)).unwrap();
         }

@@ -6,6 +6,9 @@
 //! - `--trace FILE`: edge error and channel-period error of a sim trace.
 //! - `--capture CHIP:LINE`: kernel-timestamped edges of an input line wired to
 //!   the output pin, decoded as a transmitter does.
+//!
+//! The flags choose one [`Mode`]; the cyclictest-style test (plan, run,
+//! report) is in `cyclictest.rs`.
 
 use anyhow::{bail, Context, Result};
 use clap::{ArgAction, Parser};
@@ -13,17 +16,17 @@ use ppm_shared::config::Config;
 use ppm_shared::decode::{Decoder, DecoderLimits};
 use ppm_shared::frame::Level;
 use ppm_shared::ipc::{self, TimingSnapshot, HIST_BUCKETS};
-use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder};
+use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder, TIMED_EDGE};
 use ppm_shared::trace::Trace;
 use ppm_tools::analysis::{analyse_trace, Percentiles};
-use ppm_tools::cyclic::{self, parse_cyclictest_duration, JsonThread, LatencyStats};
-use ppmd::clock::{self, EdgeTimer, Margin};
-use ppmd::rt::{RtSetup, RT_STACK_BYTES};
+use ppm_tools::cyclic::{parse_cyclictest_duration, LatencyStats};
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+mod cyclictest;
 
 /// Timing measurements for ppm: cyclictest-style tests of this machine with
 /// ppmd's own timer, a running ppmd's edge error, sim traces, captured edges.
@@ -150,16 +153,38 @@ struct Cli {
     receiver: Option<Receiver>,
 }
 
+/// What jitter measures, chosen once from the flags.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum Mode {
+    /// No target: the cyclictest-style test of this machine.
+    Cyclic,
+    /// `--attach NAME`: a running ppmd's edge error, live.
+    Attach(String),
+    /// `--trace FILE`: a sim trace's edge and channel-period error.
+    Trace(PathBuf),
+    /// `--capture CHIP:LINE`: edges captured from an input line.
+    Capture(String),
+}
+
+impl Mode {
+    /// The mode the flags ask for (clap refuses two targets at once).
+    fn of(cli: &Cli) -> Mode {
+        match (&cli.attach, &cli.trace, &cli.capture) {
+            (Some(name), _, _) => Mode::Attach(name.clone()),
+            (None, Some(path), _) => Mode::Trace(path.clone()),
+            (None, None, Some(spec)) => Mode::Capture(spec.clone()),
+            (None, None, None) => Mode::Cyclic,
+        }
+    }
+}
+
 fn main() {
     let cli = Cli::parse();
-    let r = if let Some(name) = &cli.attach {
-        attach(&cli, name)
-    } else if let Some(path) = &cli.trace {
-        trace(path, cli.receiver, cli.plot.as_deref())
-    } else if let Some(spec) = &cli.capture {
-        capture(&cli, spec)
-    } else {
-        cyclic(&cli)
+    let r = match Mode::of(&cli) {
+        Mode::Attach(name) => attach(&cli, &name),
+        Mode::Trace(path) => trace(&path, cli.receiver, cli.plot.as_deref()),
+        Mode::Capture(spec) => capture(&cli, &spec),
+        Mode::Cyclic => cyclictest::cyclic(&cli),
     };
     if let Err(e) = r {
         eprintln!("jitter: {e:#}");
@@ -185,395 +210,6 @@ fn unit_ns(cli: &Cli) -> u64 {
     } else {
         1_000
     }
-}
-
-/// Counters a measuring thread shares with the printing one.
-#[derive(Default)]
-struct Live {
-    tid: AtomicU64,
-    cycles: AtomicU64,
-    min: AtomicU64,
-    max: AtomicU64,
-    act: AtomicU64,
-    sum: AtomicU64,
-}
-
-/// The first latency over `-b`: which thread, and the value.
-#[derive(Default)]
-struct Break {
-    hit: AtomicBool,
-    tid: AtomicU64,
-    value: AtomicU64,
-}
-
-/// One measuring thread's settings.
-struct ThreadPlan {
-    interval_us: u64,
-    cpu: Option<usize>,
-    setup: RtSetup,
-}
-
-/// What a measuring thread hands back.
-struct ThreadResult {
-    stats: LatencyStats,
-    hist: hdrhistogram::Histogram<u64>,
-    missed: u64,
-    cpu: i64,
-}
-
-/// The measuring threads cyclictest's options ask for: how many, their
-/// intervals and CPUs.
-fn plan_threads(cli: &Cli) -> Result<Vec<ThreadPlan>> {
-    let online = ppm_shared::sched::online_cpus();
-    let cpus = online.len().max(1);
-    let n = match (cli.smp, cli.threads) {
-        (true, _) | (_, Some(0)) => cpus,
-        (false, Some(n)) => n,
-        (false, None) => 1,
-    };
-    if n > 256 {
-        bail!("-t {n}: at most 256 threads");
-    }
-    let set = match cli.affinity.as_deref() {
-        Some("") | None => None,
-        Some(s) => Some(cyclic::parse_cpuset(s).map_err(|e| anyhow::anyhow!("-a: {e}"))?),
-    };
-    let pinned = cli.smp || cli.affinity.is_some();
-    // /dev/cpu_dma_latency, when this user may hold it (cyclictest's
-    // latency target), by the first thread.
-    let dma = nix::unistd::access("/dev/cpu_dma_latency", nix::unistd::AccessFlags::W_OK).is_ok();
-    let same_interval = cli.histogram.is_some() || cli.histofall.is_some();
-    Ok((0..n)
-        .map(|i| {
-            let cpu = pinned.then(|| cyclic::cpu_for_thread(i, set.as_deref(), cpus));
-            ThreadPlan {
-                interval_us: cli.interval_us
-                    + if same_interval {
-                        0
-                    } else {
-                        i as u64 * cli.distance_us
-                    },
-                cpu,
-                setup: RtSetup {
-                    priority: cli.priority,
-                    cpu,
-                    mlock: cli.mlock && i == 0,
-                    cpu_dma_latency: dma && i == 0,
-                    allow_degraded: false,
-                },
-            }
-        })
-        .collect())
-}
-
-/// The `T:` line of a running thread.
-fn live_line(l: &Live, index: usize, prio: u32, interval: u64, nsecs: bool) -> String {
-    let c = l.cycles.load(Relaxed);
-    let min = if c == 0 { 0 } else { l.min.load(Relaxed) };
-    LatencyStats::new(0)
-        .with_summary(
-            c,
-            min,
-            l.max.load(Relaxed),
-            l.act.load(Relaxed),
-            l.sum.load(Relaxed) as u128,
-        )
-        .t_line(index, l.tid.load(Relaxed) as u32, prio, interval, nsecs)
-}
-
-/// cyclictest's status block (SIGUSR1 to standard error, SIGUSR2 to
-/// `/dev/shm/cyclictest<pid>`).
-fn status_block(lines: &[String]) -> String {
-    let mut s = String::from("#---------------------------\n# cyclictest current status:\n");
-    for l in lines {
-        s += l;
-        s += "\n";
-    }
-    s + "#---------------------------\n"
-}
-
-/// `policy: fifo: loadavg: ...`, the head of cyclictest's live view.
-fn policy_line(priority: u8) -> String {
-    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
-    format!(
-        "policy: {}: loadavg: {}          \n",
-        if priority > 0 { "fifo" } else { "other" },
-        load.trim_end()
-    )
-}
-
-/// The cyclictest-style test.
-fn cyclic(cli: &Cli) -> Result<()> {
-    if cli.interval_us == 0 {
-        bail!("-i must be at least 1 microsecond");
-    }
-    if cli.system {
-        eprintln!("jitter: -s (--system): not applicable, ignored: jitter always sleeps with clock_nanosleep");
-    }
-    let (_, _) = (cli.nanosleep, cli.unbuffered); // accepted: what jitter does anyway
-    let spin = cli.spin.as_str();
-    let margin = |interval_us: u64| -> Result<Margin> {
-        Ok(match spin {
-            // Half the interval at most, so every period has a sleep in it.
-            "auto" => Margin::Auto {
-                min_ns: 20_000.min(interval_us * 250),
-                max_ns: 1_000_000.min(interval_us * 500),
-            },
-            us => Margin::Fixed(
-                us.parse::<u64>()
-                    .ok()
-                    .filter(|v| *v <= 5_000)
-                    .with_context(|| format!("--spin `{us}`: use auto or 0..=5000 microseconds"))?
-                    * 1_000,
-            ),
-        })
-    };
-    let plans = plan_threads(cli)?;
-    let n = plans.len();
-    let stop = stop_flag()?;
-    let usr1 = Arc::new(AtomicBool::new(false));
-    let usr2 = Arc::new(AtomicBool::new(false));
-    signal_hook::flag::register(signal_hook::consts::SIGUSR1, usr1.clone())
-        .context("installing the SIGUSR1 handler")?;
-    signal_hook::flag::register(signal_hook::consts::SIGUSR2, usr2.clone())
-        .context("installing the SIGUSR2 handler")?;
-    let unit = unit_ns(cli);
-    let buckets = cli.histogram.or(cli.histofall).unwrap_or(0);
-    let loops = cli.loops;
-    let deadline = cli.duration.map(|d| clock::now_ns() + d.as_nanos() as u64);
-    let brk = Arc::new(Break::default());
-    let lives: Arc<Vec<Live>> = Arc::new(
-        (0..n)
-            .map(|_| Live {
-                min: AtomicU64::new(u64::MAX),
-                ..Live::default()
-            })
-            .collect(),
-    );
-    let start = timestamp_rfc2822();
-    let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<bool, String>>();
-    let mut workers = Vec::new();
-    for (i, plan) in plans.iter().enumerate() {
-        let (stop, lives, brk, ready) =
-            (stop.clone(), lives.clone(), brk.clone(), ready_tx.clone());
-        let (setup, interval_ns) = (plan.setup.clone(), plan.interval_us * 1_000);
-        let (margin, breaktrace) = (margin(plan.interval_us)?, cli.breaktrace);
-        let pinned = plan.cpu;
-        workers.push(
-            std::thread::Builder::new()
-                .name(format!("jitter-{i}"))
-                .stack_size(RT_STACK_BYTES)
-                .spawn(move || -> Option<ThreadResult> {
-                    let obtained = match setup.apply() {
-                        Ok(o) => {
-                            let _ = ready.send(Ok(o.dma_latency.is_some()));
-                            o
-                        }
-                        Err(e) => {
-                            let _ = ready.send(Err(e.to_string()));
-                            return None;
-                        }
-                    };
-                    let live = &lives[i];
-                    live.tid
-                        .store(nix::unistd::gettid().as_raw() as u64, Relaxed);
-                    let mut stats = LatencyStats::new(buckets);
-                    let mut hist = ppmd::meter::histogram();
-                    let mut timer = EdgeTimer::new(margin);
-                    let mut next = clock::now_ns() + interval_ns;
-                    let (mut cycle, mut missed) = (0u64, 0u64);
-                    while !stop.load(Relaxed)
-                        && (loops == 0 || cycle < loops)
-                        && deadline.is_none_or(|d| next <= d)
-                    {
-                        let w = timer.wait(&clock::SystemClock, next);
-                        let lat = w.now_ns - next;
-                        let v = lat / unit;
-                        stats.record(v, cycle);
-                        hist.saturating_record(lat);
-                        live.cycles.store(cycle + 1, Relaxed);
-                        live.min.fetch_min(v, Relaxed);
-                        live.max.fetch_max(v, Relaxed);
-                        live.act.store(v, Relaxed);
-                        live.sum.fetch_add(v, Relaxed);
-                        cycle += 1;
-                        if breaktrace.is_some_and(|b| v > b) && !brk.hit.swap(true, Relaxed) {
-                            brk.tid.store(live.tid.load(Relaxed), Relaxed);
-                            brk.value.store(v, Relaxed);
-                            stop.store(true, Relaxed);
-                        }
-                        next += interval_ns;
-                        if w.now_ns > next {
-                            let k = (w.now_ns - next) / interval_ns + 1;
-                            missed += k;
-                            next += k * interval_ns;
-                        }
-                    }
-                    drop(obtained);
-                    let cpu = pinned.map_or_else(
-                        || nix::sched::sched_getcpu().map_or(-1, |c| c as i64),
-                        |c| c as i64,
-                    );
-                    Some(ThreadResult {
-                        stats,
-                        hist,
-                        missed,
-                        cpu,
-                    })
-                })?,
-        );
-    }
-    drop(ready_tx);
-    let mut dma = false;
-    for r in ready_rx.iter().take(n) {
-        match r {
-            Ok(d) => dma |= d,
-            Err(e) => {
-                stop.store(true, Relaxed);
-                for w in workers {
-                    let _ = w.join();
-                }
-                bail!("{e}");
-            }
-        }
-    }
-    let mut out = std::io::stdout();
-    if dma {
-        writeln!(out, "# /dev/cpu_dma_latency set to 0us")?;
-    }
-    let prio = cli.priority as u32;
-    let lines = |lives: &[Live]| -> Vec<String> {
-        lives
-            .iter()
-            .zip(&plans)
-            .enumerate()
-            .map(|(i, (l, p))| live_line(l, i, prio, p.interval_us, cli.nsecs))
-            .collect()
-    };
-    let rstat = std::path::PathBuf::from(format!("/dev/shm/cyclictest{}", std::process::id()));
-    while !workers.iter().all(|w| w.is_finished()) {
-        std::thread::sleep(Duration::from_millis(100));
-        if usr1.swap(false, Relaxed) {
-            eprint!("{}", status_block(&lines(&lives)));
-        }
-        if usr2.swap(false, Relaxed) {
-            if let Err(e) = std::fs::write(&rstat, status_block(&lines(&lives))) {
-                eprintln!("jitter: SIGUSR2: writing {}: {e}", rstat.display());
-            }
-        }
-        if !cli.quiet {
-            write!(
-                out,
-                "{}\n{}\n\x1b[{}A",
-                policy_line(cli.priority),
-                lines(&lives).join("\n"),
-                n + 2
-            )?;
-            out.flush()?;
-        }
-    }
-    let _ = std::fs::remove_file(&rstat);
-    let results: Vec<ThreadResult> = workers
-        .into_iter()
-        .map(|w| {
-            w.join()
-                .map_err(|_| anyhow::anyhow!("a measuring thread panicked"))
-        })
-        .collect::<Result<Vec<_>>>()?
-        .into_iter()
-        .map(|r| r.context("a measuring thread stopped at start"))
-        .collect::<Result<_>>()?;
-    let tids: Vec<u32> = lives.iter().map(|l| l.tid.load(Relaxed) as u32).collect();
-    let final_lines: Vec<String> = results
-        .iter()
-        .zip(&plans)
-        .enumerate()
-        .map(|(i, (r, p))| r.stats.t_line(i, tids[i], prio, p.interval_us, cli.nsecs))
-        .collect();
-    if !cli.quiet {
-        write!(
-            out,
-            "{}\n{}\n",
-            policy_line(cli.priority),
-            final_lines.join("\n")
-        )?;
-    } else if buckets == 0 {
-        for l in &final_lines {
-            writeln!(out, "{l}")?;
-        }
-    }
-    if buckets > 0 {
-        let stats: Vec<&LatencyStats> = results.iter().map(|r| &r.stats).collect();
-        write!(
-            out,
-            "{}",
-            cyclic::histogram_block(&stats, cli.histofall.is_some())
-        )?;
-    }
-    if cli.breaktrace.is_some() {
-        let ids: Vec<String> = tids.iter().map(|t| format!(" {t:05}")).collect();
-        writeln!(out, "# Thread Ids:{}", ids.concat())?;
-        if brk.hit.load(Relaxed) {
-            writeln!(out, "# Break thread: {}", brk.tid.load(Relaxed))?;
-            writeln!(out, "# Break value: {}", brk.value.load(Relaxed))?;
-        }
-    }
-    out.flush()?;
-    // jitter's own figures go to standard error: standard output stays
-    // cyclictest's.
-    for (i, r) in results.iter().enumerate() {
-        let p = Percentiles::of_histogram(&r.hist);
-        eprintln!(
-            "# T:{i} percentiles (us): {}; missed periods {}; spin {}",
-            p.line(1_000.0),
-            r.missed,
-            cli.spin
-        );
-    }
-    if let Some(out) = &cli.plot {
-        let mut all = ppmd::meter::histogram();
-        for r in &results {
-            let _ = all.add(&r.hist);
-        }
-        plot_histogram(
-            out,
-            &format!(
-                "jitter: wake-up latency, {n} thread{}, -i {} us, spin {}",
-                if n == 1 { "" } else { "s" },
-                cli.interval_us,
-                cli.spin
-            ),
-            &all,
-        )?;
-    }
-    if let Some(path) = &cli.json {
-        let cmdline: Vec<String> = std::env::args().collect();
-        let threads: Vec<JsonThread> = results
-            .iter()
-            .map(|r| JsonThread {
-                stats: &r.stats,
-                cpu: r.cpu,
-            })
-            .collect();
-        let doc = cyclic::json(
-            &threads,
-            &cmdline.join(" "),
-            &start,
-            &timestamp_rfc2822(),
-            cli.nsecs,
-            buckets > 0,
-        );
-        std::fs::write(path, serde_json::to_string_pretty(&doc)? + "\n")
-            .with_context(|| format!("writing {}", path.display()))?;
-    }
-    Ok(())
-}
-
-/// Local time as cyclictest's `--json` writes it: `Mon, 23 Nov 2026 13:16:47 +0000`.
-fn timestamp_rfc2822() -> String {
-    jiff::Zoned::now()
-        .strftime("%a, %d %b %Y %H:%M:%S %z")
-        .to_string()
 }
 
 /// Live view of a running ppmd.
@@ -654,13 +290,15 @@ fn attach(cli: &Cli, name: &str) -> Result<()> {
     }
     println!("{}", attach_line(&s, unit));
     println!(
-        "# ppmd `{name}`: edge error p50 {:.3} us, p99 {:.3} us, p99.9 {:.3} us, max {:.3} us; write p99 {:.3} us; {} frames, {} late frames, {} overruns, {} late edges; spin margin {} us, spinning {:.1}%{}",
+        "# ppmd `{name}`: edge error p50 {:.3} us, p99 {:.3} us, p99.9 {:.3} us, max {:.3} us; write p99 {:.3} us; {} frames ({} aborted, {} glitched), {} late frames, {} overruns, {} late edges; spin margin {} us, spinning {:.1}%{}",
         s.total.p50 as f64 / 1e3,
         s.total.p99 as f64 / 1e3,
         s.total.p999 as f64 / 1e3,
         s.total.max as f64 / 1e3,
         s.write.p99 as f64 / 1e3,
         s.frames,
+        s.aborted_frames,
+        s.glitched_frames,
         s.late_frames,
         s.overruns,
         s.late_edges,
@@ -779,7 +417,7 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
         .rsplit_once(':')
         .filter(|(c, l)| !c.is_empty() && !l.is_empty())
         .with_context(|| format!("--capture `{spec}`: use CHIP:LINE, e.g. gpiochip0:GPIO23"))?;
-    let (_, summary, info) = ppmd::output::gpio::resolve_line(chip, line)?;
+    let (_, summary, info) = ppmd::line::gpio::resolve_line(chip, line)?;
     let req = gpiocdev::Request::builder()
         .on_chip(&summary.path)
         .with_consumer("jitter")
@@ -790,7 +428,7 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
         .with_context(|| {
             format!(
                 "requesting {} on {} for edge events",
-                ppmd::output::gpio::describe_line(&info),
+                ppmd::line::gpio::describe_line(&info),
                 summary.name
             )
         })?;
@@ -801,7 +439,7 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
         ReceiverChoice::One(r) => r,
         ReceiverChoice::Any => Receiver::EdgeTx,
     });
-    let mut as_receiver = ReceiverDecoder::new(receiver, leading);
+    let mut as_receiver = ReceiverDecoder::new(receiver, TIMED_EDGE);
     let mut read = 0usize;
     let mut frames = Vec::new();
     let mut events = 0u64;
@@ -809,7 +447,7 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
     let duration = cli.duration.unwrap_or(Duration::from_secs(5));
     eprintln!(
         "capturing {} on {} for {:?} (Ctrl-C to stop)",
-        ppmd::output::gpio::describe_line(&info),
+        ppmd::line::gpio::describe_line(&info),
         summary,
         duration
     );
@@ -893,4 +531,37 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
         )?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> Result<Cli, clap::Error> {
+        Cli::try_parse_from(std::iter::once("jitter").chain(args.iter().copied()))
+    }
+
+    #[test]
+    fn the_flags_choose_one_mode() {
+        let mode = |args: &[&str]| Mode::of(&parse(args).unwrap());
+        assert_eq!(mode(&[]), Mode::Cyclic);
+        assert_eq!(mode(&["-p", "80", "-i", "200", "-t", "2"]), Mode::Cyclic);
+        assert_eq!(mode(&["--attach", "ppm"]), Mode::Attach("ppm".into()));
+        assert_eq!(
+            mode(&["--trace", "line.trace", "--receiver", "betaflight"]),
+            Mode::Trace("line.trace".into())
+        );
+        assert_eq!(
+            mode(&["--capture", "gpiochip0:17", "--expect", "1000,1200"]),
+            Mode::Capture("gpiochip0:17".into())
+        );
+        // Two targets at once are refused, never chosen between.
+        for two in [
+            ["--attach", "ppm", "--trace", "t"],
+            ["--attach", "ppm", "--capture", "c:1"],
+            ["--trace", "t", "--capture", "c:1"],
+        ] {
+            assert!(parse(&two).is_err(), "{two:?}");
+        }
+    }
 }

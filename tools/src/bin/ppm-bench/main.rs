@@ -11,22 +11,32 @@
 //!    for each of those ways of receiving;
 //! 3. end to end: send time to the first frame that carries a command, and
 //!    whether commands that arrive at least 1 ms before a frame are in it;
-//! 4. memory and CPU of both processes at idle and at 50 Hz.
+//! 4. memory and CPU of both processes at idle and at 50 Hz;
+//! 5. late edges: follow and grid, with and without a thread of higher
+//!    SCHED_FIFO priority pinned to ppmd's CPU that busy-loops 100..500 us
+//!    at random times (`ppm-interfere`'s bursts): frames whole, aborted and glitched, frames whose
+//!    values as the line carried them differ from the frame log, and the
+//!    commands that reached the line, by the log and by decoding.
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use hdrhistogram::Histogram;
+use ppm_shared::status::StatusReply;
 use ppm_shared::time::now_ns;
 use ppm_tools::analysis::Percentiles;
+use ppm_tools::harness::{Proc, Scratch};
 use ppm_tools::plot;
 use serde_json::Value;
 use std::io::{BufRead, BufReader};
 use std::net::UdpSocket;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+mod plots;
+use plots::{plot_dir, write_plots, Plots};
 
 /// Benchmarks of ppm's input path (ingress latency, flood, end-to-end
 /// latency, memory and CPU), with the seed system's approach as baseline.
@@ -42,9 +52,18 @@ struct Cli {
     /// Commands for the end-to-end measurement (sent at 50 Hz).
     #[arg(long, default_value_t = 300)]
     e2e_count: u32,
-    /// Run only this part: ingress, flood, e2e or resources.
-    #[arg(long)]
-    only: Option<String>,
+    /// Run only this part.
+    #[arg(long, value_enum)]
+    only: Option<Part>,
+    /// Commands for the late-edge measurement (sent at 50 Hz, per run;
+    /// 1..=10000, each with values of its own).
+    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u32).range(1..=10_000))]
+    late_count: u32,
+    /// Burst lengths of the interfering thread in the late-edge
+    /// measurement, microseconds (as `ppm-interfere --burst-us` takes them).
+    #[arg(long, default_value = "100..500", value_name = "MIN..MAX",
+          value_parser = |s: &str| ppm_tools::interfere::parse_range(s, "us"))]
+    late_burst_us: (u64, u64),
     /// CPU for the pinned udp-ingress runs (SCHED_FIFO, and
     /// `ingress.busy_poll`); default: the first online CPU that is not
     /// ppmd's (`rt.cpu = "last"`). `none` leaves out these runs.
@@ -57,106 +76,20 @@ struct Cli {
     plot: Option<PathBuf>,
 }
 
-/// (quantile, value) points of a distribution known only by a few.
-type Points = Vec<(f64, f64)>;
-
-/// The latency distributions measured, kept for `--plot`.
-#[derive(Default)]
-struct Plots {
-    /// Per receiver: samples and (quantile, us) of its ingress latency,
-    /// known only as p50, p99 and max.
-    ingress: Vec<(String, u64, Points)>,
-    /// Per variant: the newest command's age at each frame start during the
-    /// flood, ns.
-    flood: Vec<(String, Histogram<u64>)>,
-    /// Per timing and rate: send to the line, ns.
-    e2e: Vec<(String, Histogram<u64>)>,
-}
-
-/// Makes `dir` for `--plot` and checks that files can be written in it,
-/// before anything is measured.
-fn plot_dir(dir: &Path) -> Result<()> {
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("--plot: cannot create the directory {}", dir.display()))?;
-    let probe = dir.join(format!(".ppm-bench-{}", std::process::id()));
-    std::fs::write(&probe, b"")
-        .with_context(|| format!("--plot: cannot write in the directory {}", dir.display()))?;
-    let _ = std::fs::remove_file(probe);
-    Ok(())
-}
-
-/// Writes the plots of what was measured to `dir` and prints their paths.
-fn write_plots(dir: &Path, plots: &Plots) -> Result<()> {
-    let mut written = Vec::new();
-    let ingress: Vec<plot::Summary> = plots
-        .ingress
-        .iter()
-        .filter(|(_, n, pts)| *n > 0 && pts.iter().all(|p| p.1.is_finite()))
-        .map(|(l, n, pts)| (l.as_str(), *n, pts.as_slice()))
-        .collect();
-    if !ingress.is_empty() {
-        let path = dir.join("ingress.svg");
-        plot::summaries_svg(
-            &path,
-            "1. ingress: kernel receive to command handed over (p50, p99, max)",
-            "us",
-            &ingress,
-        )?;
-        written.push(path);
-    }
-    for (name, title, unit, runs, scale) in [
-        (
-            "flood.svg",
-            "2. flood: newest command's age at ppmd's frame starts",
-            "ms",
-            &plots.flood,
-            1e6,
-        ),
-        (
-            "e2e.svg",
-            "3. end to end: send to the first frame carrying the command",
-            "ms",
-            &plots.e2e,
-            1e6,
-        ),
-    ] {
-        let refs: Vec<(&str, &Histogram<u64>, f64)> = runs
-            .iter()
-            .filter(|(_, h)| !h.is_empty())
-            .map(|(l, h)| (l.as_str(), h, scale))
-            .collect();
-        if refs.is_empty() {
-            continue;
-        }
-        let path = dir.join(name);
-        plot::distributions_svg(&path, title, unit, &refs)?;
-        written.push(path);
-    }
-    for (label, h) in plots.e2e.iter().filter(|(_, h)| !h.is_empty()) {
-        let p = Percentiles::of_histogram(h);
-        let path = dir.join(format!(
-            "e2e-{}hz.svg",
-            label.replace(", ", "-").replace(" Hz", "")
-        ));
-        plot::histogram_svg(
-            &path,
-            &format!("3. end to end, {label}: send to the first frame carrying the command"),
-            "ms",
-            h,
-            1e6,
-            &[
-                ("p50", p.p50 / 1e6),
-                ("p90", p.p90 / 1e6),
-                ("p99", p.p99 / 1e6),
-                ("max", p.max / 1e6),
-            ],
-        )?;
-        written.push(path);
-    }
-    for path in written {
-        println!("plot: {}", path.display());
-    }
-    Ok(())
+/// The parts of the benchmark, in the order they run.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum Part {
+    /// 1. ingress latency against the seed system's receiver.
+    Ingress,
+    /// 2. a flood of datagrams.
+    Flood,
+    /// 3. end to end, send to the line.
+    E2e,
+    /// 4. memory and CPU.
+    Resources,
+    /// 5. late edges: a held-up timing thread, with and without an
+    ///    interfering thread.
+    Late,
 }
 
 /// How udp-ingress receives in one run.
@@ -223,121 +156,60 @@ fn variants(cli: &Cli) -> Result<Vec<Variant>> {
     Ok(v)
 }
 
-/// A running program of ppm's, stopped when dropped.
-struct Running {
-    child: Child,
-}
-
-impl Running {
-    fn pid(&self) -> u32 {
-        self.child.id()
-    }
-
-    /// Resident memory in KiB.
-    fn rss_kib(&self) -> u64 {
-        std::fs::read_to_string(format!("/proc/{}/status", self.pid()))
-            .ok()
-            .and_then(|s| {
-                s.lines()
-                    .find(|l| l.starts_with("VmRSS:"))
-                    .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
-            })
-            .unwrap_or(0)
-    }
-
-    /// CPU time used so far (user + system), seconds.
-    fn cpu_s(&self) -> f64 {
-        let stat =
-            std::fs::read_to_string(format!("/proc/{}/stat", self.pid())).unwrap_or_default();
-        let after = stat.rsplit(')').next().unwrap_or("");
-        let f: Vec<u64> = after
-            .split_whitespace()
-            .filter_map(|x| x.parse().ok())
-            .collect();
-        let ticks = nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)
-            .ok()
-            .flatten()
-            .unwrap_or(100) as f64;
-        // Fields 14 and 15 of /proc/PID/stat (11 and 12 after the state).
-        (f.get(10).unwrap_or(&0) + f.get(11).unwrap_or(&0)) as f64 / ticks
-    }
-
-    fn stop(mut self) {
-        let _ = nix::sys::signal::kill(
-            nix::unistd::Pid::from_raw(self.pid() as i32),
-            nix::sys::signal::Signal::SIGTERM,
-        );
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for Running {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// A scratch directory with a config for one setup.
+/// A scratch directory and port with a config for one setup.
 struct Setup {
-    dir: PathBuf,
-    port: u16,
+    scratch: Scratch,
     bins: PathBuf,
+}
+
+impl std::ops::Deref for Setup {
+    type Target = Scratch;
+
+    fn deref(&self) -> &Scratch {
+        &self.scratch
+    }
 }
 
 impl Setup {
     /// A setup whose `[ingress]` section gets the lines `ingress` too.
     fn new(label: &str, ingress: &str) -> Result<Setup> {
-        let dir = std::env::temp_dir().join(format!("ppm-bench-{label}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir)?;
-        let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+        let scratch = Scratch::new(&format!("ppm-bench-{label}-{}", std::process::id()))?;
         let config = format!(
-            "name = \"bench{label}\"\n[ingress]\nlisten = \"127.0.0.1:{port}\"\nrecv_buffer_bytes = 1048576\n{ingress}[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n",
-            dir.join("ipc").display()
+            "name = \"bench{label}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\nrecv_buffer_bytes = 1048576\n{ingress}[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n",
+            scratch.port,
+            scratch.dir.join("ipc").display()
         );
-        std::fs::write(dir.join("ppm.toml"), config)?;
+        std::fs::write(scratch.dir.join("ppm.toml"), config)?;
         let bins = std::env::current_exe()?
             .parent()
             .context("binary directory")?
             .to_owned();
-        Ok(Setup { dir, port, bins })
+        Ok(Setup { scratch, bins })
     }
 
-    fn spawn(&self, bin: &str, extra: &[&str]) -> Result<Running> {
-        let log = std::fs::File::create(self.dir.join(format!("{bin}.log")))?;
-        let child = Command::new(self.bins.join(bin))
-            .arg("--config")
+    /// Starts `bin` with this setup's config and `extra`, its stderr in
+    /// `<bin>.log`, and waits until it has started.
+    fn spawn(&self, bin: &str, extra: &[&str]) -> Result<Proc> {
+        let mut cmd = Command::new(self.bins.join(bin));
+        cmd.arg("--config")
             .arg(self.dir.join("ppm.toml"))
             .args(extra)
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
+            .stdout(Stdio::null());
+        let r = Proc::start(cmd, self.dir.join(format!("{bin}.log")))
             .with_context(|| format!("starting {} (build with `cargo build --release`)", bin))?;
-        let r = Running { child };
-        let log_path = self.dir.join(format!("{bin}.log"));
         let needle = if bin == "ppmd" {
             "commands from"
         } else {
             "listening on"
         };
-        let end = Instant::now() + Duration::from_secs(20);
-        while !std::fs::read_to_string(&log_path)
-            .unwrap_or_default()
-            .contains(needle)
-        {
-            if Instant::now() > end {
-                bail!(
-                    "{bin} did not start: {}",
-                    std::fs::read_to_string(&log_path)?
-                );
-            }
-            std::thread::sleep(Duration::from_millis(20));
+        if !r.log_shows(needle, Duration::from_secs(20)) {
+            bail!("{bin} did not start: {}", std::fs::read_to_string(&r.log)?);
         }
         Ok(r)
     }
 
-    fn status(&self) -> Result<Value> {
+    /// Asks this setup's udp-ingress for its status.
+    fn status(&self) -> Result<StatusReply> {
         let s = UdpSocket::bind("127.0.0.1:0")?;
         s.set_read_timeout(Some(Duration::from_secs(2)))?;
         s.send_to(
@@ -349,12 +221,6 @@ impl Setup {
             .recv(&mut buf)
             .context("no status reply from udp-ingress")?;
         Ok(serde_json::from_slice(&buf[..n])?)
-    }
-}
-
-impl Drop for Setup {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.dir);
     }
 }
 
@@ -399,7 +265,7 @@ fn degraded_mark(setup: &Setup, bin: &str) -> &'static str {
 
 /// Latency of one udp-ingress variant under the latency traffic: the row
 /// label and its status reply.
-fn ingress_run(cli: &Cli, v: &Variant) -> Result<(String, Value)> {
+fn ingress_run(cli: &Cli, v: &Variant) -> Result<(String, StatusReply)> {
     let setup = Setup::new("lat", &v.ingress)?;
     let ingress = setup.spawn("udp-ingress", &[])?;
     paced(setup.port, cli.latency_count, 1000.0, |i| {
@@ -407,7 +273,7 @@ fn ingress_run(cli: &Cli, v: &Variant) -> Result<(String, Value)> {
     })?;
     std::thread::sleep(Duration::from_millis(200));
     let st = setup.status()?;
-    ingress.stop();
+    ingress.terminate();
     Ok((
         format!("{}{}", v.label, degraded_mark(&setup, "udp-ingress")),
         st,
@@ -470,15 +336,15 @@ fn ingress_latency(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result
         "receiver", "count", "superseded", "p50 us", "p99 us", "max us"
     );
     for (label, st) in &ours {
-        let l = &st["publish_latency_us"];
+        let l = &st.publish_latency_us;
         println!(
             "{:<44} {:>8} {:>10} {:>10} {:>10} {:>10}",
             label,
-            count(&l["count"]),
-            count(&st["datagrams"]["superseded"]),
-            us(f(&l["p50"])),
-            us(f(&l["p99"])),
-            us(f(&l["max"]))
+            l.count,
+            st.datagrams.superseded,
+            us(l.p50),
+            us(l.p99),
+            us(l.max)
         );
     }
     println!(
@@ -490,40 +356,31 @@ fn ingress_latency(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result
         us(f(&base["p99_us"])),
         us(f(&base["max_us"]))
     );
-    let superseded: u64 = ours
-        .iter()
-        .filter_map(|(_, st)| st["datagrams"]["superseded"].as_u64())
-        .sum();
+    let superseded: u64 = ours.iter().map(|(_, st)| st.datagrams.superseded).sum();
     if superseded > 0 {
         println!(
             "(superseded: commands replaced by a newer one before being handed over; their latency is not in the figures)"
         );
     }
-    let summary = |count: &Value, p50: &Value, p99: &Value, max: &Value| {
-        let points = vec![(0.5, f(p50)), (0.99, f(p99)), (1.0, f(max))];
-        (count.as_u64().unwrap_or(0), points)
-    };
+    let points = |p50: f64, p99: f64, max: f64| vec![(0.5, p50), (0.99, p99), (1.0, max)];
     for (label, st) in &ours {
-        let l = &st["publish_latency_us"];
-        let (n, points) = summary(&l["count"], &l["p50"], &l["p99"], &l["max"]);
-        plots.ingress.push((label.clone(), n, points));
+        let l = &st.publish_latency_us;
+        plots
+            .ingress
+            .push((label.clone(), l.count, points(l.p50, l.p99, l.max)));
     }
-    let (n, points) = summary(
-        &base["count"],
-        &base["p50_us"],
-        &base["p99_us"],
-        &base["max_us"],
-    );
-    plots
-        .ingress
-        .push(("seed-style Python (blocking, pipe)".into(), n, points));
+    plots.ingress.push((
+        "seed-style Python (blocking, pipe)".into(),
+        base["count"].as_u64().unwrap_or(0),
+        points(f(&base["p50_us"]), f(&base["p99_us"]), f(&base["max_us"])),
+    ));
     for (label, st) in &ours {
-        let l = &st["publish_latency_us"];
+        let l = &st.publish_latency_us;
         println!(
             "ratio Python / {label}: p50 {:.1}x, p99 {:.1}x, max {:.1}x",
-            f(&base["p50_us"]) / f(&l["p50"]),
-            f(&base["p99_us"]) / f(&l["p99"]),
-            f(&base["max_us"]) / f(&l["max"])
+            f(&base["p50_us"]) / l.p50,
+            f(&base["p99_us"]) / l.p99,
+            f(&base["max_us"]) / l.max
         );
     }
     Ok(())
@@ -594,8 +451,8 @@ fn flood_run(cli: &Cli, v: &Variant, plots: &mut Plots) -> Result<()> {
         format!("[{}]", 1000 + i).into_bytes()
     })?;
     let calm = setup.status()?;
-    let rss_before = ingress.rss_kib();
-    let received_before = calm["datagrams"]["received"].as_u64().unwrap_or(0);
+    let rss_before = ingress.try_rss_kib().unwrap_or(0);
+    let received_before = calm.datagrams.received;
     let stop = Arc::new(AtomicBool::new(false));
     let sent = Arc::new(AtomicU64::new(0));
     let flood_start = now_ns();
@@ -627,11 +484,11 @@ fn flood_run(cli: &Cli, v: &Variant, plots: &mut Plots) -> Result<()> {
     let calm_sent = paced(setup.port, 20, 50.0, |_| b"[1777, 1333]".to_vec())?;
     std::thread::sleep(Duration::from_millis(100));
     let after = setup.status()?;
-    let rss_after = ingress.rss_kib();
+    let rss_after = ingress.try_rss_kib().unwrap_or(0);
     println!("-- {}{}", v.label, degraded_mark(&setup, "udp-ingress"));
     let secs = (flood_end - flood_start) as f64 / 1e9;
-    let received = (after["datagrams"]["received"].as_u64().unwrap_or(0) - received_before)
-        .saturating_sub(calm_sent.len() as u64);
+    let received =
+        (after.datagrams.received - received_before).saturating_sub(calm_sent.len() as u64);
     let sent = sent.load(Relaxed);
     let mut ages = frame_ages(&log, flood_start + 50_000_000, flood_end);
     plots
@@ -658,15 +515,17 @@ fn flood_run(cli: &Cli, v: &Variant, plots: &mut Plots) -> Result<()> {
         None => println!("the calm command after the flood never reached the line"),
     }
     println!("udp-ingress memory: {rss_before} KiB before, {rss_after} KiB after");
-    let p = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+    let edge_error = |st: &StatusReply| st.ppmd.as_ref().map(|p| p.edge_error_us);
+    // As JSON writes them (`null` without a snapshot), as this line always had them.
+    let json = |v: Option<f64>| serde_json::to_string(&v).unwrap_or_default();
     println!(
         "ppmd edge error p99 since start: {} us before the flood, {} us after it (max {} us)",
-        calm["ppmd"]["edge_error_us"]["p99"],
-        after["ppmd"]["edge_error_us"]["p99"],
-        p(&after["ppmd"]["edge_error_us"]["max"])
+        json(edge_error(&calm).map(|e| e.p99)),
+        json(edge_error(&after).map(|e| e.p99)),
+        edge_error(&after).map_or(f64::NAN, |e| e.max)
     );
-    ingress.stop();
-    ppmd.stop();
+    ingress.terminate();
+    ppmd.terminate();
     Ok(())
 }
 
@@ -709,8 +568,8 @@ fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
     })?;
     std::thread::sleep(Duration::from_millis(100));
     let status = setup.status()?;
-    ingress.stop();
-    ppmd.stop();
+    ingress.terminate();
+    ppmd.terminate();
     let f = std::fs::File::open(&trace)?;
     let t = ppm_shared::trace::Trace::read(BufReader::new(f))?;
     // Every emitted frame: when its first edge was written, and which
@@ -723,6 +582,9 @@ fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
     let frames: Vec<(u64, u32)> = t
         .decode(false)
         .iter()
+        // A frame aborted at a late edge before its second channel carries
+        // no command.
+        .filter(|f| f.channels_us().len() >= 2)
         .map(|f| {
             let c = f.channels_us();
             let start = written.get(&f.start_ns).copied().unwrap_or(f.start_ns);
@@ -744,7 +606,7 @@ fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
         })
         .count();
     Ok(E2e {
-        ingress_superseded: status["datagrams"]["superseded"].as_u64().unwrap_or(0),
+        ingress_superseded: status.datagrams.superseded,
         missed: sent.len() - latency.len(),
         hist: plot::histogram_of(&latency),
         latency: Percentiles::of(&mut latency),
@@ -812,6 +674,202 @@ fn e2e(cli: &Cli, plots: &mut Plots) -> Result<()> {
     Ok(())
 }
 
+/// One late-edge run: what ppmd logged and what the line carried.
+struct LateRun {
+    rows: usize,
+    whole: usize,
+    aborted: usize,
+    glitched: usize,
+    /// Frames EdgeTX reads (from the times the edges were written) whose
+    /// values differ from the frame log's by more than its 1 us truncation.
+    differ: usize,
+    /// Largest distance of a value EdgeTX reads from its command, us.
+    max_off_us: u64,
+    /// Commands found in the frame log and on the line.
+    by_log: usize,
+    by_line: usize,
+    bursts: u64,
+}
+
+/// Command `i`'s first two channels, 10 us apart from command to command
+/// (so a value read a few us off still names its command); the others are
+/// the defaults.
+fn late_code(i: u64) -> [u64; 2] {
+    [1000 + 10 * (i % 100), 1000 + 10 * ((i / 100) % 100)]
+}
+
+/// The command whose [`late_code`] a frame read from the line carries,
+/// from its first two values alone (not from the frame log), each to the
+/// nearest 10 us.
+fn late_decode(values_us: &[u64]) -> Option<u64> {
+    let step = |v: u64| {
+        (v + 5)
+            .checked_sub(1000)
+            .map(|d| d / 10)
+            .filter(|&d| d < 100)
+    };
+    Some(step(*values_us.first()?)? + 100 * step(*values_us.get(1)?)?)
+}
+
+fn late_run(
+    timing: &str,
+    interfering: bool,
+    bursts: (u64, u64),
+    count: u32,
+) -> Result<Option<LateRun>> {
+    use ppm_shared::receiver::Receiver;
+    let setup = Setup::new(&format!("late-{timing}-{interfering}"), "")?;
+    let trace = setup.dir.join("line.trace");
+    let log = setup.dir.join("frames.jsonl");
+    let ppmd = setup.spawn(
+        "ppmd",
+        &[
+            "--output",
+            &format!("sim:{}", trace.display()),
+            "--frame-log",
+            log.to_str().unwrap(),
+            "--timing",
+            timing,
+        ],
+    )?;
+    let ingress = setup.spawn("udp-ingress", &[])?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let thread = if interfering {
+        // ppmd's defaults: `rt.cpu = "last"`, `rt.priority`.
+        let cpu =
+            ppm_shared::sched::resolve_rt_cpu(ppm_shared::config::CpuChoice::Last).expect("a CPU");
+        let priority = ppm_shared::config::Config::default().rt.priority + 1;
+        let plan = ppm_tools::interfere::Plan {
+            burst_ns: bursts,
+            gap_ns: (5_000_000, 40_000_000),
+            seed: now_ns(),
+        };
+        match ppm_tools::interfere::spawn(cpu, priority, plan, stop.clone()) {
+            Ok(t) => Some(t),
+            Err(e) => {
+                println!("  (no interfering thread: {e:#})");
+                return Ok(None);
+            }
+        }
+    } else {
+        None
+    };
+    paced(setup.port, count, 50.0, |i| {
+        let [a, b] = late_code(i as u64);
+        format!("[{a}, {b}]").into_bytes()
+    })?;
+    stop.store(true, Relaxed);
+    let bursts = thread.map_or(0, |t| t.join().map_or(0, |b| b.len() as u64));
+    std::thread::sleep(Duration::from_millis(100));
+    ingress.terminate();
+    ppmd.terminate();
+    let rows: Vec<Value> = frame_records(&log).collect();
+    let status = |r: &Value| r["status"].as_str().unwrap_or("").to_string();
+    let values = |r: &Value| -> Vec<f64> {
+        r["ch_us"]
+            .as_array()
+            .map(|a| a.iter().filter_map(Value::as_f64).collect())
+            .unwrap_or_default()
+    };
+    // A command reached the line when a frame carried its first two
+    // values (udp-ingress numbers commands from 1, in the order sent).
+    let carried = |r: &Value| r["ingress_seq"].as_u64().filter(|_| values(r).len() >= 2);
+    let by_log: std::collections::BTreeSet<u64> = rows.iter().filter_map(carried).collect();
+    let f = std::fs::File::open(&trace)?;
+    let t = ppm_shared::trace::Trace::read(BufReader::new(f))?;
+    let read = t.decode_as(Receiver::EdgeTx, true);
+    let (mut differ, mut max_off_us) = (0, 0);
+    let mut by_line = std::collections::BTreeSet::new();
+    for f in &read {
+        let v = f.channels_us();
+        let row = rows
+            .iter()
+            .rev()
+            .find(|r| r["mono_ns"].as_u64().is_some_and(|s| s <= f.start_ns));
+        let logged = row.map(values).unwrap_or_default();
+        if logged.len() != v.len()
+            || v.iter()
+                .zip(&logged)
+                .any(|(a, b)| (*a as f64 - b).abs() > 1.0)
+        {
+            differ += 1;
+        }
+        // udp-ingress numbers commands from 1, in the order sent.
+        if let Some(i) = late_decode(&v) {
+            by_line.insert(i + 1);
+        }
+        // The command the row carries (udp-ingress numbers them from 1, in
+        // the order sent) and the defaults.
+        if let Some(i) = row.and_then(|r| r["ingress_seq"].as_u64()) {
+            let [a, b] = late_code(i - 1);
+            let want = [a, b, 1000, 1500, 1500, 1500, 1500, 1500];
+            for (got, w) in v.iter().zip(want) {
+                max_off_us = max_off_us.max(got.abs_diff(w));
+            }
+        }
+    }
+    Ok(Some(LateRun {
+        rows: rows.len(),
+        whole: rows.iter().filter(|r| status(r) == "whole").count(),
+        aborted: rows.iter().filter(|r| status(r) == "aborted").count(),
+        glitched: rows.iter().filter(|r| r["glitched"] == true).count(),
+        differ,
+        max_off_us,
+        by_log: by_log.len(),
+        by_line: by_line.len(),
+        bursts,
+    }))
+}
+
+fn late(cli: &Cli) -> Result<()> {
+    println!(
+        "== 5. late edges: {} commands at 50 Hz; with interference, a thread of higher SCHED_FIFO priority on ppmd's CPU busy for {}..{} us every 5..40 ms (as ppm-interfere does)",
+        cli.late_count,
+        cli.late_burst_us.0 / 1_000,
+        cli.late_burst_us.1 / 1_000
+    );
+    println!(
+        "{:<8} {:<12} {:>6} {:>6} {:>8} {:>9} {:>7} {:>8} {:>9} {:>9}",
+        "timing",
+        "interference",
+        "frames",
+        "whole",
+        "aborted",
+        "glitched",
+        "differ",
+        "off us",
+        "cmds log",
+        "cmds line"
+    );
+    for timing in ["grid", "follow"] {
+        for interfering in [false, true] {
+            let Some(r) = late_run(timing, interfering, cli.late_burst_us, cli.late_count)? else {
+                continue;
+            };
+            println!(
+                "{timing:<8} {:<12} {:>6} {:>6} {:>8} {:>9} {:>7} {:>8} {:>9} {:>9}",
+                if interfering {
+                    format!("{} bursts", r.bursts)
+                } else {
+                    "none".into()
+                },
+                r.rows,
+                r.whole,
+                r.aborted,
+                r.glitched,
+                r.differ,
+                r.max_off_us,
+                format!("{}/{}", r.by_log, cli.late_count),
+                format!("{}/{}", r.by_line, cli.late_count),
+            );
+        }
+    }
+    println!(
+        "(differ: frames EdgeTX reads from the times the edges were written whose values differ from the frame log's by more than 1 us; off us: the largest distance of a value EdgeTX reads from its command; cmds: commands found in the frame log and on the line, decoded as EdgeTX does)"
+    );
+    Ok(())
+}
+
 fn resources() -> Result<()> {
     println!("== 4. memory and CPU (3 s idle, then 3 s at 50 Hz), grid and follow timing");
     for timing in ["grid", "follow"] {
@@ -831,28 +889,23 @@ fn resources() -> Result<()> {
             println!(
                 "{timing:<7} {label:<6} ppmd: {:5.1}% CPU, {:6} KiB RSS   udp-ingress: {:5.1}% CPU, {:6} KiB RSS",
                 (ppmd.cpu_s() - c0p) * 100.0 / wall,
-                ppmd.rss_kib(),
+                ppmd.try_rss_kib().unwrap_or(0),
                 (ingress.cpu_s() - c0i) * 100.0 / wall,
-                ingress.rss_kib()
+                ingress.try_rss_kib().unwrap_or(0)
             );
             Ok(())
         };
         measure("idle", false)?;
         measure("50 Hz", true)?;
-        ingress.stop();
-        ppmd.stop();
+        ingress.terminate();
+        ppmd.terminate();
     }
     Ok(())
 }
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
-    let only = cli.only.as_deref();
-    if let Some(o) = only {
-        if !["ingress", "flood", "e2e", "resources"].contains(&o) {
-            bail!("--only takes ingress, flood, e2e or resources");
-        }
-    }
+    let runs = |p: Part| cli.only.is_none_or(|o| o == p);
     if let Some(dir) = &cli.plot {
         plot_dir(dir)?;
     }
@@ -862,20 +915,44 @@ fn main() -> Result<()> {
     );
     let variants = variants(&cli)?;
     let mut plots = Plots::default();
-    if only.is_none_or(|o| o == "ingress") {
+    if runs(Part::Ingress) {
         ingress_latency(&cli, &variants, &mut plots)?;
     }
-    if only.is_none_or(|o| o == "flood") {
+    if runs(Part::Flood) {
         flood(&cli, &variants, &mut plots)?;
     }
-    if only.is_none_or(|o| o == "e2e") {
+    if runs(Part::E2e) {
         e2e(&cli, &mut plots)?;
     }
-    if only.is_none_or(|o| o == "resources") {
+    if runs(Part::Resources) {
         resources()?;
+    }
+    if runs(Part::Late) {
+        late(&cli)?;
     }
     if let Some(dir) = &cli.plot {
         write_plots(dir, &plots)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every command's values name it again when read up to 4 us off, and
+    /// values outside the code name none.
+    #[test]
+    fn late_codes_read_a_few_us_off_name_their_command() {
+        for i in 0..10_000 {
+            let [a, b] = late_code(i);
+            for (da, db) in [(0, 0), (4, 0), (0, 4), (4, 4)] {
+                assert_eq!(late_decode(&[a + da, b + db, 1000]), Some(i), "{i}");
+                assert_eq!(late_decode(&[a - da, b - db]), Some(i), "{i}");
+            }
+        }
+        assert_eq!(late_decode(&[1500]), None);
+        assert_eq!(late_decode(&[994, 1000]), None);
+        assert_eq!(late_decode(&[1000, 1995]), None);
+    }
 }

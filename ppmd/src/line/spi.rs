@@ -1,4 +1,4 @@
-//! The SPI output: each frame is one transfer on a spidev device's MOSI,
+//! The SPI line: each frame is one transfer on a spidev device's MOSI,
 //! its edges placed by the SPI bit clock.
 //!
 //! A software-timed GPIO edge is as late as the interrupt that landed in the
@@ -22,9 +22,8 @@
 //! longest frame there can be: no allocation in the loop. The ioctl returns
 //! when the frame's pulses are out, before the next frame is decided.
 
-use super::{FrameEdge, Output, OutputError};
+use super::{FrameEdge, FrameLine, LineError, WholeFrame};
 use ppm_shared::frame::Level;
-use ppm_shared::trace::TraceEdge;
 use spidev::{SpiModeFlags, Spidev, SpidevOptions, SpidevTransfer};
 use std::path::{Path, PathBuf};
 
@@ -34,11 +33,11 @@ pub const SPIDEV_DEFAULT_BUFSIZ: usize = 4096;
 /// Where spidev says its per-transfer limit.
 const BUFSIZ_PARAM: &str = "/sys/module/spidev/parameters/bufsiz";
 
-/// Why an SPI output could not be opened.
+/// Why an SPI line could not be opened.
 #[derive(Debug, thiserror::Error)]
 pub enum SpiError {
-    /// The device cannot be opened or configured.
-    #[error("{path}: {what}: {source}")]
+    /// The device cannot be opened or configured (why: its source).
+    #[error("spi:{path}: {what}")]
     Device {
         path: PathBuf,
         what: &'static str,
@@ -47,7 +46,7 @@ pub enum SpiError {
     },
     /// The longest frame does not fit in one transfer.
     #[error(
-        "{path} at {hz} Hz: the longest frame ({longest_us} us, the lead-in pulse after silence included) takes {bytes} bytes, more than spidev's {bufsiz}-byte transfer buffer ({BUFSIZ_PARAM}): lower ppmd.spi_hz to {fits_hz} or less, or raise the buffer with spidev.bufsiz=65536 on the kernel command line (or `options spidev bufsiz=65536` in /etc/modprobe.d/spidev.conf)"
+        "spi:{path} at {hz} Hz: the longest frame ({longest_us} us, the lead-in pulse after silence included) takes {bytes} bytes, more than spidev's {bufsiz}-byte transfer buffer ({BUFSIZ_PARAM}): lower ppmd.spi_hz to {fits_hz} or less, or raise the buffer with spidev.bufsiz=65536 on the kernel command line (or `options spidev bufsiz=65536` in /etc/modprobe.d/spidev.conf)"
     )]
     TooLong {
         path: PathBuf,
@@ -109,14 +108,14 @@ fn set_bits(out: &mut [u8], from: usize, to: usize) {
 }
 
 /// A spidev device opened for PPM frames.
-pub struct SpiOutput {
+pub struct SpiLine {
     dev: Spidev,
     hz: u32,
     buf: Vec<u8>,
     description: String,
 }
 
-impl std::fmt::Debug for SpiOutput {
+impl std::fmt::Debug for SpiLine {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(&self.description)
     }
@@ -150,10 +149,10 @@ pub fn check_fits(path: &Path, hz: u32, longest_ns: u64, bufsiz: usize) -> Resul
     })
 }
 
-impl SpiOutput {
+impl SpiLine {
     /// Opens `path` (mode 0, 8-bit words, MSB first, `hz`), checks that a
     /// frame of `longest_ns` fits in one transfer, and leaves MOSI low.
-    pub fn open(path: &Path, hz: u32, longest_ns: u64) -> Result<SpiOutput, SpiError> {
+    pub fn open(path: &Path, hz: u32, longest_ns: u64) -> Result<SpiLine, SpiError> {
         let bytes = check_fits(path, hz, longest_ns, spidev_bufsiz())?;
         let device = |what, source| SpiError::Device {
             path: path.to_owned(),
@@ -183,7 +182,7 @@ impl SpiOutput {
                 .build(),
         )
         .map_err(|e| device("setting mode 0, 8 bits, the rate", e))?;
-        let mut out = SpiOutput {
+        let mut out = SpiLine {
             dev,
             hz,
             buf: vec![0; bytes],
@@ -200,13 +199,18 @@ impl SpiOutput {
     }
 }
 
-impl Output for SpiOutput {
-    fn write(&mut self, _edge: &TraceEdge) -> Result<(), OutputError> {
-        // Frames go whole through write_frame.
-        Err(OutputError::Write(nix::errno::Errno::EINVAL))
+impl FrameLine for SpiLine {
+    fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
+        let WholeFrame::Ppm(edges) = frame;
+        let len = encode(edges, self.hz, &mut self.buf).ok_or(LineError::FrameTooLong)?;
+        let mut t = SpidevTransfer::write(&self.buf[..len]);
+        t.speed_hz = self.hz;
+        self.dev
+            .transfer(&mut t)
+            .map_err(|e| LineError::Write(errno_of(&e)))
     }
 
-    fn park(&mut self, level: Level) -> Result<(), OutputError> {
+    fn park(&mut self, level: Level) -> Result<(), LineError> {
         // One byte at the level: MOSI stays there (or drops to 0, the same
         // for low) after the transfer.
         let byte = [if level == Level::High { 0xff } else { 0 }];
@@ -214,20 +218,7 @@ impl Output for SpiOutput {
         t.speed_hz = self.hz;
         self.dev
             .transfer(&mut t)
-            .map_err(|e| OutputError::Write(errno_of(&e)))
-    }
-
-    fn whole_frames(&self) -> bool {
-        true
-    }
-
-    fn write_frame(&mut self, edges: &[FrameEdge]) -> Result<(), OutputError> {
-        let len = encode(edges, self.hz, &mut self.buf).ok_or(OutputError::FrameTooLong)?;
-        let mut t = SpidevTransfer::write(&self.buf[..len]);
-        t.speed_hz = self.hz;
-        self.dev
-            .transfer(&mut t)
-            .map_err(|e| OutputError::Write(errno_of(&e)))
+            .map_err(|e| LineError::Write(errno_of(&e)))
     }
 }
 
@@ -354,9 +345,9 @@ mod tests {
 
     #[test]
     fn a_path_that_is_not_a_spidev_device_is_refused() {
-        let e = SpiOutput::open(Path::new("/dev/null"), 1_000_000, 1_000_000).unwrap_err();
+        let e = SpiLine::open(Path::new("/dev/null"), 1_000_000, 1_000_000).unwrap_err();
         assert!(e.to_string().contains("/dev/null"), "{e}");
-        let e = SpiOutput::open(Path::new("/nonexistent/spidev9.9"), 1_000_000, 1_000_000)
+        let e = SpiLine::open(Path::new("/nonexistent/spidev9.9"), 1_000_000, 1_000_000)
             .unwrap_err()
             .to_string();
         assert!(
@@ -364,9 +355,8 @@ mod tests {
             "{e}"
         );
         let dir = std::env::temp_dir();
-        let e = SpiOutput::open(&dir, 1_000_000, 1_000_000)
-            .unwrap_err()
-            .to_string();
+        let e = SpiLine::open(&dir, 1_000_000, 1_000_000).unwrap_err();
+        let e = ppm_shared::logging::Chain(&e).to_string();
         assert!(e.contains("not a character device"), "{e}");
     }
 }

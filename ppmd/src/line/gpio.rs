@@ -1,8 +1,8 @@
-//! The GPIO output: one line through the Linux GPIO character device (uAPI v2).
+//! GPIO lines: one line (or a bank of lines) through the Linux GPIO character device (uAPI v2).
 //!
 //! [`open`] resolves `gpio:CHIP:LINE` to a chip and a line offset, requests
 //! the line as an output (consumer `ppmd`) at the idle level and returns a
-//! [`GpioOutput`]. Every [`Output::write`] is then one
+//! [`GpioLine`]. Every [`Line::write`] is then one
 //! `GPIO_V2_LINE_SET_VALUES` ioctl on the request's file descriptor, with no
 //! allocation, logging or lock.
 //!
@@ -14,7 +14,7 @@
 //! [`find_line`] work on lists of [`ChipSummary`] and line infos, so they are
 //! testable without GPIO hardware.
 
-use super::{Bank, Output, OutputError};
+use super::{Bank, Line, LineError};
 use gpiocdev::line::{Info as LineInfo, Offset, Value, Values};
 use gpiocdev::{Chip, Request};
 use nix::errno::Errno;
@@ -31,22 +31,22 @@ const NAMES_SHOWN: usize = 8;
 
 /// A GPIO line requested as an output. The line is set back to the idle
 /// level given to [`open`] when this is dropped.
-pub struct GpioOutput {
+pub struct GpioLine {
     request: Request,
     idle: Level,
     description: String,
 }
 
-impl fmt::Debug for GpioOutput {
+impl fmt::Debug for GpioLine {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("GpioOutput")
+        f.debug_struct("GpioLine")
             .field("line", &self.description)
             .field("idle", &self.idle)
             .finish_non_exhaustive()
     }
 }
 
-impl GpioOutput {
+impl GpioLine {
     /// The line and chip, for logs: `GPIO18 (offset 18) on /dev/gpiochip0
     /// (gpiochip0, pinctrl-bcm2711, 58 lines)`.
     pub fn description(&self) -> &str {
@@ -58,26 +58,26 @@ impl GpioOutput {
         self.idle
     }
 
-    fn set(&self, level: Level) -> Result<(), OutputError> {
+    fn set(&self, level: Level) -> Result<(), LineError> {
         self.request
             .set_lone_value(value_of(level))
-            .map_err(|e| OutputError::Write(write_errno(&e)))
+            .map_err(|e| LineError::Write(write_errno(&e)))
     }
 }
 
-impl Output for GpioOutput {
+impl Line for GpioLine {
     /// One `GPIO_V2_LINE_SET_VALUES` ioctl: gpiocdev's `set_lone_value`
     /// builds the value mask on the stack and neither allocates nor locks.
-    fn write(&mut self, edge: &TraceEdge) -> Result<(), OutputError> {
+    fn write(&mut self, edge: &TraceEdge) -> Result<(), LineError> {
         self.set(edge.level)
     }
 
-    fn park(&mut self, level: Level) -> Result<(), OutputError> {
+    fn park(&mut self, level: Level) -> Result<(), LineError> {
         self.set(level)
     }
 }
 
-impl Drop for GpioOutput {
+impl Drop for GpioLine {
     fn drop(&mut self) {
         // After release the kernel keeps or resets the line at its driver's
         // whim; the transmitter must see the idle level, so set it first.
@@ -544,7 +544,7 @@ fn path_error(spec: &str, path: &Path, e: &gpiocdev::Error) -> GpioError {
 /// CHIP is a path (`/dev/gpiochip0`), a chip name (`gpiochip0` or `0`) or a
 /// chip label (`pinctrl-bcm2711`); LINE is an offset (`18`) or a line name
 /// (`GPIO18`).
-pub fn open(chip: &str, line: &str, idle: Level) -> Result<GpioOutput, GpioError> {
+pub fn open(chip: &str, line: &str, idle: Level) -> Result<GpioLine, GpioError> {
     let (handle, summary, info) = resolve_line(chip, line)?;
     let offset = info.offset;
     let title = line_title(&info);
@@ -556,7 +556,7 @@ pub fn open(chip: &str, line: &str, idle: Level) -> Result<GpioOutput, GpioError
         .as_output(value_of(idle))
         .request()
         .map_err(|e| request_error(&handle, &summary, std::slice::from_ref(&info), &e))?;
-    Ok(GpioOutput {
+    Ok(GpioLine {
         request,
         idle,
         description: format!("{title} on {summary}"),
@@ -591,20 +591,20 @@ impl GpioBank {
     }
 
     /// Sets the value set to `mask`'s lines at `levels` and writes it.
-    fn set(&mut self, mask: u64, levels: u64) -> Result<(), OutputError> {
+    fn set(&mut self, mask: u64, levels: u64) -> Result<(), LineError> {
         fill_values(&mut self.values, &self.offsets, mask, levels);
         self.request
             .set_values(&self.values)
-            .map_err(|e| OutputError::Write(write_errno(&e)))
+            .map_err(|e| LineError::Write(write_errno(&e)))
     }
 }
 
 impl Bank for GpioBank {
-    fn write(&mut self, _scheduled_ns: u64, mask: u64, levels: u64) -> Result<(), OutputError> {
+    fn write(&mut self, _scheduled_ns: u64, mask: u64, levels: u64) -> Result<(), LineError> {
         self.set(mask, levels)
     }
 
-    fn park(&mut self, bit: u32, level: Level) -> Result<(), OutputError> {
+    fn park(&mut self, bit: u32, level: Level) -> Result<(), LineError> {
         self.set(1 << bit, (level == Level::High) as u64 * (1 << bit))
     }
 }
@@ -747,291 +747,4 @@ pub fn describe_line(info: &LineInfo) -> String {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn chip(n: u32, label: &str, lines: u32) -> ChipSummary {
-        ChipSummary {
-            path: format!("/dev/gpiochip{n}").into(),
-            name: format!("gpiochip{n}"),
-            label: label.into(),
-            num_lines: lines,
-            unreadable: None,
-        }
-    }
-
-    fn pi4() -> Vec<ChipSummary> {
-        vec![
-            chip(0, "pinctrl-bcm2711", 58),
-            chip(1, "raspberrypi-exp-gpio", 8),
-        ]
-    }
-
-    fn line(offset: Offset, name: &str) -> LineInfo {
-        LineInfo {
-            offset,
-            name: name.into(),
-            ..Default::default()
-        }
-    }
-
-    fn bcm_lines() -> Vec<LineInfo> {
-        (0..58).map(|o| line(o, &format!("GPIO{o}"))).collect()
-    }
-
-    #[test]
-    fn gpio_chip_spec_parses_path_name_label_and_number() {
-        assert_eq!(
-            ChipSpec::parse("/dev/gpiochip0"),
-            ChipSpec::Path("/dev/gpiochip0".into())
-        );
-        assert_eq!(
-            ChipSpec::parse("gpiochip0"),
-            ChipSpec::NameOrLabel("gpiochip0".into())
-        );
-        assert_eq!(
-            ChipSpec::parse("pinctrl-rp1"),
-            ChipSpec::NameOrLabel("pinctrl-rp1".into())
-        );
-        assert_eq!(
-            ChipSpec::parse("4"),
-            ChipSpec::NameOrLabel("gpiochip4".into())
-        );
-    }
-
-    #[test]
-    fn gpio_line_spec_parses_offset_and_name() {
-        assert_eq!(LineSpec::parse("18"), LineSpec::Offset(18));
-        assert_eq!(LineSpec::parse("GPIO18"), LineSpec::Name("GPIO18".into()));
-        assert_eq!(LineSpec::parse("+18"), LineSpec::Name("+18".into()));
-        assert_eq!(LineSpec::parse("-1"), LineSpec::Name("-1".into()));
-    }
-
-    #[test]
-    fn gpio_find_chip_by_path_name_and_label() {
-        let chips = pi4();
-        assert_eq!(
-            find_chip("/dev/gpiochip1", &chips).unwrap().name,
-            "gpiochip1"
-        );
-        assert_eq!(find_chip("gpiochip1", &chips).unwrap().name, "gpiochip1");
-        assert_eq!(find_chip("1", &chips).unwrap().name, "gpiochip1");
-        assert_eq!(
-            find_chip("pinctrl-bcm2711", &chips).unwrap().path,
-            Path::new("/dev/gpiochip0")
-        );
-    }
-
-    #[test]
-    fn gpio_find_chip_prefers_name_over_label() {
-        let chips = vec![chip(0, "gpiochip1", 4), chip(1, "x", 4)];
-        assert_eq!(find_chip("gpiochip1", &chips).unwrap().name, "gpiochip1");
-    }
-
-    #[test]
-    fn gpio_find_chip_unknown_lists_the_chips() {
-        let e = find_chip("pinctrl-rp1", &pi4()).unwrap_err();
-        assert!(matches!(e, GpioError::NoSuchChip { .. }));
-        let msg = e.to_string();
-        assert!(msg.contains("`pinctrl-rp1`"), "{msg}");
-        assert!(
-            msg.contains("/dev/gpiochip0 (gpiochip0, pinctrl-bcm2711, 58 lines)"),
-            "{msg}"
-        );
-        assert!(
-            msg.contains("/dev/gpiochip1 (gpiochip1, raspberrypi-exp-gpio, 8 lines)"),
-            "{msg}"
-        );
-        let e = find_chip("/dev/gpiochip7", &pi4()).unwrap_err();
-        assert!(matches!(e, GpioError::NoSuchChip { .. }));
-    }
-
-    #[test]
-    fn gpio_find_chip_with_no_chips_says_none_found() {
-        let msg = find_chip("gpiochip0", &[]).unwrap_err().to_string();
-        assert!(msg.contains("no GPIO chips found"), "{msg}");
-        assert!(msg.contains("CONFIG_GPIO_CDEV"), "{msg}");
-    }
-
-    #[test]
-    fn gpio_find_chip_shared_label_is_ambiguous() {
-        let chips = vec![chip(0, "gpio-sim", 4), chip(1, "gpio-sim", 4)];
-        let e = find_chip("gpio-sim", &chips).unwrap_err();
-        assert!(matches!(&e, GpioError::AmbiguousChip { matches, .. } if matches.len() == 2));
-        assert!(e.to_string().contains("/dev/gpiochip1"));
-    }
-
-    #[test]
-    fn gpio_find_chip_unreadable_is_permission_denied() {
-        let mut chips = pi4();
-        chips[0].unreadable = Some(Errno::EACCES);
-        assert_eq!(
-            chips[0].to_string(),
-            "/dev/gpiochip0 (gpiochip0, cannot open: EACCES: Permission denied)"
-        );
-        let e = find_chip("gpiochip0", &chips).unwrap_err();
-        assert!(matches!(e, GpioError::PermissionDenied { .. }), "{e}");
-        chips[0].unreadable = Some(Errno::ENOTTY);
-        let e = find_chip("gpiochip0", &chips).unwrap_err();
-        assert!(matches!(e, GpioError::NoCdev { .. }), "{e}");
-    }
-
-    #[test]
-    fn gpio_find_line_by_offset_and_name() {
-        let c = &pi4()[0];
-        let lines = bcm_lines();
-        assert_eq!(find_line(c, "18", &lines).unwrap().offset, 18);
-        assert_eq!(find_line(c, "GPIO18", &lines).unwrap().offset, 18);
-        assert_eq!(find_line(c, "gpio18", &lines).unwrap().offset, 18);
-        assert_eq!(find_line(c, "0", &lines).unwrap().name, "GPIO0");
-    }
-
-    #[test]
-    fn gpio_find_line_case_insensitive_only_when_unique() {
-        let c = chip(0, "", 2);
-        let lines = vec![line(0, "led"), line(1, "LED")];
-        assert_eq!(find_line(&c, "LED", &lines).unwrap().offset, 1);
-        assert!(find_line(&c, "Led", &lines).is_err());
-    }
-
-    #[test]
-    fn gpio_find_line_unknown_names_count_and_examples() {
-        let c = &pi4()[0];
-        let lines = bcm_lines();
-        let e = find_line(c, "58", &lines).unwrap_err();
-        assert!(matches!(e, GpioError::NoSuchLine { num_lines: 58, .. }));
-        let msg = e.to_string();
-        assert!(msg.contains("`58`"), "{msg}");
-        assert!(msg.contains("gpiochip0 (pinctrl-bcm2711)"), "{msg}");
-        assert!(msg.contains("58 lines (offsets 0..=57)"), "{msg}");
-        assert!(msg.contains("GPIO0, GPIO1"), "{msg}");
-        assert!(msg.contains("GPIO7, ..."), "{msg}");
-        assert!(!msg.contains("GPIO8"), "{msg}");
-
-        let unnamed: Vec<_> = (0..4).map(|o| line(o, "")).collect();
-        let msg = find_line(&chip(2, "gpio-sim.0-node0", 4), "GPIO1", &unnamed)
-            .unwrap_err()
-            .to_string();
-        assert!(msg.contains("no names, so give an offset"), "{msg}");
-        assert!(msg.contains("4 lines (offsets 0..=3)"), "{msg}");
-    }
-
-    #[test]
-    fn gpio_error_messages_name_chip_line_and_fix() {
-        let busy = GpioError::Busy {
-            chip: "gpiochip0".into(),
-            line: "GPIO18 (offset 18)".into(),
-            consumer: "pwm".into(),
-        }
-        .to_string();
-        assert!(
-            busy.starts_with("GPIO18 (offset 18) on gpiochip0 is in use by `pwm`"),
-            "{busy}"
-        );
-        assert!(busy.contains("pick another line"), "{busy}");
-        let kernel = GpioError::Busy {
-            chip: "gpiochip0".into(),
-            line: "GPIO18 (offset 18)".into(),
-            consumer: String::new(),
-        }
-        .to_string();
-        assert!(kernel.contains("in use by the kernel"), "{kernel}");
-
-        let perm = GpioError::PermissionDenied {
-            chip: "gpiochip0".into(),
-            path: "/dev/gpiochip0".into(),
-        }
-        .to_string();
-        assert!(perm.contains("/dev/gpiochip0"), "{perm}");
-        assert!(perm.contains("sudo usermod -aG gpio $USER"), "{perm}");
-        assert!(perm.contains("udev rule"), "{perm}");
-
-        let cdev = GpioError::NoCdev {
-            chip: "gpiochip0".into(),
-            errno: Errno::ENOTTY,
-        }
-        .to_string();
-        assert!(cdev.contains("gpiochip0"), "{cdev}");
-        assert!(cdev.contains("CONFIG_GPIO_CDEV"), "{cdev}");
-        assert!(cdev.contains("ENOTTY"), "{cdev}");
-
-        let failed = GpioError::Failed {
-            chip: "gpiochip0".into(),
-            line: Some("GPIO18 (offset 18)".into()),
-            op: "requesting the line as an output",
-            detail: "EIO".into(),
-        }
-        .to_string();
-        assert_eq!(
-            failed,
-            "GPIO chip gpiochip0, GPIO18 (offset 18): requesting the line as an output failed: EIO"
-        );
-    }
-
-    #[test]
-    fn gpio_open_missing_chip_is_no_such_chip() {
-        let e = open("gpiochip99", "3", Level::Low).unwrap_err();
-        assert!(matches!(e, GpioError::NoSuchChip { .. }), "{e}");
-        assert!(e.to_string().contains("gpiochip99"), "{e}");
-        let e = open("/nonexistent/gpiochip0", "3", Level::Low).unwrap_err();
-        assert!(matches!(e, GpioError::NoSuchChip { .. }), "{e}");
-    }
-
-    #[test]
-    fn gpio_open_non_gpio_device_is_not_a_chip() {
-        let e = open("/dev/null", "0", Level::Low).unwrap_err();
-        assert!(matches!(e, GpioError::NotAChip { .. }), "{e}");
-        assert!(e.to_string().contains("/dev/null"), "{e}");
-    }
-
-    #[test]
-    fn gpio_describe_chips_matches_the_system() {
-        let chips = list_chips();
-        let text = describe_chips();
-        if chips.is_empty() {
-            assert_eq!(text, "no GPIO chips found");
-        } else {
-            assert!(text.contains(&chips[0].path.display().to_string()));
-        }
-    }
-
-    #[test]
-    fn gpio_errno_mapping() {
-        let uapi = |n: Errno| {
-            gpiocdev::Error::Uapi(
-                gpiocdev::UapiCall::GetLine,
-                gpiocdev_uapi::Error::Os(gpiocdev_uapi::Errno(n as i32)),
-            )
-        };
-        assert_eq!(errno_of(&uapi(Errno::EBUSY)), Some(Errno::EBUSY));
-        assert_eq!(write_errno(&uapi(Errno::ENOTTY)), Errno::ENOTTY);
-        let under = gpiocdev::Error::Uapi(
-            gpiocdev::UapiCall::GetLineValues,
-            gpiocdev_uapi::Error::UnderRead(gpiocdev_uapi::v2::UnderReadError {
-                obj: "x",
-                expected: 8,
-                found: 0,
-            }),
-        );
-        assert_eq!(errno_of(&under), None);
-        assert_eq!(write_errno(&under), Errno::EIO);
-        let no_code = gpiocdev::Error::from(std::io::Error::other("x"));
-        assert_eq!(errno_of(&no_code), None);
-        let os = gpiocdev::Error::from(std::io::Error::from_raw_os_error(libc_eacces()));
-        assert_eq!(errno_of(&os), Some(Errno::EACCES));
-        assert_eq!(write_errno(&os), Errno::EACCES);
-        let other = gpiocdev::Error::InvalidArgument("x".into());
-        assert_eq!(errno_of(&other), None);
-        assert_eq!(write_errno(&other), Errno::EIO);
-    }
-
-    fn libc_eacces() -> i32 {
-        Errno::EACCES as i32
-    }
-
-    #[test]
-    fn gpio_level_high_is_active() {
-        assert_eq!(value_of(Level::High), Value::Active);
-        assert_eq!(value_of(Level::Low), Value::Inactive);
-    }
-}
+mod tests;

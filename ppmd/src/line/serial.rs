@@ -1,0 +1,308 @@
+//! The serial line: each frame is one `write` of its bytes to a tty (a UART
+//! such as the Raspberry Pi's `/dev/ttyAMA0`, a USB serial adaptor, or a
+//! pseudo-terminal in tests), sent by the UART at its own baud clock.
+//!
+//! This is the line of the coming SBUS output (25-byte frames, 100 000
+//! baud, 8 data bits, even parity, 2 stop bits). Nothing selects it yet: no
+//! configuration names it and the timing loop does not drive it.
+//!
+//! 100 000 baud is not one of the `Bnnn` rates, so the line is set through
+//! `termios2` (`TCGETS2`/`TCSETS2` with `BOTHER` and the rate in
+//! `c_ispeed`/`c_ospeed`); nix has no `termios2`, so this goes through libc.
+//! The frame is one `write` call: the tty takes all 25 bytes into its
+//! output buffer at once and the UART sends them back to back, which the
+//! receivers need (a gap inside a frame cuts it in two). A short write is
+//! an error, never completed by a second write that would split the frame.
+//!
+//! A pseudo-terminal takes the same settings and hands the bytes through
+//! unchanged, but it has no wire: it keeps the baud rate and the stop bits
+//! it was given and clears `PARENB` (see this module's tests).
+
+use super::LineError;
+use std::fs::{File, OpenOptions};
+use std::io::{self, Write};
+use std::os::fd::AsRawFd;
+use std::os::unix::fs::OpenOptionsExt;
+use std::path::{Path, PathBuf};
+
+/// The SBUS baud rate.
+pub const BAUD: u32 = 100_000;
+
+/// The bytes of one SBUS frame.
+pub const FRAME_LEN: usize = 25;
+
+/// What the serial line was doing when it failed (for [`SerialError`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SerialStep {
+    /// Opening the device file.
+    Open,
+    /// Reading its settings (`TCGETS2`).
+    ReadSettings,
+    /// Setting raw mode, 100 000 baud, 8E2 (`TCSETS2`).
+    Configure,
+}
+
+impl std::fmt::Display for SerialStep {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SerialStep::Open => "opening",
+            SerialStep::ReadSettings => "reading the termios2 settings of",
+            SerialStep::Configure => "setting raw 100000 baud 8E2 (termios2, BOTHER) on",
+        })
+    }
+}
+
+/// Why a serial line could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum SerialError {
+    /// A step on the device failed; the message says how to fix the usual
+    /// causes.
+    #[error("{step} {}: {source}{}", path.display(), hint(source))]
+    Device {
+        /// The tty path as given.
+        path: PathBuf,
+        /// The step that failed.
+        step: SerialStep,
+        /// The system's error.
+        #[source]
+        source: io::Error,
+    },
+    /// The path opened but is not a terminal (`TCGETS2` gave `ENOTTY`).
+    #[error(
+        "{} is not a tty (TCGETS2: inappropriate ioctl for device): name a serial device such as /dev/ttyAMA0 or /dev/ttyUSB0",
+        path.display()
+    )]
+    NotATty {
+        /// The path as given.
+        path: PathBuf,
+    },
+}
+
+/// The fix for the usual causes of a failed step, or nothing.
+fn hint(err: &io::Error) -> &'static str {
+    match err.raw_os_error() {
+        Some(libc::EACCES | libc::EPERM) => ": add the user to the dialout group",
+        Some(libc::ENOENT) => {
+            ": no such device; is the UART enabled (enable_uart=1 or a dtoverlay on a Raspberry Pi)?"
+        }
+        Some(libc::EBUSY) => {
+            ": another program holds it (a serial console? remove console=serial0 from the kernel command line)"
+        }
+        _ => "",
+    }
+}
+
+/// Parity as the terminal settings hold it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Parity {
+    /// No parity bit (`PARENB` clear).
+    None,
+    /// Even parity (`PARENB` set, `PARODD` clear).
+    Even,
+    /// Odd parity (`PARENB` and `PARODD` set).
+    Odd,
+}
+
+/// A tty's settings as the kernel holds them (read back with `TCGETS2`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SerialSettings {
+    /// Input baud rate.
+    pub ispeed: u32,
+    /// Output baud rate.
+    pub ospeed: u32,
+    /// Data bits per character (5 to 8).
+    pub data_bits: u8,
+    /// The parity bit.
+    pub parity: Parity,
+    /// Stop bits (1 or 2).
+    pub stop_bits: u8,
+    /// No input or output processing, echo, canonical mode or signal
+    /// characters: bytes pass unchanged both ways.
+    pub raw: bool,
+    /// Hardware (`CRTSCTS`) or software (`IXON`/`IXOFF`) flow control on.
+    pub flow_control: bool,
+    /// Modem lines ignored (`CLOCAL`) and the receiver on (`CREAD`).
+    pub local_and_read: bool,
+    /// `VMIN` and `VTIME`: a read returns at once with what there is when
+    /// both are 0.
+    pub vmin_vtime: (u8, u8),
+    /// The raw flag words, `c_iflag`, `c_oflag`, `c_cflag`, `c_lflag`.
+    pub flags: [u32; 4],
+}
+
+/// Input flags that change bytes or stop the flow; cleared in raw mode.
+const COOKED_IFLAGS: libc::tcflag_t = libc::IGNBRK
+    | libc::BRKINT
+    | libc::PARMRK
+    | libc::ISTRIP
+    | libc::INLCR
+    | libc::IGNCR
+    | libc::ICRNL
+    | libc::IXON
+    | libc::IXOFF
+    | libc::IXANY;
+
+/// Local flags of a cooked terminal; cleared in raw mode.
+const COOKED_LFLAGS: libc::tcflag_t =
+    libc::ECHO | libc::ECHONL | libc::ICANON | libc::ISIG | libc::IEXTEN;
+
+impl SerialSettings {
+    fn from_termios2(t: &libc::termios2) -> Self {
+        let data_bits = match t.c_cflag & libc::CSIZE {
+            libc::CS5 => 5,
+            libc::CS6 => 6,
+            libc::CS7 => 7,
+            _ => 8,
+        };
+        let parity = match (t.c_cflag & libc::PARENB != 0, t.c_cflag & libc::PARODD != 0) {
+            (false, _) => Parity::None,
+            (true, false) => Parity::Even,
+            (true, true) => Parity::Odd,
+        };
+        SerialSettings {
+            ispeed: t.c_ispeed,
+            ospeed: t.c_ospeed,
+            data_bits,
+            parity,
+            stop_bits: if t.c_cflag & libc::CSTOPB != 0 { 2 } else { 1 },
+            raw: t.c_iflag & COOKED_IFLAGS == 0
+                && t.c_oflag & libc::OPOST == 0
+                && t.c_lflag & COOKED_LFLAGS == 0,
+            flow_control: t.c_cflag & libc::CRTSCTS != 0
+                || t.c_iflag & (libc::IXON | libc::IXOFF) != 0,
+            local_and_read: t.c_cflag & (libc::CLOCAL | libc::CREAD) == libc::CLOCAL | libc::CREAD,
+            vmin_vtime: (t.c_cc[libc::VMIN], t.c_cc[libc::VTIME]),
+            flags: [t.c_iflag, t.c_oflag, t.c_cflag, t.c_lflag],
+        }
+    }
+}
+
+/// Makes `t` raw, 100 000 baud both ways, 8E2, no flow control, with reads
+/// returning at once.
+fn make_sbus(t: &mut libc::termios2) {
+    t.c_iflag &= !(COOKED_IFLAGS | libc::INPCK);
+    t.c_oflag &= !libc::OPOST;
+    t.c_lflag &= !COOKED_LFLAGS;
+    t.c_cflag &=
+        !(libc::CSIZE | libc::PARODD | libc::CMSPAR | libc::CRTSCTS | libc::CBAUD | libc::CIBAUD);
+    t.c_cflag |= libc::CS8
+        | libc::PARENB
+        | libc::CSTOPB
+        | libc::CLOCAL
+        | libc::CREAD
+        | libc::BOTHER
+        | (libc::BOTHER << libc::IBSHIFT);
+    t.c_ispeed = BAUD;
+    t.c_ospeed = BAUD;
+    t.c_cc[libc::VMIN] = 0;
+    t.c_cc[libc::VTIME] = 0;
+}
+
+/// The serial output's line for the coming SBUS protocol: a tty in raw
+/// mode at 100 000 baud, 8E2, written one whole frame per call. Not yet
+/// selectable from the configuration.
+#[derive(Debug)]
+pub struct SerialLine {
+    file: File,
+    path: PathBuf,
+    short_writes: u64,
+}
+
+impl SerialLine {
+    /// Opens the tty at `path` (read-write, not as the controlling
+    /// terminal, closed on exec, blocking writes) and sets it raw, 100 000
+    /// baud, 8 data bits, even parity, 2 stop bits, no flow control.
+    pub fn open(path: &Path) -> Result<Self, SerialError> {
+        let fail = |step, source| SerialError::Device {
+            path: path.to_path_buf(),
+            step,
+            source,
+        };
+        // std opens with O_CLOEXEC always; O_NOCTTY keeps a tty from
+        // becoming the daemon's controlling terminal (and its hangups ours).
+        let file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NOCTTY)
+            .open(path)
+            .map_err(|e| fail(SerialStep::Open, e))?;
+        let line = SerialLine {
+            file,
+            path: path.to_path_buf(),
+            short_writes: 0,
+        };
+        let mut t = line.termios2().map_err(|e| {
+            if e.raw_os_error() == Some(libc::ENOTTY) {
+                SerialError::NotATty {
+                    path: path.to_path_buf(),
+                }
+            } else {
+                fail(SerialStep::ReadSettings, e)
+            }
+        })?;
+        make_sbus(&mut t);
+        // SAFETY: TCSETS2 reads one termios2 from the pointer, which is a
+        // live, initialised termios2 for the whole call.
+        let rc = unsafe { libc::ioctl(line.file.as_raw_fd(), libc::TCSETS2, &t) };
+        if rc != 0 {
+            return Err(fail(SerialStep::Configure, io::Error::last_os_error()));
+        }
+        Ok(line)
+    }
+
+    /// The path the line was opened at.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Frames refused because the tty took only part of them.
+    pub fn short_writes(&self) -> u64 {
+        self.short_writes
+    }
+
+    /// The settings the kernel holds for the tty now.
+    pub fn settings(&self) -> io::Result<SerialSettings> {
+        Ok(SerialSettings::from_termios2(&self.termios2()?))
+    }
+
+    fn termios2(&self) -> io::Result<libc::termios2> {
+        // SAFETY: termios2 is plain integers, for which all zeroes is valid.
+        let mut t: libc::termios2 = unsafe { std::mem::zeroed() };
+        // SAFETY: TCGETS2 writes one termios2 through the pointer, which is
+        // a live, writable termios2 for the whole call.
+        let rc = unsafe { libc::ioctl(self.file.as_raw_fd(), libc::TCGETS2, &mut t) };
+        if rc != 0 {
+            return Err(io::Error::last_os_error());
+        }
+        Ok(t)
+    }
+
+    /// Sends one frame in one `write` call, returning when the tty has
+    /// taken it (it blocks only while the tty's output buffer is full). A
+    /// write interrupted before it took any byte is made again; one that
+    /// took part of the frame is counted in [`SerialLine::short_writes`]
+    /// and returned as [`LineError::ShortWrite`], the rest never sent.
+    pub fn write_frame(&mut self, frame: &[u8; FRAME_LEN]) -> Result<(), LineError> {
+        loop {
+            match self.file.write(frame) {
+                Ok(FRAME_LEN) => return Ok(()),
+                Ok(written) => {
+                    self.short_writes += 1;
+                    return Err(LineError::ShortWrite {
+                        written,
+                        len: FRAME_LEN,
+                    });
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    return Err(LineError::Write(nix::errno::Errno::from_raw(
+                        e.raw_os_error().unwrap_or(libc::EIO),
+                    )))
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

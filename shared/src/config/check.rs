@@ -1,0 +1,208 @@
+//! The checks of one output's configuration: every key outside `[ppm]`
+//! here, `[ppm]` by [`FrameModel::build`]. Errors name the key.
+
+use super::schema::{Config, CpuChoice, FailsafeAction, IngressSection, OutputSpec};
+use super::ConfigError;
+use crate::frame::{FrameModel, Level};
+use std::path::PathBuf;
+
+impl Config {
+    /// Checks every key of this configuration as one output's (an
+    /// `[[outputs]]` file is checked whole by [`Plan::resolve`](super::Plan::resolve))
+    /// and builds its frame model.
+    pub fn validate(&self) -> Result<FrameModel, ConfigError> {
+        validate_name(&self.name)?;
+        let i = &self.ingress;
+        if !(4096..=16 * 1024 * 1024).contains(&i.recv_buffer_bytes) {
+            return Err(ConfigError::invalid(
+                "ingress.recv_buffer_bytes",
+                format!("{} is outside 4096..=16777216 bytes", i.recv_buffer_bytes),
+            ));
+        }
+        self.allow()?;
+        self.status_allow()?;
+        if i.priority > 99 {
+            return Err(ConfigError::invalid(
+                "ingress.priority",
+                format!("{} is outside 0..=99 (0: normal scheduler)", i.priority),
+            ));
+        }
+        if i.priority > 0 && i.priority >= self.rt.priority {
+            return Err(ConfigError::invalid(
+                "ingress.priority",
+                format!(
+                    "{} is not below rt.priority = {}: ppmd's timing thread must be able to preempt the receive thread",
+                    i.priority, self.rt.priority
+                ),
+            ));
+        }
+        // "last" is resolved by udp-ingress, which knows the online CPUs.
+        busy_poll_cpu(
+            i,
+            match self.rt.cpu {
+                CpuChoice::Index(r) => Some(r),
+                _ => None,
+            },
+        )?;
+        let spi = matches!(self.output()?, OutputSpec::Spi { .. });
+        if !(50_000..=20_000_000).contains(&self.ppmd.spi_hz) {
+            return Err(ConfigError::invalid(
+                "ppmd.spi_hz",
+                format!(
+                    "{} Hz is outside 50000..=20000000 (1000000: edges to 1 us)",
+                    self.ppmd.spi_hz
+                ),
+            ));
+        }
+        if spi && self.ppm.idle_level == Level::High {
+            return Err(ConfigError::invalid(
+                "ppm.idle_level",
+                format!(
+                    "\"high\" cannot be sent through `{}`: between transfers an SPI controller leaves MOSI low (or at the last bit), which would add an edge to every sync; use idle_level = \"low\" (an inverter in the cable gives a transmitter that wants high), or a gpio: output",
+                    self.ppmd.output
+                ),
+            ));
+        }
+        for (key, mb) in [
+            ("ppmd.frame_log_max_mb", self.ppmd.frame_log_max_mb),
+            ("ppmd.trace_max_mb", self.ppmd.trace_max_mb),
+        ] {
+            if !(1..=65_536).contains(&mb) {
+                return Err(ConfigError::invalid(
+                    key,
+                    format!("{mb} MiB is outside 1..=65536"),
+                ));
+            }
+        }
+        let rt = &self.rt;
+        if rt.priority > 99 {
+            return Err(ConfigError::invalid(
+                "rt.priority",
+                format!("{} is outside 0..=99 (0: normal scheduler)", rt.priority),
+            ));
+        }
+        if rt.spin_margin_max_us > 5_000 {
+            return Err(ConfigError::invalid(
+                "rt.spin_margin_max_us",
+                format!("{} us is outside 0..=5000", rt.spin_margin_max_us),
+            ));
+        }
+        if rt.spin_margin_min_us > rt.spin_margin_max_us {
+            return Err(ConfigError::invalid(
+                "rt.spin_margin_min_us",
+                format!(
+                    "{} us is above rt.spin_margin_max_us = {} us",
+                    rt.spin_margin_min_us, rt.spin_margin_max_us
+                ),
+            ));
+        }
+        if !(1..=60_000).contains(&self.failsafe.after_ms) {
+            return Err(ConfigError::invalid(
+                "failsafe.after_ms",
+                format!("{} ms is outside 1..=60000", self.failsafe.after_ms),
+            ));
+        }
+        if self.failsafe.startup == FailsafeAction::Hold {
+            return Err(ConfigError::invalid(
+                "failsafe.startup",
+                "\"hold\" has no command to hold before the first one: use \"silence\" or \"default\"",
+            ));
+        }
+        if self.ipc.root.as_os_str().is_empty() || !self.ipc.root.is_absolute() {
+            return Err(ConfigError::invalid(
+                "ipc.root",
+                format!(
+                    "`{}` must be an absolute directory path",
+                    self.ipc.root.display()
+                ),
+            ));
+        }
+        Ok(FrameModel::build(&self.ppm)?)
+    }
+
+    /// The address blocks of `ingress.allow` (a bare address is a block of one).
+    pub fn allow(&self) -> Result<Vec<ipnet::IpNet>, ConfigError> {
+        self.ingress
+            .allow
+            .iter()
+            .map(|s| parse_net(s).map_err(|m| ConfigError::invalid("ingress.allow", m)))
+            .collect()
+    }
+
+    /// The address blocks of `ingress.status_allow`.
+    pub fn status_allow(&self) -> Result<Vec<ipnet::IpNet>, ConfigError> {
+        self.ingress
+            .status_allow
+            .iter()
+            .map(|s| parse_net(s).map_err(|m| ConfigError::invalid("ingress.status_allow", m)))
+            .collect()
+    }
+
+    /// The file udp-ingress keeps the last accepted signed `seq` in:
+    /// `ingress.seq_file`, by default `<ipc.root>/<name>.last_seq`.
+    pub fn seq_file(&self) -> PathBuf {
+        self.ingress
+            .seq_file
+            .clone()
+            .unwrap_or_else(|| self.ipc.root.join(format!("{}.last_seq", self.name)))
+    }
+
+    /// The output named by `ppmd.output`.
+    pub fn output(&self) -> Result<OutputSpec, ConfigError> {
+        self.ppmd
+            .output
+            .parse()
+            .map_err(|m| ConfigError::invalid("ppmd.output", m))
+    }
+}
+
+/// Refuses a busy-polling receive thread pinned to the CPU of ppmd's
+/// timing thread: `rt_cpu` is `rt.cpu` resolved on this machine.
+pub(crate) fn busy_poll_cpu(
+    ingress: &IngressSection,
+    rt_cpu: Option<usize>,
+) -> Result<(), ConfigError> {
+    match (ingress.busy_poll, ingress.cpu.index(), rt_cpu) {
+        (true, Some(c), Some(r)) if c == r => Err(ConfigError::invalid(
+            "ingress.cpu",
+            format!(
+                "busy_poll would spin on CPU {c}, the CPU ppmd's timing thread is pinned to (rt.cpu): pick another CPU"
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Parses an address block, `10.0.0.0/24` or `::1/128`; a bare address is a
+/// block of one.
+pub fn parse_net(s: &str) -> Result<ipnet::IpNet, String> {
+    let s = s.trim();
+    s.parse::<ipnet::IpNet>()
+        .or_else(|e| {
+            s.parse::<std::net::IpAddr>()
+                .map(ipnet::IpNet::from)
+                .map_err(|_| e)
+        })
+        .map_err(|e| {
+            format!(
+                "`{s}` is not an address block such as 10.0.0.0/24, 127.0.0.1/32 or ::1/128 ({e})"
+            )
+        })
+}
+
+/// Checks an output name (used in shared-memory service names and file names).
+pub fn validate_name(name: &str) -> Result<(), ConfigError> {
+    let ok = !name.is_empty()
+        && name.len() <= 64
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
+    if ok {
+        Ok(())
+    } else {
+        Err(ConfigError::invalid(
+            "name",
+            format!("`{name}` must be 1..=64 letters, digits, `-` or `_`"),
+        ))
+    }
+}

@@ -1,0 +1,251 @@
+//! Running ppm's programs as separate processes, for `ppm-bench` and the
+//! whole-system tests (which re-export it): a [`Scratch`] directory and
+//! port for one run, and a [`Proc`] that owns one child, knows its log,
+//! reads its memory and CPU time, and kills it when dropped.
+
+use std::fs::File;
+use std::net::UdpSocket;
+use std::path::PathBuf;
+use std::process::{Child, Command, ExitStatus};
+use std::time::{Duration, Instant};
+
+/// A port on 127.0.0.1 that was free a moment ago.
+pub fn free_udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .expect("binding an ephemeral port")
+        .port()
+}
+
+/// A fresh directory for one run (its configuration, logs, traces and
+/// shared-memory root) and a free UDP port on 127.0.0.1 for its udp-ingress.
+/// The directory is removed when dropped, unless the thread is panicking
+/// (then it is kept for a look).
+pub struct Scratch {
+    /// The directory.
+    pub dir: PathBuf,
+    /// A UDP port on 127.0.0.1 that was free when the scratch was made.
+    pub port: u16,
+}
+
+impl Scratch {
+    /// The directory `name` in the system's temporary directory, emptied
+    /// if it was there.
+    pub fn new(name: &str) -> std::io::Result<Scratch> {
+        let dir = std::env::temp_dir().join(name);
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir)?;
+        Ok(Scratch {
+            dir,
+            port: free_udp_port(),
+        })
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
+}
+
+/// A running process whose stderr goes to a log file, killed when dropped.
+pub struct Proc {
+    child: Option<Child>,
+    /// Its stderr log.
+    pub log: PathBuf,
+}
+
+impl Proc {
+    /// Starts `cmd` (its arguments, environment and other streams as the
+    /// caller set them) with its stderr written to `log`.
+    pub fn start(mut cmd: Command, log: PathBuf) -> std::io::Result<Proc> {
+        let child = cmd.stderr(File::create(&log)?).spawn()?;
+        Ok(Proc {
+            child: Some(child),
+            log,
+        })
+    }
+
+    /// Sends `signal` and waits up to `timeout` for the exit.
+    ///
+    /// Panics when the process was already reaped or does not exit in time.
+    pub fn signal_and_wait(
+        &mut self,
+        signal: nix::sys::signal::Signal,
+        timeout: Duration,
+    ) -> ExitStatus {
+        let child = self.child.as_mut().expect("process already reaped");
+        let pid = nix::unistd::Pid::from_raw(child.id() as i32);
+        nix::sys::signal::kill(pid, signal).expect("sending a signal");
+        self.wait(timeout)
+    }
+
+    /// Waits up to `timeout` for the process to exit by itself.
+    ///
+    /// Panics (after killing it) when it does not, with its log.
+    pub fn wait(&mut self, timeout: Duration) -> ExitStatus {
+        let mut child = self.child.take().expect("process already reaped");
+        let end = Instant::now() + timeout;
+        loop {
+            if let Some(status) = child.try_wait().expect("waiting") {
+                return status;
+            }
+            if Instant::now() > end {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!(
+                    "process did not exit within {timeout:?}; log:\n{}",
+                    self.log_text()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    /// Asks the process to stop (SIGTERM) and waits for it, however long
+    /// it takes; errors are ignored (it may have exited already).
+    pub fn terminate(mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = nix::sys::signal::kill(
+                nix::unistd::Pid::from_raw(child.id() as i32),
+                nix::sys::signal::Signal::SIGTERM,
+            );
+            let _ = child.wait();
+        }
+    }
+
+    /// Its process id.
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().expect("process already reaped").id()
+    }
+
+    /// Its resident memory (VmRSS) in KiB, if /proc tells it.
+    pub fn try_rss_kib(&self) -> Option<u64> {
+        std::fs::read_to_string(format!("/proc/{}/status", self.pid()))
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find(|l| l.starts_with("VmRSS:"))
+                    .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+            })
+    }
+
+    /// Its resident memory (VmRSS) in KiB.
+    ///
+    /// Panics when /proc does not tell it (the process is gone).
+    pub fn rss_kib(&self) -> u64 {
+        self.try_rss_kib().expect("VmRSS of a running process")
+    }
+
+    /// CPU time used so far (user + system), seconds; 0 when /proc does
+    /// not tell it.
+    pub fn cpu_s(&self) -> f64 {
+        let stat =
+            std::fs::read_to_string(format!("/proc/{}/stat", self.pid())).unwrap_or_default();
+        let after = stat.rsplit(')').next().unwrap_or("");
+        let f: Vec<u64> = after
+            .split_whitespace()
+            .filter_map(|x| x.parse().ok())
+            .collect();
+        let ticks = nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)
+            .ok()
+            .flatten()
+            .unwrap_or(100) as f64;
+        // Fields 14 and 15 of /proc/PID/stat (11 and 12 after the state).
+        (f.get(10).unwrap_or(&0) + f.get(11).unwrap_or(&0)) as f64 / ticks
+    }
+
+    /// Kills the process with SIGKILL (as a crash would).
+    pub fn kill(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+
+    /// Its stderr so far.
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Waits up to `timeout`, polling every 20 ms, until its log contains
+    /// `needle`; false when it did not appear in time.
+    pub fn log_shows(&self, needle: &str, timeout: Duration) -> bool {
+        let end = Instant::now() + timeout;
+        while !self.log_text().contains(needle) {
+            if Instant::now() > end {
+                return false;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        true
+    }
+
+    /// Waits until its log contains `needle`.
+    ///
+    /// Panics, with the log, when it does not appear within `timeout`.
+    pub fn wait_for_log(&self, needle: &str, timeout: Duration) {
+        assert!(
+            self.log_shows(needle, timeout),
+            "`{needle}` did not appear in {} within {timeout:?}:\n{}",
+            self.log.display(),
+            self.log_text()
+        );
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_scratch_is_fresh_and_removed_after() {
+        let name = format!("ppm-harness-scratch-{}", std::process::id());
+        let first = Scratch::new(&name).unwrap();
+        std::fs::write(first.dir.join("left.txt"), "x").unwrap();
+        std::mem::forget(first);
+        let s = Scratch::new(&name).unwrap();
+        assert!(!s.dir.join("left.txt").exists(), "emptied");
+        assert!(
+            UdpSocket::bind(("127.0.0.1", s.port)).is_ok(),
+            "a free port"
+        );
+        let dir = s.dir.clone();
+        drop(s);
+        assert!(!dir.exists());
+    }
+
+    #[test]
+    fn a_process_is_watched_through_its_log_and_proc() {
+        let scratch = Scratch::new(&format!("ppm-harness-{}", std::process::id())).unwrap();
+        let dir = &scratch.dir;
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "echo ready >&2; exec sleep 30"]);
+        let p = Proc::start(cmd, dir.join("sh.log")).unwrap();
+        assert!(
+            p.log_shows("ready", Duration::from_secs(10)),
+            "{}",
+            p.log_text()
+        );
+        assert!(!p.log_shows("never", Duration::from_millis(50)));
+        assert!(p.rss_kib() > 0);
+        assert!(p.cpu_s() >= 0.0);
+        let pid = p.pid();
+        p.terminate();
+        // Reaped: the pid names no process (not even a zombie) any more.
+        let gone = nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid as i32), None);
+        assert_eq!(gone, Err(nix::errno::Errno::ESRCH));
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "exit 3"]);
+        let mut p = Proc::start(cmd, dir.join("exit.log")).unwrap();
+        assert_eq!(p.wait(Duration::from_secs(10)).code(), Some(3));
+    }
+}
