@@ -266,7 +266,7 @@ mod tests {
             .apply(two)
             .unwrap();
         assert!(c.outputs.is_empty());
-        assert_eq!((c.name.as_str(), c.ppm.channels), ("rover", 6));
+        assert_eq!((c.name.as_str(), c.ppm.channels), ("rover", Some(6)));
         assert_eq!(c.ppmd.frame_log, Some(PathBuf::from("r.jsonl")));
         let e = cli(&["--name", "boat"]).apply(Config::parse(TWO_OUTPUTS).unwrap());
         assert!(e.unwrap_err().to_string().contains("no output `boat`"));

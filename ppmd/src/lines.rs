@@ -2,10 +2,12 @@
 //! request, a bank), or SPI.
 
 use crate::emitter::{self, LineRef};
-use crate::line::{FrameLine, Line, SimLine};
+use crate::line::serial::SerialLine;
+use crate::line::spi::{self, SpiLine};
+use crate::line::{FrameLine, Line, SimLine, SimSbusLine};
 use anyhow::{Context, Result};
 use ppm_shared::config::{OutputPlan, OutputSpec, Shared, Timing};
-use ppm_shared::frame::Level;
+use ppm_shared::frame::{Level, Protocol};
 use std::path::PathBuf;
 
 /// One output's line, as the timing thread owns it, by the way its frames
@@ -65,8 +67,34 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
     for (i, cfg) in outputs.iter().enumerate() {
         let model = &cfg.model;
         match cfg.output.clone() {
+            OutputSpec::Sim { path } if model.protocol() == Protocol::Sbus => {
+                let sim = create_sim(cfg, shared.trace_max_mb, path)?;
+                let line = SimSbusLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
+                each[i] = Some(OpenLine::Whole(Box::new(line)));
+            }
             OutputSpec::Sim { path } => {
                 each[i] = Some(OpenLine::Edges(open_sim(cfg, shared.trace_max_mb, path)?));
+            }
+            OutputSpec::Spi { device } if model.protocol() == Protocol::Sbus => {
+                let out = SpiLine::open(&device, spi::SBUS_HZ, ppm_shared::sbus::FRAME_WIRE_NS)
+                    .with_context(|| format!("output `{}`", cfg.name))?;
+                log::info!(
+                    "output `{}`: spi {} (true SBUS, each frame one transfer, bits to 10 us)",
+                    cfg.name,
+                    out.description()
+                );
+                each[i] = Some(OpenLine::Whole(Box::new(out)));
+            }
+            OutputSpec::Serial { device } => {
+                let out = SerialLine::open(&device).with_context(|| {
+                    format!("output `{}`: serial:{}", cfg.name, device.display())
+                })?;
+                log::info!(
+                    "output `{}`: serial {} (SBUS, 100000 baud 8E2, each frame one write)",
+                    cfg.name,
+                    device.display()
+                );
+                each[i] = Some(OpenLine::Whole(Box::new(out)));
             }
             OutputSpec::Spi { device } => {
                 // The longest frame: the lead-in pulse after silence, every
@@ -76,7 +104,7 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                         .map(|c| model.max_ns(c) as u64)
                         .sum::<u64>()
                     + model.pulse_ns();
-                let out = crate::line::spi::SpiLine::open(&device, shared.spi_hz, longest)
+                let out = SpiLine::open(&device, shared.spi_hz, longest)
                     .with_context(|| format!("output `{}`", cfg.name))?;
                 log::info!(
                     "output `{}`: spi {} (each frame one transfer, edges to {} ns)",
@@ -145,6 +173,12 @@ pub fn open_sim(
     trace_max_mb: u64,
     path: Option<PathBuf>,
 ) -> Result<Box<dyn Line>> {
+    Ok(Box::new(create_sim(cfg, trace_max_mb, path)?))
+}
+
+/// The simulated line of [`open_sim`], for either protocol (an SBUS
+/// output's header says `protocol sbus`).
+fn create_sim(cfg: &OutputPlan, trace_max_mb: u64, path: Option<PathBuf>) -> Result<SimLine> {
     let model = &cfg.model;
     let path = path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", cfg.name)));
     let header = [
@@ -155,11 +189,12 @@ pub fn open_sim(
         format!("frame_ns {}", model.frame_ns()),
         format!("pulse_ns {}", model.pulse_ns()),
         format!("receiver {}", model.receiver().name()),
+        format!("protocol {}", model.protocol().name()),
     ];
     let sim = SimLine::create(&path, &header, trace_max_mb << 20)
         .with_context(|| format!("creating sim trace {}", path.display()))?;
     log::info!("output `{}`: sim, trace in {}", cfg.name, path.display());
-    Ok(Box::new(sim))
+    Ok(sim)
 }
 
 /// One output's signal and settings, for the start-up log: channels,
@@ -172,17 +207,24 @@ pub fn describe(shared: &Shared, c: &OutputPlan) -> String {
         Timing::Follow => {
             let (min, max) = model.follow_sync_ns();
             format!(
-                "follow timing, sync {}..{} us",
+                "follow timing, {} {}..{} us",
+                match model.protocol() {
+                    Protocol::Ppm => "sync",
+                    Protocol::Sbus => "idle line",
+                },
                 min as f64 / 1e3,
                 max as f64 / 1e3
             )
         }
     };
+    let wire = match model.sbus() {
+        None => format!("pulse {} us", model.pulse_ns() as f64 / 1e3),
+        Some(s) => format!("SBUS encoded for {}", s.encode_for().name()),
+    };
     format!(
-        "{} channels ({}), {timing}, pulse {} us, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
+        "{} channels ({}), {timing}, {wire}, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
         model.channels(),
         model.names().join(" "),
-        model.pulse_ns() as f64 / 1e3,
         model.idle_level(),
         ppm_shared::ipc::command_service_name(&c.name),
         shared.ipc.root.display(),

@@ -123,8 +123,11 @@ impl FrameLine for SpiStandIn {
         Ok(())
     }
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
-        let WholeFrame::Ppm(edges) = frame;
-        let n = spi::encode(edges, 1_000_000, &mut self.buf).ok_or(LineError::FrameTooLong)?;
+        let n = match frame {
+            WholeFrame::Ppm(edges) => spi::encode(edges, 1_000_000, &mut self.buf),
+            WholeFrame::Sbus { bytes, .. } => spi::encode_sbus(bytes, &mut self.buf),
+        }
+        .ok_or(LineError::FrameTooLong)?;
         self.bytes += n as u64;
         Ok(())
     }

@@ -86,14 +86,14 @@ fn ppm_section() -> impl Strategy<Value = PpmSection> {
                     })
                     .collect();
                 Some(PpmSection {
-                    channels: lims.len() as u32,
-                    frame_us: if frame_us < lo {
+                    channels: Some(lims.len() as u32),
+                    frame_us: Some(if frame_us < lo {
                         lo.ceil()
                     } else {
                         frame_us.min(hi)
-                    },
+                    }),
                     pulse_us,
-                    idle_level: if high { Level::High } else { Level::Low },
+                    idle_level: Some(if high { Level::High } else { Level::Low }),
                     order,
                     channel,
                     receiver,
@@ -215,7 +215,7 @@ proptest! {
 
     #[test]
     fn invalid_configs_name_their_key(s in ppm_section(), which in 0usize..10, pick in 0usize..16) {
-        let names = ppm_shared::config::channel_names(&s.order, s.channels as usize).unwrap();
+        let names = ppm_shared::config::channel_names(&s.order, s.channels() as usize).unwrap();
         let name = names[pick % names.len()].clone();
         let mut bad = s.clone();
         let o = bad.channel.get_mut(&name).unwrap();
@@ -227,10 +227,10 @@ proptest! {
         // the shortest one instead.
         let which = if which == 3 && !rules.sync_max_us.0.is_finite() { 2 } else { which };
         let key = match which {
-            0 => { bad.channels = if pick % 2 == 0 { 0 } else { 17 + pick as u32 }; "ppm.channels".to_string() }
+            0 => { bad.channels = Some(if pick % 2 == 0 { 0 } else { 17 + pick as u32 }); "ppm.channels".to_string() }
             1 => { bad.pulse_us = smallest_min + pick as f64; "ppm.pulse_us".into() }
-            2 => { bad.frame_us = sum(|o| o.max_us.unwrap()) + rules.sync_min_us.0 - 1.0 - pick as f64; "ppm.frame_us".into() }
-            3 => { bad.frame_us = sum(|o| o.min_us.unwrap()) + rules.sync_max_us.0 + 1.0 + pick as f64; "ppm.frame_us".into() }
+            2 => { bad.frame_us = Some(sum(|o| o.max_us.unwrap()) + rules.sync_min_us.0 - 1.0 - pick as f64); "ppm.frame_us".into() }
+            3 => { bad.frame_us = Some(sum(|o| o.min_us.unwrap()) + rules.sync_max_us.0 + 1.0 + pick as f64); "ppm.frame_us".into() }
             4 => { o.min_us = Some(rules.channel_min_us.0 - 0.1 - pick as f64); format!("ppm.channel.{name}.min_us") }
             5 => { o.max_us = Some(rules.channel_max_us.0 + 0.1 + pick as f64); format!("ppm.channel.{name}.max_us") }
             6 => { o.default_us = Some(if pick % 2 == 0 { min - 0.1 } else { max + 0.1 }); format!("ppm.channel.{name}.default_us") }

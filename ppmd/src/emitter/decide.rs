@@ -65,7 +65,7 @@ pub(super) fn decide_frame<C: Clock + ?Sized>(
         }
     }
     let last = p.newest.map(|(_, ch)| ch);
-    let (channels, new_state) = carries(&cfg, model, fresh, last);
+    let (channels, new_state, flagged) = carries(&cfg, model, fresh, last);
     out.rec
         .transition(now, || clk.realtime_ns(), p.state, new_state);
     p.state = new_state;
@@ -77,7 +77,7 @@ pub(super) fn decide_frame<C: Clock + ?Sized>(
         p.poll_at = now + IDLE_POLL_NS;
         return;
     };
-    let mut wire = WireFrame::encode(model, &channels);
+    let mut wire = WireFrame::encode(model, &channels, flagged);
     let last_pulse = wire.last_pulse();
     let prev_pulse = p.prev_pulse;
     let placed = match &mut p.pace {
@@ -117,36 +117,33 @@ pub(super) fn decide_frame<C: Clock + ?Sized>(
     p.prev_pulse = Some(start + last_pulse);
     match &mut p.pace {
         Pace::Follow(f) => f.last_pulse = Some(start + last_pulse),
-        Pace::Grid(g) => {
-            let grid_start = g.next_start.expect("placed on the grid");
-            g.next_start = Some(grid_start + frame_ns);
-            g.prev_sync_ns = grid_start + frame_ns - (start + last_pulse);
-        }
+        Pace::Grid(g) => g.placed(model, stats, start, last_pulse),
     }
 }
 
-/// What a frame carries, and the line's state with it: the `fresh`
-/// command; else, before any command, what `failsafe.startup` says; else
-/// the failsafe action (holding the `last` command, or the defaults).
-/// `None`: silence.
+/// What a frame carries, the line's state with it, and whether it carries
+/// SBUS's failsafe flag: the `fresh` command; else, before any command,
+/// what `failsafe.startup` says; else the failsafe action (holding the
+/// `last` command, the defaults, or the defaults flagged). `None`: silence.
 fn carries(
     cfg: &EmitterConfig,
     model: &FrameModel,
     fresh: Option<Channels>,
     last: Option<Channels>,
-) -> (Option<Channels>, LineState) {
-    match (fresh, last) {
-        (Some(ch), _) => (Some(ch), LineState::Active),
-        (None, None) => match cfg.startup {
-            FailsafeAction::Default => (Some(model.defaults()), LineState::Failsafe),
-            // Nothing to hold before the first command.
-            _ => (None, LineState::Silent),
-        },
-        (None, Some(last)) => match cfg.failsafe_action {
-            FailsafeAction::Silence => (None, LineState::Silent),
-            FailsafeAction::Hold => (Some(last), LineState::Failsafe),
-            FailsafeAction::Default => (Some(model.defaults()), LineState::Failsafe),
-        },
+) -> (Option<Channels>, LineState, bool) {
+    let action = match (fresh, last) {
+        (Some(ch), _) => return (Some(ch), LineState::Active, false),
+        // Nothing to hold before the first command.
+        (None, None) if cfg.startup == FailsafeAction::Hold => FailsafeAction::Silence,
+        (None, None) => cfg.startup,
+        (None, Some(_)) => cfg.failsafe_action,
+    };
+    match (action, last) {
+        (FailsafeAction::Silence, _) => (None, LineState::Silent, false),
+        (FailsafeAction::Hold, Some(last)) => (Some(last), LineState::Failsafe, false),
+        (FailsafeAction::Hold, None) => (None, LineState::Silent, false),
+        (FailsafeAction::Default, _) => (Some(model.defaults()), LineState::Failsafe, false),
+        (FailsafeAction::Flag, _) => (Some(model.defaults()), LineState::Failsafe, true),
     }
 }
 

@@ -302,6 +302,14 @@ fn send_whole<C: Clock + ?Sized>(
         pf.wire.sent_whole(model);
     }
     p.timed_ns = f.wire.last_timed(model);
+    // Where the frame ends at the latest (SBUS), for the idle line before
+    // the next one.
+    if let Some(end) = f.wire.ends_by(written) {
+        p.prev_pulse = p.prev_pulse.max(Some(end));
+        if let Some(fl) = p.pace.follow() {
+            fl.last_pulse = fl.last_pulse.max(Some(end));
+        }
+    }
     Wrote::Frame(written)
 }
 

@@ -8,7 +8,7 @@ use super::record::{add, Stats};
 use super::{Progress, LEAD_IN_NS, READY_NS, TRAINER_WRAP_NS};
 use crate::clock::Clock;
 use ppm_shared::config::{Timing, FOLLOW_SYNC_CEILING_US};
-use ppm_shared::frame::{us_to_ns, FrameModel};
+use ppm_shared::frame::{us_to_ns, FrameModel, Protocol};
 use std::os::fd::RawFd;
 
 /// Gaps (modulo [`TRAINER_WRAP_NS`]) a lead-in pulse keeps out of.
@@ -139,7 +139,12 @@ impl Grid {
     /// trainer input (see [`TRAINER_WRAP_NS`]). Unwrapped, that gap is over
     /// 3.8 ms (a sync plus a 4.8 ms frame, the shortest valid, less
     /// LEAD_IN_NS).
-    pub fn lead_in_ns(&self, prev_pulse: Option<u64>) -> u64 {
+    /// An SBUS frame needs none: its receivers find frames by the idle line
+    /// before them, which any silence is.
+    pub fn lead_in_ns(&self, model: &FrameModel, prev_pulse: Option<u64>) -> u64 {
+        if model.protocol() == Protocol::Sbus {
+            return 0;
+        }
         match (self.prev_sync_ns, self.next_start) {
             (0, Some(s)) => LEAD_IN_NS + alias_earlier(prev_pulse, s - LEAD_IN_NS),
             (0, None) => LEAD_IN_NS,
@@ -170,7 +175,7 @@ impl Progress {
         match &self.pace {
             Pace::Grid(g) => Some(match g.next_start {
                 None => poll,
-                Some(s) => precise(s.saturating_sub(lead + g.lead_in_ns(self.prev_pulse))),
+                Some(s) => precise(s.saturating_sub(lead + g.lead_in_ns(model, self.prev_pulse))),
             }),
             Pace::Follow(f) if f.woken => Some(DecideAt {
                 at: 0,
@@ -270,11 +275,16 @@ pub(super) fn place_grid<C: Clock + ?Sized>(
     anchor: Option<u64>,
     sync_ns: u64,
 ) -> Option<(u64, u64)> {
+    if model.protocol() == Protocol::Sbus {
+        return Some(place_grid_sbus(
+            clk, g, prev_pulse, model, stats, lead, anchor,
+        ));
+    }
     let frame_ns = model.frame_ns();
     let (sync_min_ns, sync_max_ns) = model.sync_window_ns();
     let now = clk.now_ns();
     let (grid_start, lead_in_ns) = match g.next_start {
-        Some(s) => (s, g.lead_in_ns(prev_pulse)),
+        Some(s) => (s, g.lead_in_ns(model, prev_pulse)),
         None => {
             g.prev_sync_ns = 0;
             match anchor {
@@ -336,6 +346,56 @@ pub(super) fn place_grid<C: Clock + ?Sized>(
     Some((start, lead_in_ns))
 }
 
+/// Grid, SBUS: the frame's start (never a lead-in, never skipped). The frame
+/// sits at its grid start unless that has passed, or the previous frame
+/// ends (`prev_end`, as measured after its write) less than the receivers'
+/// least idle line before it: then it starts as soon as both allow, counted
+/// as a late frame. How far the grid moves on after it is
+/// [`Grid::placed`]'s.
+fn place_grid_sbus<C: Clock + ?Sized>(
+    clk: &C,
+    g: &mut Grid,
+    prev_end: Option<u64>,
+    model: &FrameModel,
+    stats: &Stats,
+    lead: u64,
+    anchor: Option<u64>,
+) -> (u64, u64) {
+    let grid_start = match g.next_start {
+        Some(s) => s,
+        None => align(clk.now_ns() + lead, anchor, model.frame_ns()),
+    };
+    g.next_start = Some(grid_start);
+    let ready = clk.now_ns() + READY_NS;
+    let earliest = prev_end.map_or(0, |e| e + model.sync_window_ns().0);
+    let start = grid_start.max(ready).max(earliest);
+    if start > grid_start {
+        add(&stats.late_frames, 1);
+    }
+    (start, 0)
+}
+
+impl Grid {
+    /// After a frame from grid start `next_start` was placed at `start`,
+    /// its last pulse `last_pulse` after that: the next grid start, and the
+    /// sync before it. An SBUS frame moved so late that the next grid start
+    /// would leave less than the receivers' least idle line after it skips
+    /// grid starts (counted as overruns) instead of sending frames closer.
+    pub fn placed(&mut self, model: &FrameModel, stats: &Stats, start: u64, last_pulse: u64) {
+        let grid_start = self.next_start.expect("placed on the grid");
+        let mut next = grid_start + model.frame_ns();
+        let end = start + last_pulse;
+        if model.protocol() == Protocol::Sbus {
+            while next < end + model.sync_window_ns().0 {
+                next += model.frame_ns();
+                add(&stats.overruns, 1);
+            }
+        }
+        self.next_start = Some(next);
+        self.prev_sync_ns = next - end;
+    }
+}
+
 /// Follow: the frame's start and lead-in. A fresh command's frame starts as
 /// soon as the loop can write it, but not before the shortest sync after the
 /// previous frame's last pulse; a repeat starts at the longest sync. A frame
@@ -355,6 +415,16 @@ pub(super) fn place_follow<C: Clock + ?Sized>(
 ) -> Option<(u64, u64)> {
     let (sync_min_ns, sync_max_ns) = model.follow_sync_ns();
     let ready = clk.now_ns() + READY_NS;
+    if model.protocol() == Protocol::Sbus {
+        return Some(place_follow_sbus(
+            f,
+            model,
+            stats,
+            ready,
+            fresh_arrived,
+            at_earliest,
+        ));
+    }
     // A lead-in pulse as soon as it can be written, clear of the gaps a
     // trainer input reads as a channel.
     let lone = ready + alias_later(prev_pulse, ready);
@@ -381,4 +451,34 @@ pub(super) fn place_follow<C: Clock + ?Sized>(
     }
     add(&stats.overruns, 1);
     Some((lone + LEAD_IN_NS, LEAD_IN_NS))
+}
+
+/// Follow, SBUS: a fresh command's frame starts as soon as the loop can
+/// write it, but not before the shortest idle line after the previous
+/// frame's end; a repeat at the longest. Never a lead-in: after silence, or
+/// however late, a frame starts when it is ready (counted as a late frame
+/// when it was decided at its planned time but late).
+fn place_follow_sbus(
+    f: &Follow,
+    model: &FrameModel,
+    stats: &Stats,
+    ready: u64,
+    fresh_arrived: bool,
+    at_earliest: bool,
+) -> (u64, u64) {
+    let Some(last) = f.last_pulse else {
+        return (ready, 0);
+    };
+    if !fresh_arrived {
+        add(&stats.repeats, 1);
+    }
+    let (gap_min, gap_max) = model.follow_sync_ns();
+    let want = last + if fresh_arrived { gap_min } else { gap_max };
+    if ready <= want {
+        return (want, 0);
+    }
+    if !fresh_arrived || at_earliest {
+        add(&stats.late_frames, 1);
+    }
+    (ready, 0)
 }

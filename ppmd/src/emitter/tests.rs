@@ -385,6 +385,8 @@ fn first_start(edges: &[TraceEdge]) -> u64 {
 #[derive(Default)]
 struct WholeFrames {
     frames: Vec<Vec<FrameEdge>>,
+    /// SBUS frames: their bytes and when each was due.
+    sbus: Vec<([u8; ppm_shared::sbus::FRAME_LEN], u64)>,
     /// When each frame's transfer started, with a simulation to read.
     started: Vec<u64>,
     sim: Option<Sim>,
@@ -395,8 +397,10 @@ impl FrameLine for WholeFrames {
         Ok(())
     }
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
-        let WholeFrame::Ppm(edges) = frame;
-        self.frames.push(edges.to_vec());
+        match frame {
+            WholeFrame::Ppm(edges) => self.frames.push(edges.to_vec()),
+            WholeFrame::Sbus { bytes, due_ns } => self.sbus.push((*bytes, due_ns)),
+        }
         if let Some(sim) = &self.sim {
             self.started.push(sim.at());
         }

@@ -5,30 +5,38 @@
 //! whole-frame line takes, where the frame's last pulse is, and which
 //! values the frame carried for the frame log.
 //!
-//! PPM ([`PpmFrame`]) is the one protocol today: a frame is an edge
-//! schedule, written edge by edge (GPIO) or handed whole to a line timed by
-//! its own clock (SPI), after a lead-in pulse following silence; a late
-//! rising edge would change a channel's value, so the guard aborts the
-//! frame there. Adding SBUS (a 25-byte frame written whole at its start:
-//! no edges, no lead-in, no late-edge guard, since a late whole-frame
-//! write does not change the values it carries) means adding a variant and
-//! its methods here, not branches through the loop.
+//! - PPM ([`PpmFrame`]): a frame is an edge schedule, written edge by edge
+//!   (GPIO) or handed whole to a line timed by its own clock (SPI), after a
+//!   lead-in pulse following silence; a late rising edge would change a
+//!   channel's value, so the guard aborts the frame there.
+//! - SBUS ([`SbusFrame`]): 25 bytes handed whole to a line at the frame's
+//!   start (a UART, or SPI), which sends them back to back at 100 000 baud:
+//!   no edges of the loop's, no lead-in, no late-edge guard, since a late
+//!   write moves the frame but not the values it carries. Its "last pulse"
+//!   is its end on the wire, where the idle line before the next frame is
+//!   measured from.
 
 use super::pace::alias_later;
 use crate::line::{FrameEdge, WholeFrame};
-use ppm_shared::frame::{Channels, EdgeSchedule, FrameModel, Level, MAX_CHANNELS, MAX_EDGES};
+use ppm_shared::frame::{
+    Channels, EdgeSchedule, FrameModel, Level, Protocol, MAX_CHANNELS, MAX_EDGES,
+};
+use ppm_shared::sbus;
 
 /// A frame as it goes on the wire, in the protocol of its output.
 #[derive(Clone, Copy)]
 pub(super) enum WireFrame {
     /// PPM: edges at their times.
     Ppm(PpmFrame),
+    /// SBUS: one 25-byte frame.
+    Sbus(SbusFrame),
 }
 
 /// Room on the stack for a frame handed whole to a line, so the loop never
 /// allocates one.
 pub(super) struct WholeBuf {
     edges: [FrameEdge; MAX_EDGES + 2],
+    bytes: [u8; sbus::FRAME_LEN],
 }
 
 impl WholeBuf {
@@ -39,20 +47,41 @@ impl WholeBuf {
                 at_ns: 0,
                 level: Level::Low,
             }; MAX_EDGES + 2],
+            bytes: [0; sbus::FRAME_LEN],
         }
     }
 }
 
 impl WireFrame {
-    /// `channels` encoded by `model`, not placed yet.
-    pub fn encode(model: &FrameModel, channels: &Channels) -> WireFrame {
-        WireFrame::Ppm(PpmFrame::new(model.encode(channels)))
+    /// `channels` encoded by `model` in its protocol, not placed yet; an
+    /// SBUS frame with its failsafe flag set when `failsafe_flag`.
+    pub fn encode(model: &FrameModel, channels: &Channels, failsafe_flag: bool) -> WireFrame {
+        match model.protocol() {
+            Protocol::Ppm => WireFrame::Ppm(PpmFrame::new(model.encode(channels))),
+            Protocol::Sbus => WireFrame::Sbus(SbusFrame {
+                bytes: model.encode_sbus(channels, failsafe_flag),
+                start: 0,
+            }),
+        }
     }
 
-    /// Where the frame's last pulse starts, from the frame's start.
+    /// Where the frame's last pulse starts, from the frame's start (SBUS:
+    /// where its last byte ends on the wire).
     pub fn last_pulse(&self) -> u64 {
         match self {
             WireFrame::Ppm(f) => f.last_pulse(),
+            WireFrame::Sbus(_) => sbus::FRAME_WIRE_NS,
+        }
+    }
+
+    /// After its whole-frame write returned at `written`: where it ends on
+    /// the wire at the latest, when that is what the next frame's idle line
+    /// is measured from (SBUS: it left no later than the write's return).
+    /// `None` for PPM, whose sync a whole-frame line times itself.
+    pub fn ends_by(&self, written: u64) -> Option<u64> {
+        match self {
+            WireFrame::Ppm(_) => None,
+            WireFrame::Sbus(_) => Some(written + sbus::FRAME_WIRE_NS),
         }
     }
 
@@ -65,6 +94,7 @@ impl WireFrame {
                 f.lead_in_ns = lead_in_ns;
                 f.before_pulse = before_pulse;
             }
+            WireFrame::Sbus(f) => f.start = start,
         }
     }
 
@@ -72,13 +102,16 @@ impl WireFrame {
     pub fn due(&self) -> u64 {
         match self {
             WireFrame::Ppm(f) => f.edge().0,
+            WireFrame::Sbus(f) => f.start,
         }
     }
 
-    /// The level its next write sets, on a line written edge by edge.
+    /// The level its next write sets, on a line written edge by edge (an
+    /// SBUS frame is never written so: its level is the start bit's).
     pub fn level(&self) -> Level {
         match self {
             WireFrame::Ppm(f) => f.edge().1,
+            WireFrame::Sbus(_) => Level::Low,
         }
     }
 
@@ -92,6 +125,7 @@ impl WireFrame {
                     && model.timed(f.edge().1)
                     && now - due > model.late_edge_guard_ns()
             }
+            WireFrame::Sbus(_) => false,
         }
     }
 
@@ -100,6 +134,7 @@ impl WireFrame {
     pub fn sync_overrun(&self, model: &FrameModel, now: u64) -> bool {
         match self {
             WireFrame::Ppm(f) => f.sync_overrun(model, now),
+            WireFrame::Sbus(_) => false,
         }
     }
 
@@ -109,6 +144,16 @@ impl WireFrame {
     pub fn whole<'b>(&self, due: u64, buf: &'b mut WholeBuf) -> (WholeFrame<'b>, usize) {
         match self {
             WireFrame::Ppm(f) => f.whole(due, &mut buf.edges),
+            WireFrame::Sbus(f) => {
+                buf.bytes = f.bytes;
+                (
+                    WholeFrame::Sbus {
+                        bytes: &buf.bytes,
+                        due_ns: due,
+                    },
+                    1,
+                )
+            }
         }
     }
 
@@ -117,6 +162,7 @@ impl WireFrame {
     pub fn sent_whole(&mut self, model: &FrameModel) {
         match self {
             WireFrame::Ppm(f) => f.timed = model.channels() + 1,
+            WireFrame::Sbus(_) => {}
         }
     }
 
@@ -126,6 +172,7 @@ impl WireFrame {
     pub fn last_timed(&self, model: &FrameModel) -> Option<u64> {
         match self {
             WireFrame::Ppm(f) => f.last_timed(model),
+            WireFrame::Sbus(_) => None,
         }
     }
 
@@ -133,6 +180,7 @@ impl WireFrame {
     pub fn timed(&self, model: &FrameModel) -> bool {
         match self {
             WireFrame::Ppm(f) => model.timed(f.edge().1),
+            WireFrame::Sbus(_) => false,
         }
     }
 
@@ -142,6 +190,7 @@ impl WireFrame {
     pub fn timed_written(&mut self, late_ns: u64) -> bool {
         match self {
             WireFrame::Ppm(f) => f.timed_written(late_ns),
+            WireFrame::Sbus(_) => false,
         }
     }
 
@@ -150,6 +199,7 @@ impl WireFrame {
     pub fn advance(&mut self, whole: bool) -> bool {
         match self {
             WireFrame::Ppm(f) => f.advance(whole),
+            WireFrame::Sbus(_) => true,
         }
     }
 
@@ -160,6 +210,7 @@ impl WireFrame {
     pub fn abort(&mut self, model: &FrameModel, at: u64, timed_ns: Option<u64>) -> bool {
         match self {
             WireFrame::Ppm(f) => f.abort(model, at, timed_ns),
+            WireFrame::Sbus(_) => true,
         }
     }
 
@@ -168,6 +219,7 @@ impl WireFrame {
     pub fn pulse_of(&self, model: &FrameModel, timed_ns: Option<u64>) -> Option<u64> {
         match self {
             WireFrame::Ppm(_) => timed_ns.map(|t| t - model.timed_offset_ns()),
+            WireFrame::Sbus(_) => None,
         }
     }
 
@@ -175,6 +227,7 @@ impl WireFrame {
     pub fn aborted_at(&self) -> usize {
         match self {
             WireFrame::Ppm(f) => f.timed.max(1),
+            WireFrame::Sbus(_) => 1,
         }
     }
 
@@ -189,8 +242,24 @@ impl WireFrame {
     ) -> usize {
         match self {
             WireFrame::Ppm(f) => f.carried(model, sent, aborted, values),
+            WireFrame::Sbus(f) => {
+                // What the receiver the values are encoded for reads of
+                // the bytes sent.
+                let read = model.sbus_reads(&f.bytes);
+                for (v, r) in values.iter_mut().zip(read) {
+                    *v = r as u32;
+                }
+                sbus::CHANNELS
+            }
         }
     }
+}
+
+/// An SBUS frame on the wire: its bytes and where it starts.
+#[derive(Clone, Copy)]
+pub(super) struct SbusFrame {
+    bytes: [u8; sbus::FRAME_LEN],
+    start: u64,
 }
 
 /// A PPM frame on the wire: its edge schedule and how far it is written.

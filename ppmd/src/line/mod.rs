@@ -1,7 +1,6 @@
 //! Lines: what physically carries an output's signal (a GPIO line, one
-//! line of a GPIO bank, an SPI device's MOSI, the simulated line's trace
-//! file; [`serial`], a tty for the coming SBUS output, not selectable
-//! yet). A frame leaves one of two ways: edge by edge, the timing loop
+//! line of a GPIO bank, an SPI device's MOSI, a tty for SBUS ([`serial`]),
+//! the simulated line's trace file). A frame leaves one of two ways: edge by edge, the timing loop
 //! calling [`Line::write`] (or [`Bank::write`]) at each edge's time, or
 //! whole, the loop handing the frame to a [`FrameLine`] at its start.
 //! Lines must not allocate, block, log or take a lock in those calls.
@@ -28,6 +27,10 @@ pub enum LineError {
     /// A frame longer than the line was opened for (not sent).
     #[error("frame longer than the transfer buffer, not sent")]
     FrameTooLong,
+    /// A frame of a protocol the line does not carry (not sent; the
+    /// configuration refuses such a pairing at start).
+    #[error("a frame of another protocol than the line carries, not sent")]
+    WrongProtocol,
     /// The device took only part of a frame (the rest is not sent, so no
     /// frame goes out split in two).
     #[error("short write: {written} of {len} bytes")]
@@ -50,14 +53,21 @@ pub struct FrameEdge {
 }
 
 /// One frame as a [`FrameLine`] takes it: what the frame is on the wire,
-/// one variant per protocol. A protocol sent whole (SBUS's 25 bytes on a
-/// UART, next) is one more variant here and one more [`FrameLine`]; the
-/// loop hands every whole frame over the same way, at its start.
+/// one variant per protocol; the loop hands every whole frame over the same
+/// way, at its start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WholeFrame<'a> {
     /// A PPM frame: every edge (the lead-in pulse's included), timed from
     /// the first.
     Ppm(&'a [FrameEdge]),
+    /// An SBUS frame: its 25 bytes, sent back to back from the write, which
+    /// was due at `due_ns`.
+    Sbus {
+        /// The frame.
+        bytes: &'a [u8; ppm_shared::sbus::FRAME_LEN],
+        /// When it was due (CLOCK_MONOTONIC ns).
+        due_ns: u64,
+    },
 }
 
 /// A line written edge by edge, each edge at its time as the loop keeps it
@@ -177,6 +187,58 @@ impl SimLine {
 impl Drop for SimLine {
     fn drop(&mut self) {
         let _ = self.finish();
+    }
+}
+
+/// The simulated line of an SBUS output: each frame's bytes are written
+/// to the trace as the UART waveform a line idling at `idle` carries, every
+/// bit edge at its time from the write (actual) and from when it was due
+/// (scheduled).
+pub struct SimSbusLine {
+    sim: SimLine,
+    idle: Level,
+    now_ns: fn() -> u64,
+}
+
+impl SimSbusLine {
+    /// An SBUS line on `sim`, idling at `idle`, reading the write's time from
+    /// `now_ns` (CLOCK_MONOTONIC in ppmd).
+    pub fn new(sim: SimLine, idle: Level, now_ns: fn() -> u64) -> SimSbusLine {
+        SimSbusLine { sim, idle, now_ns }
+    }
+
+    /// The simulated line under it.
+    pub fn sim(&mut self) -> &mut SimLine {
+        &mut self.sim
+    }
+}
+
+impl FrameLine for SimSbusLine {
+    fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
+        let WholeFrame::Sbus { bytes, due_ns } = frame else {
+            return Err(LineError::WrongProtocol);
+        };
+        let now = (self.now_ns)();
+        let mut full = false;
+        for (at, level) in ppm_shared::sbus::uart::edges(bytes, 0, self.idle) {
+            full |= self
+                .sim
+                .write(&TraceEdge {
+                    scheduled_ns: due_ns + at,
+                    actual_ns: now + at,
+                    level,
+                })
+                .is_err();
+        }
+        if full {
+            Err(LineError::BufferFull)
+        } else {
+            Ok(())
+        }
+    }
+
+    fn park(&mut self, _level: Level) -> Result<(), LineError> {
+        Ok(())
     }
 }
 

@@ -2,9 +2,9 @@
 //! such as the Raspberry Pi's `/dev/ttyAMA0`, a USB serial adaptor, or a
 //! pseudo-terminal in tests), sent by the UART at its own baud clock.
 //!
-//! This is the line of the coming SBUS output (25-byte frames, 100 000
-//! baud, 8 data bits, even parity, 2 stop bits). Nothing selects it yet: no
-//! configuration names it and the timing loop does not drive it.
+//! This is the line of an SBUS output on `serial:DEVICE` (25-byte frames,
+//! 100 000 baud, 8 data bits, even parity, 2 stop bits), a [`FrameLine`]:
+//! the loop hands it each frame at the frame's start.
 //!
 //! 100 000 baud is not one of the `Bnnn` rates, so the line is set through
 //! `termios2` (`TCGETS2`/`TCSETS2` with `BOTHER` and the rate in
@@ -18,7 +18,8 @@
 //! unchanged, but it has no wire: it keeps the baud rate and the stop bits
 //! it was given and clears `PARENB` (see this module's tests).
 
-use super::LineError;
+use super::{FrameLine, LineError, WholeFrame};
+use ppm_shared::frame::Level;
 use std::fs::{File, OpenOptions};
 use std::io::{self, Write};
 use std::os::fd::AsRawFd;
@@ -26,10 +27,10 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::path::{Path, PathBuf};
 
 /// The SBUS baud rate.
-pub const BAUD: u32 = 100_000;
+pub const BAUD: u32 = ppm_shared::sbus::BAUD as u32;
 
 /// The bytes of one SBUS frame.
-pub const FRAME_LEN: usize = 25;
+pub const FRAME_LEN: usize = ppm_shared::sbus::FRAME_LEN;
 
 /// What the serial line was doing when it failed (for [`SerialError`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -198,9 +199,8 @@ fn make_sbus(t: &mut libc::termios2) {
     t.c_cc[libc::VTIME] = 0;
 }
 
-/// The serial output's line for the coming SBUS protocol: a tty in raw
-/// mode at 100 000 baud, 8E2, written one whole frame per call. Not yet
-/// selectable from the configuration.
+/// The serial output's line for SBUS: a tty in raw mode at 100 000 baud,
+/// 8E2, written one whole frame per call.
 #[derive(Debug)]
 pub struct SerialLine {
     file: File,
@@ -301,6 +301,20 @@ impl SerialLine {
                 }
             }
         }
+    }
+}
+
+impl FrameLine for SerialLine {
+    fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
+        match frame {
+            WholeFrame::Sbus { bytes, .. } => SerialLine::write_frame(self, bytes),
+            WholeFrame::Ppm(_) => Err(LineError::WrongProtocol),
+        }
+    }
+
+    /// A UART idles high by itself between characters: nothing to do.
+    fn park(&mut self, _level: Level) -> Result<(), LineError> {
+        Ok(())
     }
 }
 

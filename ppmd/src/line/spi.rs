@@ -93,6 +93,30 @@ pub fn encode(edges: &[FrameEdge], hz: u32, buf: &mut [u8]) -> Option<usize> {
     Some(len)
 }
 
+/// The bit rate of an SBUS output through SPI: one SPI bit a UART bit.
+pub const SBUS_HZ: u32 = ppm_shared::sbus::BAUD as u32;
+
+/// Bytes of an SBUS frame's transfer: its 300 bits, padded with idle (0)
+/// bits to whole bytes.
+pub const SBUS_TRANSFER_BYTES: usize =
+    (ppm_shared::sbus::FRAME_LEN * ppm_shared::sbus::BYTE_BITS as usize).div_ceil(8);
+
+/// Encodes one SBUS frame into `buf` as true (inverted) SBUS at
+/// [`SBUS_HZ`], most significant bit first: MOSI idles low, a start bit is
+/// high, a data or parity 1 is low, the stop bits are low; the last byte is
+/// padded with idle bits. Returns the bytes used, or `None` when `buf` is
+/// too small.
+pub fn encode_sbus(bytes: &[u8; ppm_shared::sbus::FRAME_LEN], buf: &mut [u8]) -> Option<usize> {
+    let out = buf.get_mut(..SBUS_TRANSFER_BYTES)?;
+    out.fill(0);
+    for (k, level) in ppm_shared::sbus::uart::waveform(bytes, Level::Low).enumerate() {
+        if level == Level::High {
+            out[k / 8] |= 0x80 >> (k % 8);
+        }
+    }
+    Some(SBUS_TRANSFER_BYTES)
+}
+
 /// Sets bits `from..to` (bit 0 is the first byte's most significant).
 fn set_bits(out: &mut [u8], from: usize, to: usize) {
     let mut b = from;
@@ -201,8 +225,14 @@ impl SpiLine {
 
 impl FrameLine for SpiLine {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
-        let WholeFrame::Ppm(edges) = frame;
-        let len = encode(edges, self.hz, &mut self.buf).ok_or(LineError::FrameTooLong)?;
+        let len = match frame {
+            WholeFrame::Ppm(edges) => encode(edges, self.hz, &mut self.buf),
+            WholeFrame::Sbus { bytes, .. } if self.hz == SBUS_HZ => {
+                encode_sbus(bytes, &mut self.buf)
+            }
+            WholeFrame::Sbus { .. } => return Err(LineError::WrongProtocol),
+        }
+        .ok_or(LineError::FrameTooLong)?;
         let mut t = SpidevTransfer::write(&self.buf[..len]);
         t.speed_hz = self.hz;
         self.dev
@@ -321,6 +351,37 @@ mod tests {
             "too small"
         );
         assert_eq!(encode(&[], 1_000_000, &mut buf), None);
+    }
+
+    #[test]
+    fn an_sbus_frame_is_true_sbus_exact_to_the_bit() {
+        use ppm_shared::sbus;
+        let raw: [u16; sbus::CHANNELS] = std::array::from_fn(|i| (i as u16 * 131 + 7) & 0x7FF);
+        let frame = sbus::encode(
+            &raw,
+            sbus::Flags {
+                failsafe: true,
+                ..Default::default()
+            },
+        );
+        let mut buf = [0u8; 64];
+        assert_eq!(
+            encode_sbus(&frame, &mut buf),
+            Some(38),
+            "300 bits in 38 bytes"
+        );
+        assert_eq!(buf[37] & 0x0F, 0, "the 4 padding bits idle low");
+        assert!(buf[38..].iter().all(|&b| b == 0));
+        // Read back as a UART receiver of inverted SBUS would.
+        let edges = bit_edges(&buf[..38], SBUS_HZ);
+        let got = sbus::uart::decode(&edges, Level::Low);
+        assert_eq!(got.len(), sbus::FRAME_LEN);
+        for (k, c) in got.iter().enumerate() {
+            assert_eq!(c.byte, frame[k], "byte {k}");
+            assert!(c.parity_ok && c.stop_ok, "byte {k}");
+            assert_eq!(c.start_ns, k as u64 * 120_000, "back to back");
+        }
+        assert_eq!(encode_sbus(&frame, &mut buf[..37]), None, "too small");
     }
 
     #[test]

@@ -3,7 +3,9 @@
 
 use super::schema::{Config, CpuChoice, FailsafeAction, IngressSection, OutputSpec};
 use super::ConfigError;
+use crate::frame::PpmSection;
 use crate::frame::{FrameModel, Level};
+use crate::signal::Protocol;
 use std::path::PathBuf;
 
 impl Config {
@@ -44,7 +46,7 @@ impl Config {
                 _ => None,
             },
         )?;
-        let spi = matches!(self.output()?, OutputSpec::Spi { .. });
+        let output = self.output()?;
         if !(50_000..=20_000_000).contains(&self.ppmd.spi_hz) {
             return Err(ConfigError::invalid(
                 "ppmd.spi_hz",
@@ -54,14 +56,20 @@ impl Config {
                 ),
             ));
         }
-        if spi && self.ppm.idle_level == Level::High {
-            return Err(ConfigError::invalid(
-                "ppm.idle_level",
-                format!(
-                    "\"high\" cannot be sent through `{}`: between transfers an SPI controller leaves MOSI low (or at the last bit), which would add an edge to every sync; use idle_level = \"low\" (an inverter in the cable gives a transmitter that wants high), or a gpio: output",
-                    self.ppmd.output
-                ),
-            ));
+        match self.ppm.protocol {
+            Protocol::Ppm => self.check_ppm_output(&output)?,
+            Protocol::Sbus => self.check_sbus_output(&output)?,
+        }
+        for (key, action) in [
+            ("failsafe.action", self.failsafe.action),
+            ("failsafe.startup", self.failsafe.startup),
+        ] {
+            if action == FailsafeAction::Flag && self.ppm.protocol != Protocol::Sbus {
+                return Err(ConfigError::invalid(
+                    key,
+                    "\"flag\" sets SBUS's failsafe flag, and PPM has none: use \"silence\", \"hold\" or \"default\" (or ppm.protocol = \"sbus\")",
+                ));
+            }
         }
         for (key, mb) in [
             ("ppmd.frame_log_max_mb", self.ppmd.frame_log_max_mb),
@@ -117,7 +125,70 @@ impl Config {
                 ),
             ));
         }
-        Ok(FrameModel::build(&self.ppm)?)
+        Ok(FrameModel::build(&self.resolved_ppm(&output))?)
+    }
+
+    /// `[ppm]` with the idle level an SBUS output takes when the key is not
+    /// given: low (true SBUS) through SPI, high (a UART's) elsewhere.
+    fn resolved_ppm(&self, output: &OutputSpec) -> PpmSection {
+        let mut ppm = self.ppm.clone();
+        if ppm.protocol == Protocol::Sbus && ppm.idle_level.is_none() {
+            ppm.idle_level = Some(match output {
+                OutputSpec::Spi { .. } => Level::Low,
+                _ => Level::High,
+            });
+        }
+        ppm
+    }
+
+    /// A PPM output: a line PPM's edges can be written on.
+    fn check_ppm_output(&self, output: &OutputSpec) -> Result<(), ConfigError> {
+        match output {
+            OutputSpec::Spi { .. } if self.ppm.idle_level() == Level::High => {
+                Err(ConfigError::invalid(
+                    "ppm.idle_level",
+                    format!(
+                        "\"high\" cannot be sent through `{}`: between transfers an SPI controller leaves MOSI low (or at the last bit), which would add an edge to every sync; use idle_level = \"low\" (an inverter in the cable gives a transmitter that wants high), or a gpio: output",
+                        self.ppmd.output
+                    ),
+                ))
+            }
+            OutputSpec::Serial { .. } => Err(ConfigError::invalid(
+                "ppmd.output",
+                format!(
+                    "`{}` carries SBUS, not PPM: set ppm.protocol = \"sbus\" (for a radio's serial trainer input or a flight controller), or use a gpio: or spi: output for a trainer jack",
+                    self.ppmd.output
+                ),
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// An SBUS output: a line that sends its bytes whole, at the polarity
+    /// `ppm.idle_level` names.
+    fn check_sbus_output(&self, output: &OutputSpec) -> Result<(), ConfigError> {
+        let out = &self.ppmd.output;
+        match (output, self.ppm.idle_level) {
+            (OutputSpec::Gpio { .. }, _) => Err(ConfigError::invalid(
+                "ppmd.output",
+                format!(
+                    "`{out}`: SBUS is 10 us bits that must leave back to back, which a GPIO line written from software cannot hold: use serial:DEVICE (a UART, SBUS idling high) or spi:DEVICE (true SBUS, idling low)"
+                ),
+            )),
+            (OutputSpec::Serial { .. }, Some(Level::Low)) => Err(ConfigError::invalid(
+                "ppm.idle_level",
+                format!(
+                    "\"low\" (true, inverted SBUS) cannot be sent through `{out}`: a UART idles high; use an spi: output (MOSI idles low), or an inverter in the cable with idle_level = \"high\""
+                ),
+            )),
+            (OutputSpec::Spi { .. }, Some(Level::High)) => Err(ConfigError::invalid(
+                "ppm.idle_level",
+                format!(
+                    "\"high\" SBUS cannot be sent through `{out}`: between transfers an SPI controller leaves MOSI low, a break in an idle-high line; use a serial: output (a UART idles high), or an inverter in the cable with idle_level = \"low\""
+                ),
+            )),
+            _ => Ok(()),
+        }
     }
 
     /// The address blocks of `ingress.allow` (a bare address is a block of one).

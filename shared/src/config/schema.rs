@@ -295,11 +295,14 @@ pub struct FailsafeSection {
     /// fresh, in milliseconds, 1..=60000. Default 200.
     pub after_ms: u64,
     /// What ppmd emits then: `"silence"` (no pulses, the transmitter falls back
-    /// to its own sticks; default), `"hold"` (repeat the last command) or
-    /// `"default"` (the configured default of every channel).
+    /// to its own sticks; default), `"hold"` (repeat the last command),
+    /// `"default"` (the configured default of every channel) or, with
+    /// `protocol = "sbus"`, `"flag"` (frames of the defaults with SBUS's
+    /// failsafe flag set).
     pub action: FailsafeAction,
     /// What ppmd emits from start until the first command: `"silence"`
-    /// (default) or `"default"` (`"hold"` has nothing to hold yet).
+    /// (default), `"default"` or (SBUS) `"flag"` (`"hold"` has nothing to
+    /// hold yet).
     pub startup: FailsafeAction,
 }
 
@@ -323,6 +326,23 @@ pub enum FailsafeAction {
     Hold,
     /// Emit every channel's default.
     Default,
+    /// SBUS only: emit every channel's default with the failsafe flag set,
+    /// which receivers take as failsafe at once (EdgeTX drops the frames,
+    /// so its trainer input is lost after 1 s; a flight controller enters
+    /// its failsafe).
+    Flag,
+}
+
+impl FailsafeAction {
+    /// Its name in the configuration.
+    pub fn name(self) -> &'static str {
+        match self {
+            FailsafeAction::Silence => "silence",
+            FailsafeAction::Hold => "hold",
+            FailsafeAction::Default => "default",
+            FailsafeAction::Flag => "flag",
+        }
+    }
 }
 
 /// `[ipc]`: the shared memory between udp-ingress and ppmd.
@@ -352,6 +372,9 @@ pub enum OutputSpec {
     Gpio { chip: String, line: String },
     /// A spidev device: each frame is one SPI transfer on MOSI.
     Spi { device: PathBuf },
+    /// A tty (a UART): each SBUS frame is one write, sent at 100 000 baud,
+    /// 8E2.
+    Serial { device: PathBuf },
 }
 
 impl std::str::FromStr for OutputSpec {
@@ -369,6 +392,12 @@ impl std::str::FromStr for OutputSpec {
             Some(("spi", _)) => Err(format!(
                 "`{s}`: an spi output is spi:DEVICE, e.g. spi:/dev/spidev0.0"
             )),
+            Some(("serial", device)) if !device.is_empty() => Ok(OutputSpec::Serial {
+                device: PathBuf::from(device),
+            }),
+            Some(("serial", _)) => Err(format!(
+                "`{s}`: a serial output is serial:DEVICE, e.g. serial:/dev/ttyAMA0"
+            )),
             Some(("gpio", rest)) => match rest.rsplit_once(':') {
                 Some((chip, line)) if !chip.is_empty() && !line.is_empty() => {
                     Ok(OutputSpec::Gpio {
@@ -381,7 +410,7 @@ impl std::str::FromStr for OutputSpec {
                 )),
             },
             _ => Err(format!(
-                "`{s}` is not an output: use sim, sim:PATH, gpio:CHIP:LINE or spi:DEVICE"
+                "`{s}` is not an output: use sim, sim:PATH, gpio:CHIP:LINE, spi:DEVICE or serial:DEVICE"
             )),
         }
     }

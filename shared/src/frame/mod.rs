@@ -14,7 +14,8 @@
 //!   frame's [`EdgeSchedule`].
 
 use crate::receiver::ReceiverChoice;
-pub use crate::signal::{Level, Timing, MAX_CHANNELS, MAX_EDGES};
+use crate::sbus::{self, timing::SbusChoice};
+pub use crate::signal::{Level, Protocol, Timing, MAX_CHANNELS, MAX_EDGES};
 
 pub mod build;
 pub mod section;
@@ -109,9 +110,54 @@ pub struct FrameModel {
     receiver: ReceiverChoice,
     sync_window_ns: (u64, u64),
     late_edge_guard_ns: u64,
+    /// SBUS's receivers, for an SBUS model.
+    sbus: Option<SbusChoice>,
 }
 
 impl FrameModel {
+    /// What a frame is on the wire.
+    pub fn protocol(&self) -> Protocol {
+        match self.sbus {
+            None => Protocol::Ppm,
+            Some(_) => Protocol::Sbus,
+        }
+    }
+
+    /// The SBUS receivers an SBUS model is for (`None` for PPM).
+    pub fn sbus(&self) -> Option<&SbusChoice> {
+        self.sbus.as_ref()
+    }
+
+    /// One SBUS frame carrying `values` (clamped to their channel's limits,
+    /// missing channels at their default), encoded for the receiver of
+    /// `ppm.receiver` ([`SbusChoice::encode_for`]), with the failsafe flag
+    /// set when `failsafe`. Allocation-free. A PPM model encodes for
+    /// EdgeTX.
+    pub fn encode_sbus(&self, values: &Channels, failsafe: bool) -> [u8; sbus::FRAME_LEN] {
+        let mut raw = [0u16; sbus::CHANNELS];
+        for (i, r) in raw.iter_mut().enumerate().take(self.channels) {
+            let v = values.as_ns().get(i).copied().unwrap_or(self.default_ns[i]);
+            let ns = u64::from(self.clamp(i, v).0);
+            *r = match &self.sbus {
+                Some(c) => c.raw(ns),
+                None => sbus::raw_for(sbus::SbusReceiver::EdgeTx, ns),
+            };
+        }
+        let flags = sbus::Flags {
+            failsafe,
+            ..Default::default()
+        };
+        sbus::encode(&raw, flags)
+    }
+
+    /// What the receiver values are encoded for reads of an SBUS frame's
+    /// channels, ns (its scaling, whatever the header and flags).
+    pub fn sbus_reads(&self, frame: &[u8; sbus::FRAME_LEN]) -> [u64; sbus::CHANNELS] {
+        let r = self
+            .sbus
+            .map_or(sbus::SbusReceiver::EdgeTx, |c| c.encode_for());
+        sbus::channels(frame).map(|raw| r.read_ns(raw))
+    }
     /// When frames start.
     pub fn timing(&self) -> Timing {
         self.timing

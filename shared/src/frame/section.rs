@@ -3,22 +3,33 @@
 //! builds the model.
 
 use crate::receiver::ReceiverChoice;
-use crate::signal::{Level, Timing};
+use crate::signal::{Level, Protocol, Timing};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 
-/// `[ppm]`: the signal a transmitter's trainer port receives.
+/// `[ppm]`: the signal a transmitter's trainer port (or, with
+/// `protocol = "sbus"`, its serial trainer input) receives. Keys whose
+/// default depends on the protocol are options here; the model
+/// ([`FrameModel::build`](super::FrameModel::build)) resolves them.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PpmSection {
-    /// Number of channels in a frame, 1..=16. Default 8.
-    pub channels: u32,
-    /// Frame length in microseconds (frame start to next frame start). Default 22500.
-    pub frame_us: f64,
-    /// Width of the separator pulse before every channel, in microseconds. Default 300.
+    /// What a frame is on the wire: `"ppm"` (default) or `"sbus"`.
+    pub protocol: Protocol,
+    /// Number of channels in a frame, 1..=16. Default 8; SBUS frames carry
+    /// 16, its only value.
+    pub channels: Option<u32>,
+    /// Frame length in microseconds (frame start to next frame start) under
+    /// grid timing. Default 22500; SBUS: the grid period, default 7000.
+    pub frame_us: Option<f64>,
+    /// Width of the separator pulse before every channel, in microseconds.
+    /// Default 300. PPM only.
     pub pulse_us: f64,
-    /// Line level between pulses and while silent: `"low"` or `"high"`. Default `"low"`.
-    pub idle_level: Level,
+    /// Line level between pulses and while silent: `"low"` or `"high"`.
+    /// Default `"low"`. SBUS: the level the line idles at, `"high"` for a
+    /// plain UART's SBUS (the default on a serial output), `"low"` for true
+    /// (inverted) SBUS (the default on an SPI output).
+    pub idle_level: Option<Level>,
     /// Channel order of the transmitter, a permutation of the letters A (aileron),
     /// E (elevator), T (throttle), R (rudder): `"AETR"` (default), `"TAER"`,
     /// `"ATER"`, ... Channels after the fourth are `aux1`, `aux2`, ...
@@ -35,7 +46,8 @@ pub struct PpmSection {
     /// The receiver the signal is for: `"any"` (default: what EdgeTX,
     /// OpenTX, Betaflight and ArduPilot all read), `"edgetx"` (2.10 and
     /// later), `"opentx"` (and EdgeTX before 2.10), `"betaflight"` or
-    /// `"ardupilot"`. Settings it would misread are refused at start.
+    /// `"ardupilot"`. Settings it would misread are refused at start. SBUS
+    /// values are encoded for it (EdgeTX's scaling under `"any"`).
     pub receiver: ReceiverChoice,
     /// When frames start: `"grid"` (default: every `frame_us`, whenever
     /// commands come) or `"follow"` (a fresh command starts its frame as soon
@@ -43,29 +55,33 @@ pub struct PpmSection {
     pub timing: Timing,
     /// `follow`: the shortest sync gap left before a frame, in microseconds,
     /// at least 4500 (EdgeTX's 4000 us plus a margin; 3200 for Betaflight or
-    /// ArduPilot alone). Default 5000.
-    pub follow_sync_min_us: f64,
+    /// ArduPilot alone). Default 5000. SBUS: the shortest idle line between
+    /// one frame's last byte and the next frame, default and least by
+    /// receiver (see [`crate::sbus::timing`]).
+    pub follow_sync_min_us: Option<f64>,
     /// `follow`: the longest sync gap; when no fresh command has come by
     /// then, the last frame is repeated (or the failsafe acts). At most
     /// 18500 (EdgeTX's 19000 us less a margin), and not below
-    /// `follow_sync_min_us`. Default 18000.
-    pub follow_sync_max_us: f64,
+    /// `follow_sync_min_us`. Default 18000. SBUS: the longest idle line,
+    /// default 20000, at most 60000.
+    pub follow_sync_max_us: Option<f64>,
     /// How late an edge that receivers time (the rising edge at the pin)
     /// may be written, in microseconds, 1..=20. An edge found later than
     /// this just before its write is not written: the frame is aborted
     /// (receivers read a short frame, never a wrong value). Default 3: the
     /// receivers resolve 1 us, so a value off by less is read within a few
-    /// of their capture ticks.
+    /// of their capture ticks. PPM only.
     pub late_edge_guard_us: f64,
 }
 
 impl Default for PpmSection {
     fn default() -> Self {
         PpmSection {
-            channels: 8,
-            frame_us: 22_500.0,
+            protocol: Protocol::Ppm,
+            channels: None,
+            frame_us: None,
             pulse_us: 300.0,
-            idle_level: Level::Low,
+            idle_level: None,
             order: "AETR".into(),
             default_us: 1_500.0,
             min_us: 1_000.0,
@@ -73,10 +89,49 @@ impl Default for PpmSection {
             channel: BTreeMap::new(),
             receiver: ReceiverChoice::Any,
             timing: Timing::Grid,
-            follow_sync_min_us: 5_000.0,
-            follow_sync_max_us: 18_000.0,
+            follow_sync_min_us: None,
+            follow_sync_max_us: None,
             late_edge_guard_us: LATE_EDGE_GUARD_US,
         }
+    }
+}
+
+/// PPM's defaults of the keys whose default depends on the protocol.
+pub mod ppm_defaults {
+    /// `ppm.channels`.
+    pub const CHANNELS: u32 = 8;
+    /// `ppm.frame_us`.
+    pub const FRAME_US: f64 = 22_500.0;
+    /// `ppm.follow_sync_min_us`.
+    pub const FOLLOW_SYNC_MIN_US: f64 = 5_000.0;
+    /// `ppm.follow_sync_max_us`.
+    pub const FOLLOW_SYNC_MAX_US: f64 = 18_000.0;
+}
+
+impl PpmSection {
+    /// `ppm.channels`, or the protocol's default (PPM 8, SBUS 16).
+    pub fn channels(&self) -> u32 {
+        self.channels.unwrap_or(match self.protocol {
+            Protocol::Ppm => ppm_defaults::CHANNELS,
+            Protocol::Sbus => crate::sbus::CHANNELS as u32,
+        })
+    }
+
+    /// `ppm.frame_us`, or the protocol's default (PPM 22500, SBUS 7000).
+    pub fn frame_us(&self) -> f64 {
+        self.frame_us.unwrap_or(match self.protocol {
+            Protocol::Ppm => ppm_defaults::FRAME_US,
+            Protocol::Sbus => crate::sbus::timing::PERIOD_DEFAULT_US,
+        })
+    }
+
+    /// `ppm.idle_level`, or the protocol's default on a line that can send
+    /// either (PPM low, SBUS high: a plain UART's).
+    pub fn idle_level(&self) -> Level {
+        self.idle_level.unwrap_or(match self.protocol {
+            Protocol::Ppm => Level::Low,
+            Protocol::Sbus => Level::High,
+        })
     }
 }
 

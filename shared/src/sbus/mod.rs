@@ -22,6 +22,8 @@
 //!   a frame.
 
 pub mod framing;
+pub mod timing;
+pub mod uart;
 
 #[cfg(test)]
 mod tests;
@@ -168,7 +170,9 @@ pub enum SbusReceiver {
     /// ArduPilot (`libraries/AP_RCProtocol/AP_RCProtocol_SBUS.cpp`,
     /// `_process_byte` and `sbus_decode`): a header counts only 2000 us or
     /// more after the byte before it; the end byte is not checked; the
-    /// failsafe flag is failsafe, the frame-lost flag alone is not;
+    /// failsafe flag is failsafe, the frame-lost flag alone is not, and so
+    /// is a frame with channel 1, 2, 3 or 4 at 875 us or below (raw 0 or 1;
+    /// PR 25169, 2023);
     /// `raw * 1000 / 1600 + 875` us in integers. See
     /// [`SbusReceiver::read_ns`] for an older float scaling, and
     /// [`SbusReceiver::digital_ns`] for channels 17 and 18.
@@ -192,6 +196,13 @@ const ARDUPILOT_OFFSET_US: u64 = 875;
 /// `sbus_decode`).
 const ARDUPILOT_DIGITAL_US: [u64; 2] = [998, 1_998];
 
+/// ArduPilot takes a frame whose channels 1 to 4 include one at or below
+/// [`ARDUPILOT_FAILSAFE_AT_NS`] as a failsafe frame
+/// (`AP_RCProtocol_SBUS.cpp`, `sbus_decode`, since PR 25169).
+pub const ARDUPILOT_FAILSAFE_CHANNELS: usize = 4;
+/// See [`ARDUPILOT_FAILSAFE_CHANNELS`]: 875 us, raw 0 and 1.
+pub const ARDUPILOT_FAILSAFE_AT_NS: u64 = 875 * US;
+
 /// Nanoseconds per microsecond.
 const US: u64 = 1_000;
 
@@ -203,6 +214,16 @@ impl SbusReceiver {
         SbusReceiver::Betaflight45,
         SbusReceiver::ArduPilot,
     ];
+
+    /// Its name in messages and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            SbusReceiver::EdgeTx => "edgetx",
+            SbusReceiver::Betaflight2026 => "betaflight 2026.6",
+            SbusReceiver::Betaflight45 => "betaflight 4.5",
+            SbusReceiver::ArduPilot => "ardupilot",
+        }
+    }
 
     /// What this receiver reads for a raw channel value (its low 11 bits),
     /// ns:
@@ -277,6 +298,15 @@ impl SbusReceiver {
         for (ns, &r) in channels_ns.iter_mut().zip(&raw) {
             *ns = self.read_ns(r);
         }
+        // ArduPilot (PR 25169, 2023): a frame whose channel 1 to 4 reads
+        // 875 us or less (raw 0 or 1) is a receiver's failsafe frame.
+        if self == SbusReceiver::ArduPilot
+            && channels_ns[..ARDUPILOT_FAILSAFE_CHANNELS]
+                .iter()
+                .any(|&ns| ns <= ARDUPILOT_FAILSAFE_AT_NS)
+        {
+            return Verdict::Failsafe;
+        }
         let digital_ns = match self {
             SbusReceiver::ArduPilot => None,
             _ => match (self.digital_ns(flags.ch17), self.digital_ns(flags.ch18)) {
@@ -314,8 +344,10 @@ pub enum Verdict {
     /// marks either as `RX_FRAME_FAILSAFE` or `RX_FRAME_DROPPED`, both of
     /// which `rx.c` takes as no data received.
     NoSignal,
-    /// It enters failsafe at once: ArduPilot hands the values on with
-    /// `in_failsafe` set by the failsafe flag.
+    /// It takes the frame as the receiver's failsafe: ArduPilot hands the
+    /// values on with `in_failsafe` set (the failsafe flag, or channel 1 to
+    /// 4 at 875 us or below), without counting them as new input, so its
+    /// RC failsafe starts once `RC_FS_TIMEOUT` passes without any.
     Failsafe,
 }
 

@@ -200,8 +200,8 @@ fn main() -> Result<()> {
     let cmd = parse(b"[1000, 1200, 1700, 2000]", &model).context("bench command")?;
     let sample = CommandSample::new(&cmd, model.fingerprint(), 1, 0, 0);
     let mut other_cfg = cfg.clone();
-    other_cfg.ppm.channels = 6;
-    other_cfg.ppm.frame_us = 20_000.0;
+    other_cfg.ppm.channels = Some(6);
+    other_cfg.ppm.frame_us = Some(20_000.0);
     let other = other_cfg.validate()?;
     let other_cmd =
         parse(b"[1900, 1111, 1333, 1555, 1777, 1050]", &other).context("bench command")?;

@@ -546,9 +546,9 @@ fn two_outputs_emit_their_own_frames_from_one_loop() {
     let sim = Sim::new();
     let a = default_model();
     let mut cb = Config::default();
-    cb.ppm.channels = 6;
+    cb.ppm.channels = Some(6);
     cb.ppm.order = "TAER".into();
-    cb.ppm.frame_us = 20_000.0;
+    cb.ppm.frame_us = Some(20_000.0);
     let b = cb.validate().unwrap();
     let mut src_a = Fresh::new(&sim, &a, CMD);
     let mut src_b = Fresh::new(&sim, &b, "[1900, 1800, 1700, 1600, 1500, 1000]");

@@ -24,7 +24,24 @@ fn defaults_validate() {
 #[test]
 fn example_file_lists_the_defaults() {
     let text = include_str!("../../../../ppm.example.toml");
-    assert_eq!(Config::parse(text).unwrap(), Config::default());
+    // The file writes out the keys whose default depends on the protocol:
+    // PPM's, which the default configuration leaves to the model.
+    let mut parsed = Config::parse(text).unwrap();
+    let ppm = &mut parsed.ppm;
+    assert_eq!(ppm.protocol, crate::signal::Protocol::Ppm);
+    use crate::frame::section::ppm_defaults;
+    assert_eq!(ppm.channels.take(), Some(ppm_defaults::CHANNELS));
+    assert_eq!(ppm.frame_us.take(), Some(ppm_defaults::FRAME_US));
+    assert_eq!(ppm.idle_level.take(), Some(crate::signal::Level::Low));
+    assert_eq!(
+        ppm.follow_sync_min_us.take(),
+        Some(ppm_defaults::FOLLOW_SYNC_MIN_US)
+    );
+    assert_eq!(
+        ppm.follow_sync_max_us.take(),
+        Some(ppm_defaults::FOLLOW_SYNC_MAX_US)
+    );
+    assert_eq!(parsed, Config::default());
 }
 
 /// A config path naming a FIFO, a device or a huge file is refused at

@@ -99,7 +99,7 @@ fn output_entries_are_checked_and_named() {
 #[test]
 fn select_picks_one_output() {
     let cfg = Config::parse(TWO_OUTPUTS).unwrap();
-    assert_eq!(cfg.select(Some("rover")).unwrap().ppm.channels, 6);
+    assert_eq!(cfg.select(Some("rover")).unwrap().ppm.channels, Some(6));
     let e = cfg.select(None).unwrap_err().to_string();
     assert!(
         e.contains("2 outputs (plane, rover)") && e.contains("--name"),

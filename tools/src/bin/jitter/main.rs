@@ -433,7 +433,7 @@ fn capture(cli: &Cli, spec: &str) -> Result<()> {
             )
         })?;
     let stop = stop_flag()?;
-    let leading = cfg.ppm.idle_level.opposite();
+    let leading = cfg.ppm.idle_level().opposite();
     let mut decoder = Decoder::new(leading, DecoderLimits::default());
     let receiver = cli.receiver.unwrap_or(match cfg.ppm.receiver {
         ReceiverChoice::One(r) => r,
