@@ -304,7 +304,7 @@ fn send_whole<C: Clock + ?Sized>(
     p.timed_ns = f.wire.last_timed(model);
     // Where the frame ends at the latest (SBUS), for the idle line before
     // the next one.
-    if let Some(end) = f.wire.ends_by(written) {
+    if let Some(end) = f.wire.ends_by(due, written) {
         p.prev_pulse = p.prev_pulse.max(Some(end));
         if let Some(fl) = p.pace.follow() {
             fl.last_pulse = fl.last_pulse.max(Some(end));

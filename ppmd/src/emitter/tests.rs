@@ -24,6 +24,7 @@ use std::sync::Arc;
 mod follow;
 mod grid;
 mod properties;
+mod sbus;
 
 const MS: u64 = 1_000_000;
 /// The default model's frame.

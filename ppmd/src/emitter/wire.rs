@@ -21,10 +21,12 @@ use crate::line::{FrameEdge, WholeFrame};
 use ppm_shared::frame::{
     Channels, EdgeSchedule, FrameModel, Level, Protocol, MAX_CHANNELS, MAX_EDGES,
 };
-use ppm_shared::sbus;
+use ppm_shared::sbus::{self, timing::GAP_MARGIN_US};
 
 /// A frame as it goes on the wire, in the protocol of its output.
 #[derive(Clone, Copy)]
+// Kept by value, not boxed: the loop allocates nothing.
+#[allow(clippy::large_enum_variant)]
 pub(super) enum WireFrame {
     /// PPM: edges at their times.
     Ppm(PpmFrame),
@@ -74,14 +76,19 @@ impl WireFrame {
         }
     }
 
-    /// After its whole-frame write returned at `written`: where it ends on
-    /// the wire at the latest, when that is what the next frame's idle line
-    /// is measured from (SBUS: it left no later than the write's return).
-    /// `None` for PPM, whose sync a whole-frame line times itself.
-    pub fn ends_by(&self, written: u64) -> Option<u64> {
+    /// After its whole-frame write, due at `due`, returned at `written`:
+    /// where it ends on the wire at the latest, when the next frame's idle
+    /// line must be measured from there rather than from its planned end.
+    /// SBUS: the frame left no later than the write's return; when that is
+    /// later than the margin the idle lines keep for a late frame
+    /// ([`GAP_MARGIN_US`]), the next frame starts its idle line after this
+    /// end. `None` otherwise, and for PPM, whose sync a whole-frame line
+    /// times itself.
+    pub fn ends_by(&self, due: u64, written: u64) -> Option<u64> {
         match self {
             WireFrame::Ppm(_) => None,
-            WireFrame::Sbus(_) => Some(written + sbus::FRAME_WIRE_NS),
+            WireFrame::Sbus(_) => (written.saturating_sub(due) > GAP_MARGIN_US * 1_000)
+                .then_some(written + sbus::FRAME_WIRE_NS),
         }
     }
 

@@ -41,16 +41,15 @@ pub fn waveform(bytes: &[u8], idle: Level) -> impl Iterator<Item = Level> + '_ {
 /// boundaries, only where the level changes; the last one returns the line
 /// to `idle`.
 pub fn edges(bytes: &[u8], start_ns: u64, idle: Level) -> impl Iterator<Item = (u64, Level)> + '_ {
-    let mut level = idle;
     waveform(bytes, idle)
         .chain(std::iter::once(idle))
         .enumerate()
-        .filter_map(move |(k, l)| {
-            (l != level).then(|| {
-                level = l;
-                (start_ns + k as u64 * BIT_NS, l)
-            })
+        .scan(idle, move |level, (k, l)| {
+            let changed = l != *level;
+            *level = l;
+            Some(changed.then_some((start_ns + k as u64 * BIT_NS, l)))
         })
+        .flatten()
 }
 
 /// One character a UART receiver read.
