@@ -6,6 +6,9 @@
 use crate::decode::{self, DecodedFrame, DecoderLimits};
 use crate::frame::Level;
 use crate::receiver::{Receiver, ReceiverChoice};
+use crate::sbus::uart::{self, Character};
+use crate::sbus::{Framer, SbusReceiver, Taken, BYTE_NS};
+use crate::signal::Protocol;
 use std::io::BufRead;
 
 /// One edge of the simulated line.
@@ -82,6 +85,8 @@ pub struct Trace {
     pub idle_level: Option<Level>,
     /// From a `# receiver NAME` comment: what ppmd's configuration was for.
     pub receiver: Option<ReceiverChoice>,
+    /// From a `# protocol NAME` comment (PPM when absent).
+    pub protocol: Protocol,
 }
 
 impl Trace {
@@ -97,6 +102,9 @@ impl Trace {
             }
             if let Some(v) = text.trim().strip_prefix("# receiver ") {
                 trace.receiver = v.trim().parse().ok();
+            }
+            if text.trim() == "# protocol sbus" {
+                trace.protocol = Protocol::Sbus;
             }
             match parse_line(&text) {
                 None => {}
@@ -137,6 +145,35 @@ impl Trace {
         .0
     }
 
+    /// An SBUS trace's characters, read by a UART receiver from the
+    /// scheduled or actual edge times (the line idling at the header's
+    /// level, high when it does not say).
+    pub fn sbus_characters(&self, actual: bool) -> Vec<Character> {
+        let edges: Vec<(u64, Level)> = self
+            .edges
+            .iter()
+            .map(|e| (if actual { e.actual_ns } else { e.scheduled_ns }, e.level))
+            .collect();
+        uart::decode(&edges, self.idle_level.unwrap_or(Level::High))
+    }
+
+    /// The SBUS frames `receiver`'s framing takes from the trace (see
+    /// [`Trace::sbus_characters`]), each with when it was taken; a
+    /// character with a parity or stop bit error is taken too, as the
+    /// receivers do.
+    pub fn sbus_taken(&self, receiver: SbusReceiver, actual: bool) -> Vec<Taken> {
+        let mut framer = Framer::new(receiver);
+        let chars = self.sbus_characters(actual);
+        let mut taken: Vec<Taken> = chars
+            .iter()
+            .filter_map(|c| framer.push(c.byte, c.end_ns))
+            .collect();
+        if let Some(last) = chars.last() {
+            taken.extend(framer.idle(last.end_ns + BYTE_NS));
+        }
+        taken
+    }
+
     /// The receiver tools decode as by default: the one the trace's header
     /// names, EdgeTX 2.10 when it names `any` or none.
     pub fn default_receiver(&self) -> Receiver {
@@ -164,6 +201,30 @@ mod tests {
         for bad in ["1 2", "1 2 3", "a 2 1", "1 2 1 4"] {
             assert_eq!(parse_line(bad), Some(Err(())), "{bad}");
         }
+    }
+
+    #[test]
+    fn an_sbus_trace_reads_back_as_the_frames_sent() {
+        let frame = crate::sbus::encode(&[992; 16], Default::default());
+        let mut text = String::from("# idle_level 1\n# protocol sbus\n");
+        for start in [1_000_000u64, 9_000_000] {
+            for (t, l) in uart::edges(&frame, start, Level::High) {
+                text += &format!("{t} {} {}\n", t + 7, l.as_u8());
+            }
+        }
+        let t = Trace::read(text.as_bytes()).unwrap();
+        assert_eq!(t.protocol, Protocol::Sbus);
+        let chars = t.sbus_characters(false);
+        assert_eq!(chars.len(), 50);
+        assert!(chars.iter().all(|c| c.parity_ok && c.stop_ok));
+        for r in SbusReceiver::ALL {
+            let taken = t.sbus_taken(r, true);
+            assert_eq!(taken.len(), 2, "{r:?}");
+            assert!(taken.iter().all(|k| k.frame == frame));
+        }
+        // EdgeTX takes each an idle character after its last byte ends.
+        let taken = t.sbus_taken(SbusReceiver::EdgeTx, false);
+        assert_eq!(taken[1].at_ns, 9_000_000 + 3_000_000 + 120_000);
     }
 
     #[test]

@@ -62,52 +62,100 @@ pub struct Character {
     /// Where its second stop bit ends, ns (what [`super::Framer::push`]
     /// takes).
     pub end_ns: u64,
-    /// Its parity bit made the count of ones even.
+    /// Its start bit held through its middle, and its parity bit made the
+    /// count of ones even.
     pub parity_ok: bool,
     /// Both stop bits were at the idle level.
     pub stop_ok: bool,
 }
 
 /// Reads `edges` (`(time, level after it)`, in time order) of a line
-/// idling at `idle` as a 100 000 baud 8E2 UART receiver: each start bit at
-/// an edge away from the idle level, every bit sampled in its middle.
-/// The line before the first edge is at `idle`.
+/// idling at `idle` as a 100 000 baud 8E2 UART receiver ([`Reader`]), the
+/// line staying at its last level after the last edge.
 pub fn decode(edges: &[(u64, Level)], idle: Level) -> Vec<Character> {
-    // The level at `t`: after the last edge at or before it.
-    let level_at = |t: u64| {
-        let k = edges.partition_point(|e| e.0 <= t);
-        if k == 0 {
-            idle
-        } else {
-            edges[k - 1].1
+    let mut r = Reader::new(idle);
+    let mut out: Vec<Character> = edges.iter().filter_map(|&(t, l)| r.push(t, l)).collect();
+    out.extend(r.finish());
+    out
+}
+
+/// A UART receiver at 100 000 baud, 8E2, fed a line's edges as they come:
+/// each start bit at an edge away from the idle level (the line before the
+/// first edge is idle), every bit sampled in its middle, the next start bit
+/// looked for after the middle of the last stop bit. A character is known
+/// once an edge comes after its last sample (or at [`Reader::finish`]).
+#[derive(Debug, Clone)]
+pub struct Reader {
+    idle: Level,
+    /// The level after the last edge.
+    level: Level,
+    /// The character being read: where its start bit began, and the level
+    /// at each of its samples taken so far.
+    start: Option<u64>,
+    samples: [Level; BYTE_BITS as usize],
+    taken: usize,
+    /// No start bit before this.
+    searched_to: u64,
+}
+
+impl Reader {
+    /// A receiver of a line idling at `idle`.
+    pub fn new(idle: Level) -> Reader {
+        Reader {
+            idle,
+            level: idle,
+            start: None,
+            samples: [idle; BYTE_BITS as usize],
+            taken: 0,
+            searched_to: 0,
         }
-    };
-    let mut out = Vec::new();
-    let mut from = 0;
-    let mut searched_to = 0u64;
-    while let Some(k) = edges[from..]
-        .iter()
-        .position(|e| e.1 != idle && e.0 >= searched_to)
-        .map(|k| k + from)
-    {
-        let start = edges[k].0;
-        let sample = |bit: u64| level_at(start + bit * BIT_NS + BIT_NS / 2) != idle;
-        // A one is the idle level: `sample` is true for a zero.
-        let bits: Vec<bool> = (0..BYTE_BITS).map(|b| !sample(b)).collect();
+    }
+
+    /// The line went to `level` at `t_ns` (edges in time order): the
+    /// character this completes, if any.
+    pub fn push(&mut self, t_ns: u64, level: Level) -> Option<Character> {
+        let done = self.sample_until(t_ns);
+        self.level = level;
+        if self.start.is_none() && level != self.idle && t_ns >= self.searched_to {
+            self.start = Some(t_ns);
+            self.taken = 0;
+        }
+        done
+    }
+
+    /// The line stays at its last level: the character in progress, if
+    /// any.
+    pub fn finish(&mut self) -> Option<Character> {
+        self.sample_until(u64::MAX)
+    }
+
+    /// Takes the samples of the character in progress that fall before
+    /// `t_ns` (the line at its level until then); the character when its
+    /// last one is taken.
+    fn sample_until(&mut self, t_ns: u64) -> Option<Character> {
+        let start = self.start?;
+        while self.taken < BYTE_BITS as usize {
+            let at = start + self.taken as u64 * BIT_NS + BIT_NS / 2;
+            if at >= t_ns {
+                return None;
+            }
+            self.samples[self.taken] = self.level;
+            self.taken += 1;
+        }
+        self.start = None;
+        self.searched_to = start + (BYTE_BITS - 1) * BIT_NS + BIT_NS / 2;
+        // A one is the idle level.
+        let bits = self.samples.map(|l| l == self.idle);
         let byte = (0..8).fold(0u8, |acc, i| acc | (u8::from(bits[1 + i]) << i));
         let ones = bits[1..10].iter().filter(|&&b| b).count();
-        out.push(Character {
+        Some(Character {
             byte,
             start_ns: start,
             end_ns: start + BYTE_BITS * BIT_NS,
-            parity_ok: ones % 2 == 0,
+            parity_ok: ones % 2 == 0 && !bits[0],
             stop_ok: bits[10] && bits[11],
-        });
-        // The next start bit comes after the middle of the last stop bit.
-        searched_to = start + (BYTE_BITS - 1) * BIT_NS + BIT_NS / 2;
-        from = k + 1;
+        })
     }
-    out
 }
 
 #[cfg(test)]

@@ -1,11 +1,13 @@
 //! `ppm-watch`: decodes the simulated line's trace as a receiver's firmware
-//! would and shows the channel values, live or once.
+//! would and shows the channel values, live or once: PPM as the receiver's
+//! capture reads it, SBUS (a trace whose header says `protocol sbus`) as its
+//! UART and framing read it.
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use ppm_shared::decode::DecodedFrame;
-use ppm_shared::frame::Level;
+use ppm_shared::frame::{Level, Protocol};
 use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder, TIMED_EDGE};
+use ppm_shared::sbus::{uart, Framer, SbusReceiver, Taken, Verdict};
 use ppm_shared::trace::{parse_line, Trace};
 use ppm_tools::parse_duration;
 use std::fs::File;
@@ -51,9 +53,24 @@ fn run(cli: Cli) -> Result<()> {
         text.lines().for_each(|l| header.take(l));
         let trace = Trace::read(text.as_bytes())?;
         let receiver = cli.receiver.unwrap_or(trace.default_receiver());
+        let shown: Vec<String> = match trace.protocol {
+            Protocol::Ppm => trace
+                .decode_as(receiver, cli.actual)
+                .iter()
+                .map(|f| header.format(f.start_ns, &f.channels_ns, f.complete))
+                .collect(),
+            Protocol::Sbus => {
+                let r = sbus_receiver(receiver)?;
+                trace
+                    .sbus_taken(r, cli.actual)
+                    .iter()
+                    .map(|t| header.format_sbus(r, t))
+                    .collect()
+            }
+        };
         let mut out = std::io::stdout().lock();
-        for f in trace.decode_as(receiver, cli.actual) {
-            if writeln!(out, "{}", header.format(&f)).is_err() {
+        for line in shown {
+            if writeln!(out, "{line}").is_err() {
                 break; // reader went away (e.g. `| head`)
             }
         }
@@ -62,12 +79,26 @@ fn run(cli: Cli) -> Result<()> {
     follow(&cli)
 }
 
+/// The SBUS receiver whose reading `ppm-watch` shows for `receiver`:
+/// Betaflight's is 2026.6's (4.5 reads values alike).
+fn sbus_receiver(receiver: Receiver) -> Result<SbusReceiver> {
+    match receiver {
+        Receiver::EdgeTx => Ok(SbusReceiver::EdgeTx),
+        Receiver::Betaflight => Ok(SbusReceiver::Betaflight2026),
+        Receiver::ArduPilot => Ok(SbusReceiver::ArduPilot),
+        Receiver::OpenTx => anyhow::bail!(
+            "OpenTX's SBUS input is not modelled: use --receiver edgetx, betaflight or ardupilot"
+        ),
+    }
+}
+
 /// What the trace's `#` header says.
 #[derive(Default)]
 struct Header {
     idle: Option<Level>,
     names: Vec<String>,
     receiver: Option<ReceiverChoice>,
+    protocol: Protocol,
 }
 
 impl Header {
@@ -78,12 +109,15 @@ impl Header {
             self.names = v.trim().split(',').map(str::to_string).collect();
         } else if let Some(v) = line.strip_prefix("# receiver ") {
             self.receiver = v.trim().parse().ok();
+        } else if line.trim() == "# protocol sbus" {
+            self.protocol = Protocol::Sbus;
         }
     }
 
-    fn format(&self, f: &DecodedFrame) -> String {
-        let mut s = format!("{:>14.6} s ", f.start_ns as f64 / 1e9);
-        for (i, ns) in f.channels_ns.iter().enumerate() {
+    /// A frame from `at_ns` with these channel values.
+    fn format(&self, at_ns: u64, channels_ns: &[u64], complete: bool) -> String {
+        let mut s = format!("{:>14.6} s ", at_ns as f64 / 1e9);
+        for (i, ns) in channels_ns.iter().enumerate() {
             let name = self
                 .names
                 .get(i)
@@ -91,10 +125,56 @@ impl Header {
                 .unwrap_or_else(|| format!("ch{}", i + 1));
             s += &format!(" {name} {:7.1}", *ns as f64 / 1e3);
         }
-        if !f.complete {
+        if !complete {
             s += "  (incomplete)";
         }
         s
+    }
+
+    /// An SBUS frame `receiver` took: its values, or what it does instead.
+    fn format_sbus(&self, receiver: SbusReceiver, t: &Taken) -> String {
+        match receiver.verdict(&t.frame) {
+            Verdict::Used(r) => self.format(t.at_ns, &r.channels_ns, true),
+            v => format!(
+                "{:>14.6} s  {}",
+                t.at_ns as f64 / 1e9,
+                match v {
+                    Verdict::Invalid => "invalid frame (header or end byte)",
+                    Verdict::NoSignal => "failsafe flag: no signal",
+                    _ => "failsafe",
+                }
+            ),
+        }
+    }
+}
+
+/// A receiver's decoder, fed the trace's edges as they come.
+enum Watcher {
+    Ppm(ReceiverDecoder),
+    Sbus {
+        receiver: SbusReceiver,
+        uart: uart::Reader,
+        framer: Framer,
+    },
+}
+
+impl Watcher {
+    /// The line shown for the frame this edge completes, if any.
+    fn push(&mut self, header: &Header, t: u64, level: Level) -> Option<String> {
+        match self {
+            Watcher::Ppm(d) => d
+                .push(t, level)
+                .map(|f| header.format(f.start_ns, &f.channels_ns, f.complete)),
+            Watcher::Sbus {
+                receiver,
+                uart,
+                framer,
+            } => {
+                let c = uart.push(t, level)?;
+                let taken = framer.push(c.byte, c.end_ns)?;
+                Some(header.format_sbus(*receiver, &taken))
+            }
+        }
     }
 }
 
@@ -110,7 +190,7 @@ fn follow(cli: &Cli) -> Result<()> {
     };
     eprintln!("watching {} (Ctrl-C to stop)", cli.trace.display());
     let mut header = Header::default();
-    let mut decoder: Option<ReceiverDecoder> = None;
+    let mut decoder: Option<Watcher> = None;
     let mut pending = String::new();
     let mut offset = 0u64;
     let mut last_print: Option<Instant> = None;
@@ -144,28 +224,39 @@ fn follow(cli: &Cli) -> Result<()> {
                 continue;
             };
             last_edge = Instant::now();
-            let d = decoder.get_or_insert_with(|| {
+            if decoder.is_none() {
                 let receiver = cli.receiver.unwrap_or(match header.receiver {
                     Some(ReceiverChoice::One(r)) => r,
                     _ => Receiver::EdgeTx,
                 });
-                ReceiverDecoder::new(receiver, TIMED_EDGE)
-            });
+                decoder = Some(match header.protocol {
+                    Protocol::Ppm => Watcher::Ppm(ReceiverDecoder::new(receiver, TIMED_EDGE)),
+                    Protocol::Sbus => {
+                        let r = sbus_receiver(receiver)?;
+                        Watcher::Sbus {
+                            receiver: r,
+                            uart: uart::Reader::new(header.idle.unwrap_or(Level::High)),
+                            framer: Framer::new(r),
+                        }
+                    }
+                });
+            }
+            let d = decoder.as_mut().expect("made above");
             let t = if cli.actual {
                 edge.actual_ns
             } else {
                 edge.scheduled_ns
             };
-            if let Some(frame) = d.push(t, edge.level) {
+            if let Some(shown) = d.push(&header, t, edge.level) {
                 silent = false;
                 if last_print.is_none_or(|p| p.elapsed() >= cli.every) {
-                    println!("{}", header.format(&frame));
+                    println!("{shown}");
                     last_print = Some(Instant::now());
                 }
             }
         }
         if !silent && last_edge.elapsed() > Duration::from_secs(1) {
-            println!("line silent: no pulses");
+            println!("line silent: no frames");
             silent = true;
         }
         std::thread::sleep(Duration::from_millis(50));

@@ -2,6 +2,7 @@ use super::*;
 use std::path::PathBuf;
 
 mod outputs;
+mod sbus;
 mod units;
 
 #[test]
