@@ -18,7 +18,7 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 pub use ppm_shared::status::StatusReply;
-pub use ppm_tools::harness::{free_udp_port, Proc, Scratch};
+pub use ppm_tools::harness::{free_udp_port, Proc, Pty, Scratch};
 
 /// The directory holding the workspace's binaries, built once per test run
 /// with the same profile as the tests.

@@ -158,9 +158,12 @@ fn every_form_lands_exactly_on_the_line() {
         ],
     ];
     let runs = runs(&sb.dir.join("line.trace"), &patterns);
+    // Each form's frames in one run, in the order sent, and no frame of
+    // anything else. How many frames a run has is the machine's: ppmd
+    // aborts a frame at an edge found late (a loaded CI machine cut two
+    // runs of about 22 frames to 6), which the late-edge tests cover.
     let order: Vec<usize> = runs.iter().map(|r| r.0).collect();
     assert_eq!(order, [0, 1, 2, 3], "{runs:?}");
-    assert!(runs.iter().all(|r| r.1 >= 10), "{runs:?}");
 }
 
 /// A key file `name` holding `hex` and a newline, with permissions `mode`.

@@ -249,3 +249,84 @@ mod tests {
         assert_eq!(p.wait(Duration::from_secs(10)).code(), Some(3));
     }
 }
+
+/// A pseudo-terminal pair, for a program's `serial:` output: the slave's
+/// path to hand it, and a thread reading the master end, which stamps every
+/// chunk with CLOCK_MONOTONIC as it arrives.
+pub struct Pty {
+    /// The slave end's path (`/dev/pts/N`).
+    pub slave: PathBuf,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    reader: Option<std::thread::JoinHandle<Vec<(u64, Vec<u8>)>>>,
+}
+
+impl Pty {
+    /// Opens a pair and starts reading its master end.
+    pub fn open() -> std::io::Result<Pty> {
+        use nix::libc;
+        use std::io::Read;
+        use std::os::fd::{AsRawFd, FromRawFd};
+        use std::sync::atomic::Ordering;
+        // SAFETY: plain libc calls on a descriptor this function owns; the
+        // name buffer outlives ptsname_r, which NUL-terminates within it.
+        let (mut master, slave) = unsafe {
+            let fd = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY | libc::O_CLOEXEC);
+            if fd < 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            let master = File::from_raw_fd(fd);
+            if libc::grantpt(fd) != 0 || libc::unlockpt(fd) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            let mut name = [0 as libc::c_char; 128];
+            if libc::ptsname_r(fd, name.as_mut_ptr(), name.len()) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            let path = std::ffi::CStr::from_ptr(name.as_ptr());
+            (master, PathBuf::from(path.to_string_lossy().into_owned()))
+        };
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopping = stop.clone();
+        let reader = std::thread::spawn(move || {
+            let mut got = Vec::new();
+            let mut buf = [0u8; 4096];
+            while !stopping.load(Ordering::Relaxed) {
+                let mut pfd = libc::pollfd {
+                    fd: master.as_raw_fd(),
+                    events: libc::POLLIN,
+                    revents: 0,
+                };
+                // SAFETY: one live pollfd for the whole call.
+                let ready = unsafe { libc::poll(&mut pfd, 1, 50) };
+                if ready == 1 {
+                    match master.read(&mut buf) {
+                        Ok(n) if n > 0 => got.push((ppm_shared::time::now_ns(), buf[..n].to_vec())),
+                        // No slave open (EIO) yet or any more: wait.
+                        _ => std::thread::sleep(Duration::from_millis(5)),
+                    }
+                }
+            }
+            got
+        });
+        Ok(Pty {
+            slave,
+            stop,
+            reader: Some(reader),
+        })
+    }
+
+    /// Stops reading; every chunk read, with when it arrived.
+    pub fn finish(mut self) -> Vec<(u64, Vec<u8>)> {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        self.reader
+            .take()
+            .map(|r| r.join().expect("the pty reader"))
+            .unwrap_or_default()
+    }
+}
+
+impl Drop for Pty {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}

@@ -265,16 +265,19 @@ impl SerialLine {
         Ok(SerialSettings::from_termios2(&self.termios2()?))
     }
 
+    /// The settings the kernel holds for the tty at `path` (opened
+    /// read-only, not as the controlling terminal, without waiting for a
+    /// carrier): what another program, a test or a tool, sees.
+    pub fn settings_of(path: &Path) -> io::Result<SerialSettings> {
+        let file = OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NOCTTY | libc::O_NONBLOCK)
+            .open(path)?;
+        Ok(SerialSettings::from_termios2(&termios2_of(&file)?))
+    }
+
     fn termios2(&self) -> io::Result<libc::termios2> {
-        // SAFETY: termios2 is plain integers, for which all zeroes is valid.
-        let mut t: libc::termios2 = unsafe { std::mem::zeroed() };
-        // SAFETY: TCGETS2 writes one termios2 through the pointer, which is
-        // a live, writable termios2 for the whole call.
-        let rc = unsafe { libc::ioctl(self.file.as_raw_fd(), libc::TCGETS2, &mut t) };
-        if rc != 0 {
-            return Err(io::Error::last_os_error());
-        }
-        Ok(t)
+        termios2_of(&self.file)
     }
 
     /// Sends one frame in one `write` call, returning when the tty has
@@ -302,6 +305,19 @@ impl SerialLine {
             }
         }
     }
+}
+
+/// The termios2 settings of the tty open as `file`.
+fn termios2_of(file: &File) -> io::Result<libc::termios2> {
+    // SAFETY: termios2 is plain integers, for which all zeroes is valid.
+    let mut t: libc::termios2 = unsafe { std::mem::zeroed() };
+    // SAFETY: TCGETS2 writes one termios2 through the pointer, which is a
+    // live, writable termios2 for the whole call.
+    let rc = unsafe { libc::ioctl(file.as_raw_fd(), libc::TCGETS2, &mut t) };
+    if rc != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(t)
 }
 
 impl FrameLine for SerialLine {
