@@ -41,7 +41,10 @@ fn sbus_on_the_simulated_line_reaches_every_receiver() {
     let trace = read_trace(&sb.dir.join("line.trace"));
     assert_eq!(trace.protocol, ppm_shared::frame::Protocol::Sbus);
     let chars = trace.sbus_characters(true);
-    assert!(chars.iter().all(|c| c.parity_ok && c.stop_ok), "8E2 throughout");
+    assert!(
+        chars.iter().all(|c| c.parity_ok && c.stop_ok),
+        "8E2 throughout"
+    );
     assert_eq!(chars.len() % sbus::FRAME_LEN, 0);
     let frames = chars.len() / sbus::FRAME_LEN;
     for r in SbusReceiver::ALL {
@@ -109,7 +112,10 @@ fn sbus_on_a_serial_port_is_whole_frames_of_the_exact_bytes() {
         let r = SbusReceiver::Betaflight2026;
         // Betaflight's scaling, to its 0.625 us step.
         assert!(r.read_ns(raw[15]).abs_diff(1_900_000) <= 312);
-        assert!(r.read_ns(raw[2]).abs_diff(1_000_000) <= 312, "throttle at its default");
+        assert!(
+            r.read_ns(raw[2]).abs_diff(1_000_000) <= 312,
+            "throttle at its default"
+        );
         ail.push((r.read_ns(raw[0]) + 500) / 1_000);
     }
     ail.dedup();

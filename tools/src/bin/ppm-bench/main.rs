@@ -16,7 +16,10 @@
 //!    SCHED_FIFO priority pinned to ppmd's CPU that busy-loops 100..500 us
 //!    at random times (`ppm-interfere`'s bursts): frames whole, aborted and glitched, frames whose
 //!    values as the line carried them differ from the frame log, and the
-//!    commands that reached the line, by the log and by decoding.
+//!    commands that reached the line, by the log and by decoding;
+//! 6. SBUS against PPM, both following the commands: send to the frame
+//!    whole at the receiver, and the share of commands on the line, at 50,
+//!    100, 200 and 300 Hz.
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
@@ -36,6 +39,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 mod plots;
+mod sbus;
 use plots::{plot_dir, write_plots, Plots};
 
 /// Benchmarks of ppm's input path (ingress latency, flood, end-to-end
@@ -90,6 +94,8 @@ enum Part {
     /// 5. late edges: a held-up timing thread, with and without an
     ///    interfering thread.
     Late,
+    /// 6. SBUS against PPM, follow timing, 50 to 300 Hz.
+    Sbus,
 }
 
 /// How udp-ingress receives in one run.
@@ -929,6 +935,9 @@ fn main() -> Result<()> {
     }
     if runs(Part::Late) {
         late(&cli)?;
+    }
+    if runs(Part::Sbus) {
+        sbus::sbus(cli.e2e_count)?;
     }
     if let Some(dir) = &cli.plot {
         write_plots(dir, &plots)?;
