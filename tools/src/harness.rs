@@ -202,53 +202,9 @@ impl Drop for Proc {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_scratch_is_fresh_and_removed_after() {
-        let name = format!("ppm-harness-scratch-{}", std::process::id());
-        let first = Scratch::new(&name).unwrap();
-        std::fs::write(first.dir.join("left.txt"), "x").unwrap();
-        std::mem::forget(first);
-        let s = Scratch::new(&name).unwrap();
-        assert!(!s.dir.join("left.txt").exists(), "emptied");
-        assert!(
-            UdpSocket::bind(("127.0.0.1", s.port)).is_ok(),
-            "a free port"
-        );
-        let dir = s.dir.clone();
-        drop(s);
-        assert!(!dir.exists());
-    }
-
-    #[test]
-    fn a_process_is_watched_through_its_log_and_proc() {
-        let scratch = Scratch::new(&format!("ppm-harness-{}", std::process::id())).unwrap();
-        let dir = &scratch.dir;
-        let mut cmd = Command::new("sh");
-        cmd.args(["-c", "echo ready >&2; exec sleep 30"]);
-        let p = Proc::start(cmd, dir.join("sh.log")).unwrap();
-        assert!(
-            p.log_shows("ready", Duration::from_secs(10)),
-            "{}",
-            p.log_text()
-        );
-        assert!(!p.log_shows("never", Duration::from_millis(50)));
-        assert!(p.rss_kib() > 0);
-        assert!(p.cpu_s() >= 0.0);
-        let pid = p.pid();
-        p.terminate();
-        // Reaped: the pid names no process (not even a zombie) any more.
-        let gone = nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid as i32), None);
-        assert_eq!(gone, Err(nix::errno::Errno::ESRCH));
-        let mut cmd = Command::new("sh");
-        cmd.args(["-c", "exit 3"]);
-        let mut p = Proc::start(cmd, dir.join("exit.log")).unwrap();
-        assert_eq!(p.wait(Duration::from_secs(10)).code(), Some(3));
-    }
-}
+/// What a [`Pty`] read: each chunk with when it arrived (CLOCK_MONOTONIC
+/// ns).
+pub type Chunks = Vec<(u64, Vec<u8>)>;
 
 /// A pseudo-terminal pair, for a program's `serial:` output: the slave's
 /// path to hand it, and a thread reading the master end, which stamps every
@@ -257,7 +213,7 @@ pub struct Pty {
     /// The slave end's path (`/dev/pts/N`).
     pub slave: PathBuf,
     stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
-    reader: Option<std::thread::JoinHandle<Vec<(u64, Vec<u8>)>>>,
+    reader: Option<std::thread::JoinHandle<Chunks>>,
 }
 
 impl Pty {
@@ -316,7 +272,7 @@ impl Pty {
     }
 
     /// Stops reading; every chunk read, with when it arrived.
-    pub fn finish(mut self) -> Vec<(u64, Vec<u8>)> {
+    pub fn finish(mut self) -> Chunks {
         self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
         self.reader
             .take()
@@ -328,5 +284,53 @@ impl Pty {
 impl Drop for Pty {
     fn drop(&mut self) {
         self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_scratch_is_fresh_and_removed_after() {
+        let name = format!("ppm-harness-scratch-{}", std::process::id());
+        let first = Scratch::new(&name).unwrap();
+        std::fs::write(first.dir.join("left.txt"), "x").unwrap();
+        std::mem::forget(first);
+        let s = Scratch::new(&name).unwrap();
+        assert!(!s.dir.join("left.txt").exists(), "emptied");
+        assert!(
+            UdpSocket::bind(("127.0.0.1", s.port)).is_ok(),
+            "a free port"
+        );
+        let dir = s.dir.clone();
+        drop(s);
+        assert!(!dir.exists());
+    }
+
+    #[test]
+    fn a_process_is_watched_through_its_log_and_proc() {
+        let scratch = Scratch::new(&format!("ppm-harness-{}", std::process::id())).unwrap();
+        let dir = &scratch.dir;
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "echo ready >&2; exec sleep 30"]);
+        let p = Proc::start(cmd, dir.join("sh.log")).unwrap();
+        assert!(
+            p.log_shows("ready", Duration::from_secs(10)),
+            "{}",
+            p.log_text()
+        );
+        assert!(!p.log_shows("never", Duration::from_millis(50)));
+        assert!(p.rss_kib() > 0);
+        assert!(p.cpu_s() >= 0.0);
+        let pid = p.pid();
+        p.terminate();
+        // Reaped: the pid names no process (not even a zombie) any more.
+        let gone = nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid as i32), None);
+        assert_eq!(gone, Err(nix::errno::Errno::ESRCH));
+        let mut cmd = Command::new("sh");
+        cmd.args(["-c", "exit 3"]);
+        let mut p = Proc::start(cmd, dir.join("exit.log")).unwrap();
+        assert_eq!(p.wait(Duration::from_secs(10)).code(), Some(3));
     }
 }

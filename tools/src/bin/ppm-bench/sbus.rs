@@ -1,4 +1,4 @@
-//! 6. SBUS against PPM, both following the commands, on the simulated line:
+//! Part 6, SBUS against PPM, both following the commands, on the simulated line:
 //! send to the moment a receiver has the whole frame that carries each
 //! command, and the share of commands that reach the line, at 50, 100, 200
 //! and 300 Hz.
