@@ -5,12 +5,12 @@
 //! frames are out.
 
 use ppm_shared::config::{Config, FailsafeAction, Timing};
-use ppm_shared::frame::Level;
+use ppm_shared::frame::{Level, Protocol};
 use ppm_shared::ipc::{self, CommandSample};
 use ppm_shared::protocol::parse;
 use ppmd::clock::{self, Margin};
 use ppmd::emitter::{self, EmitterConfig, LineRef, Output, Recording, Stats};
-use ppmd::line::{spi, Bank, FrameLine, LineError, SimLine, WholeFrame};
+use ppmd::line::{spi, Bank, FrameLine, LineError, SimLine, SimSbusLine, WholeFrame};
 use ppmd::source::{CommandSource, IpcSource};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -133,23 +133,34 @@ impl FrameLine for SpiStandIn {
     }
 }
 
+/// SBUS frames, written whole: on the simulated line (each frame's UART
+/// waveform into the trace) and encoded for SPI.
+#[test]
+fn the_timing_loop_does_not_allocate_after_start_with_sbus() {
+    run_with(Timing::Grid, 3, false, Protocol::Sbus);
+    run_with(Timing::Follow, 10, false, Protocol::Sbus);
+    run_with(Timing::Follow, 10, true, Protocol::Sbus);
+}
+
 fn run_without_allocating(timing: Timing, every_ms: u64, whole_frames: bool) {
+    run_with(timing, every_ms, whole_frames, Protocol::Ppm);
+}
+
+fn run_with(timing: Timing, every_ms: u64, whole_frames: bool, protocol: Protocol) {
     ALLOCATIONS.store(0, Relaxed);
-    let dir = std::env::temp_dir().join(format!(
-        "ppmd-noalloc-{}-{}",
-        std::process::id(),
-        timing.name()
-    ));
-    std::fs::create_dir_all(&dir).unwrap();
-    let root = dir.join("ipc");
     let name = format!(
-        "noalloc{}{}{}",
+        "noalloc{}{}{}{}",
         std::process::id(),
         timing.name(),
-        whole_frames as u8
+        whole_frames as u8,
+        protocol.name()
     );
+    let dir = std::env::temp_dir().join(format!("ppmd-{name}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let root = dir.join("ipc");
     let mut cfg = Config::default();
     cfg.ppm.timing = timing;
+    cfg.ppm.protocol = protocol;
     let model = cfg.validate().unwrap();
 
     // The publisher: a fresh command every `every_ms` until told to stop,
@@ -215,12 +226,17 @@ fn run_without_allocating(timing: Timing, every_ms: u64, whole_frames: bool) {
                 buf: vec![0; 8192],
                 bytes: 0,
             });
-            let mut sim = (!whole_frames)
+            let mut sim = (!whole_frames && protocol == Protocol::Ppm)
                 .then(|| SimLine::create(&trace, &["idle_level 0".into()], u64::MAX).unwrap());
-            let line = match (&mut spi, &mut sim) {
-                (Some(spi), _) => LineRef::Whole(spi),
-                (_, Some(sim)) => LineRef::Edges(sim),
-                _ => unreachable!("one of the two"),
+            let mut sim_sbus = (!whole_frames && protocol == Protocol::Sbus).then(|| {
+                let sim = SimLine::create(&trace, &["idle_level 1".into()], u64::MAX).unwrap();
+                SimSbusLine::new(sim, Level::High, clock::now_ns)
+            });
+            let line = match (&mut spi, &mut sim, &mut sim_sbus) {
+                (Some(spi), _, _) => LineRef::Whole(spi),
+                (_, Some(sim), _) => LineRef::Edges(sim),
+                (_, _, Some(sim)) => LineRef::Whole(sim),
+                _ => unreachable!("one of the three"),
             };
             let cfg = emitter_config();
             emitter::run(

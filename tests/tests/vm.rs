@@ -21,6 +21,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
+mod vm_sbus;
 mod vm_spi;
 use vm_spi::{check_spi, spi_frame, spi_transfers, trace_sets, SpiLines};
 
@@ -97,6 +98,7 @@ fn run_vm(flavor: &str) -> PathBuf {
                 "jitter",
                 "pull-ppm",
                 "ppm-interfere",
+                "tty-settings",
             ]
             .map(|b| bins.join(b)),
         )
@@ -410,6 +412,8 @@ fn check(flavor: &str) {
     check_two_outputs(&out, base, flavor);
     check_follow(&out, gpio18, flavor);
     check_spi(&out, flavor);
+    vm_sbus::check_sbus_serial(&out, flavor);
+    vm_sbus::check_sbus_spi(&out, flavor);
     for timing in ["grid", "follow"] {
         check_interference(&out, gpio18, flavor, timing);
     }

@@ -18,6 +18,10 @@
 #     from ppm-send at 50 Hz: spi_trace.txt (the gpio_value events of SCK,
 #     MOSI and CS), spi_lines.txt (their global GPIO numbers, the bit rate,
 #     the SPI mode), spi_ppmd.log, spi_ppmd_exit.txt, spi_frames.jsonl.
+#   - SBUS on ttyS1 and through the same spidev: sbus_tty.txt,
+#     sbus_ppmd.log, sbus_ppmd_exit.txt, sbus_frames.jsonl (serial; the
+#     bytes are the host's serial1.bin), sbus_spi_trace.txt,
+#     sbus_spi_ppmd.log, sbus_spi_ppmd_exit.txt, sbus_spi_frames.jsonl.
 set -eu
 . /lib/vmtest.sh
 
@@ -203,4 +207,52 @@ grep -E "gpio_value: ($spi_base|$((spi_base + 1))|$((spi_base + 2))) " /tmp/spi_
 rm -f /tmp/spi_trace_all.txt
 kill -TERM "$sing"
 wait "$sing" || true
+
+# SBUS on the guest's second serial port (ttyS1, a 16550 whose bytes QEMU
+# writes to the host's OUTDIR/serial1.bin) and through spidev (the same
+# spi-gpio bus, true SBUS at 100 kHz): follow timing, encoded for EdgeTX,
+# the example command with aux12 at 1900. sbus_tty.txt: the settings the
+# kernel holds for ttyS1 while ppmd has it open.
+cat > /tmp/sbus.toml <<CONF
+name = "vm-sbus"
+[ingress]
+listen = "127.0.0.1:5010"
+[ipc]
+root = "/tmp/ppm-ipc"
+[ppm]
+protocol = "sbus"
+receiver = "edgetx"
+timing = "follow"
+CONF
+sbus_cmd='{"ail": 1000, "ele": 1200, "thr": 1700, "rud": 2000, "aux12": 1900}'
+udp-ingress --config /tmp/sbus.toml 2> /out/sbus_ingress.log &
+bing=$!
+ppmd --config /tmp/sbus.toml --output serial:/dev/ttyS1 --frame-log /out/sbus_frames.jsonl \
+    2> /out/sbus_ppmd.log &
+bppmd=$!
+sleep 1
+tty-settings /dev/ttyS1 > /out/sbus_tty.txt 2>&1 || true
+ppm-send --to 127.0.0.1:5010 --rate 50 --count 50 "$sbus_cmd"
+sleep 0.5
+kill -TERM "$bppmd"
+status=0
+wait "$bppmd" || status=$?
+echo "$status" > /out/sbus_ppmd_exit.txt
+VMTEST_TRACE_BUF_KB=32768 start_gpio_trace gpio_value
+ppmd --config /tmp/sbus.toml --output "spi:$spidev" --frame-log /out/sbus_spi_frames.jsonl \
+    2> /out/sbus_spi_ppmd.log &
+bppmd=$!
+sleep 1
+ppm-send --to 127.0.0.1:5010 --rate 50 --count 50 "$sbus_cmd"
+sleep 0.5
+kill -TERM "$bppmd"
+status=0
+wait "$bppmd" || status=$?
+echo "$status" > /out/sbus_spi_ppmd_exit.txt
+stop_gpio_trace /tmp/sbus_spi_trace_all.txt
+grep -E "gpio_value: ($spi_base|$((spi_base + 1))|$((spi_base + 2))) " /tmp/sbus_spi_trace_all.txt \
+    > /out/sbus_spi_trace.txt || true
+rm -f /tmp/sbus_spi_trace_all.txt
+kill -TERM "$bing"
+wait "$bing" || true
 echo "pipeline: done"

@@ -9,7 +9,9 @@
 #   /test.sh           GUEST_SCRIPT, run with busybox sh in /out
 #   /bin/<name>        each HOST_FILE (static binaries: the guest has no libc)
 # Everything the script writes to /out ends up in OUTDIR, next to
-# OUTDIR/console.log (serial console) and OUTDIR/dmesg.log (guest kernel log).
+# OUTDIR/console.log (serial console), OUTDIR/dmesg.log (guest kernel log)
+# and OUTDIR/serial1.bin (what the guest wrote to its second serial port,
+# ttyS1).
 # The exit status is the one of /test.sh; 124 on timeout, 125 when the VM
 # produced no result (panic, setup failure), 2 on usage errors.
 #
@@ -139,6 +141,10 @@ QEMU=(qemu-system-x86_64
     -kernel "$KERNEL" -initrd "$INITRD"
     -append "console=ttyS0 panic=-1 quiet $BOOT_OPTS ${PPM_VM_APPEND:-}"
     -drive "file=$DISK,format=raw,if=virtio,cache=unsafe"
+    # A second serial port (the guest's ttyS1, COM2), whose bytes land in
+    # OUTDIR/serial1.bin: the SBUS output's capture.
+    -chardev "file,id=serial1,path=$OUTDIR/serial1.bin"
+    -device isa-serial,chardev=serial1,index=1
 )
 log "booting $KREL ($FLAVOR), timeout ${TIMEOUT}s, console: $CONSOLE"
 start_ms=$(date +%s%3N)
