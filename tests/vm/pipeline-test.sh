@@ -41,6 +41,23 @@ stop_ppmd() {
     echo 0 > $VMTEST_TRACEFS/options/raw
 }
 
+# end_ppmd PID EXIT: SIGTERM to ppmd and its exit status in /out/EXIT.txt.
+end_ppmd() {
+    kill -TERM "$1"
+    _status=0
+    wait "$1" || _status=$?
+    echo "$_status" > "/out/$2.txt"
+}
+
+# spi_trace NAME: stops the gpio trace and keeps the SPI bus's events in
+# /out/NAME.txt.
+spi_trace() {
+    stop_gpio_trace "/tmp/$1_all.txt"
+    grep -E "gpio_value: ($spi_base|$((spi_base + 1))|$((spi_base + 2))) " "/tmp/$1_all.txt" \
+        > "/out/$1.txt" || true
+    rm -f "/tmp/$1_all.txt"
+}
+
 chip=$(make_sim_chip ppm 4 GPIO17 GPIO18 GPIO19 GPIO20)
 base=$(sim_chip_base "$chip")
 echo "$chip $base" > /out/chip.txt
@@ -197,14 +214,8 @@ sppmd=$!
 sleep 1
 ppm-send --to 127.0.0.1:5009 --rate 50 --count 50 '[1000, 1200, 1700, 2000]'
 sleep 0.5
-kill -TERM "$sppmd"
-status=0
-wait "$sppmd" || status=$?
-echo "$status" > /out/spi_ppmd_exit.txt
-stop_gpio_trace /tmp/spi_trace_all.txt
-grep -E "gpio_value: ($spi_base|$((spi_base + 1))|$((spi_base + 2))) " /tmp/spi_trace_all.txt \
-    > /out/spi_trace.txt || true
-rm -f /tmp/spi_trace_all.txt
+end_ppmd "$sppmd" spi_ppmd_exit
+spi_trace spi_trace
 kill -TERM "$sing"
 wait "$sing" || true
 
@@ -234,10 +245,7 @@ sleep 1
 tty-settings /dev/ttyS1 > /out/sbus_tty.txt 2>&1 || true
 ppm-send --to 127.0.0.1:5010 --rate 50 --count 50 "$sbus_cmd"
 sleep 0.5
-kill -TERM "$bppmd"
-status=0
-wait "$bppmd" || status=$?
-echo "$status" > /out/sbus_ppmd_exit.txt
+end_ppmd "$bppmd" sbus_ppmd_exit
 VMTEST_TRACE_BUF_KB=32768 start_gpio_trace gpio_value
 ppmd --config /tmp/sbus.toml --output "spi:$spidev" --frame-log /out/sbus_spi_frames.jsonl \
     2> /out/sbus_spi_ppmd.log &
@@ -245,14 +253,8 @@ bppmd=$!
 sleep 1
 ppm-send --to 127.0.0.1:5010 --rate 50 --count 50 "$sbus_cmd"
 sleep 0.5
-kill -TERM "$bppmd"
-status=0
-wait "$bppmd" || status=$?
-echo "$status" > /out/sbus_spi_ppmd_exit.txt
-stop_gpio_trace /tmp/sbus_spi_trace_all.txt
-grep -E "gpio_value: ($spi_base|$((spi_base + 1))|$((spi_base + 2))) " /tmp/sbus_spi_trace_all.txt \
-    > /out/sbus_spi_trace.txt || true
-rm -f /tmp/sbus_spi_trace_all.txt
+end_ppmd "$bppmd" sbus_spi_ppmd_exit
+spi_trace sbus_spi_trace
 kill -TERM "$bing"
 wait "$bing" || true
 echo "pipeline: done"

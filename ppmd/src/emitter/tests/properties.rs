@@ -255,7 +255,7 @@ fn check_output(
 }
 
 /// Any failsafe action.
-fn any_action() -> impl Strategy<Value = FailsafeAction> {
+pub(super) fn any_action() -> impl Strategy<Value = FailsafeAction> {
     prop_oneof![
         Just(FailsafeAction::Hold),
         Just(FailsafeAction::Silence),

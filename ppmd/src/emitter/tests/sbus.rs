@@ -163,6 +163,23 @@ fn check_sbus(
     Ok(())
 }
 
+/// Runs one SBUS output of `model` with `settings` from `src` into `line`
+/// until `until_ms`, then checks its frames against the commands `src`
+/// published ([`check_sbus`]); its counters.
+fn run_checked(
+    sim: &Sim,
+    model: &FrameModel,
+    settings: Settings,
+    src: &mut Feed,
+    line: &mut SbusLine,
+    until_ms: u64,
+) -> Result<Stats, TestCaseError> {
+    let stats = run_one(sim, model, settings, src, LineRef::Whole(line), until_ms);
+    let values: Vec<u64> = src.made().iter().map(|m| u64::from(m.1)).collect();
+    check_sbus(model, &line.frames, &values)?;
+    Ok(stats)
+}
+
 /// The first two values a frame carries, as the encoding receiver reads
 /// them, us (rounded).
 fn firsts(model: &FrameModel, bytes: &[u8; FRAME_LEN]) -> (u64, u64) {
@@ -177,17 +194,16 @@ fn follow_at_200_hz_puts_every_command_on_the_line_at_once() {
     let mut src = Feed::paced(&sim, &model, 60, 5);
     let mut line = SbusLine::new(&sim);
     let until_ms = (src.last_at() - START_NS) / MS + 150;
-    let stats = run_one(
+    let stats = run_checked(
         &sim,
         &model,
         cfg(100, FailsafeAction::Silence),
         &mut src,
-        LineRef::Whole(&mut line),
+        &mut line,
         until_ms,
-    );
+    )
+    .unwrap();
     let made = src.made();
-    let values: Vec<u64> = made.iter().map(|m| u64::from(m.1)).collect();
-    check_sbus(&model, &line.frames, &values).unwrap();
     // One frame per command, as soon as it is published: the wake-up,
     // the decision and READY_NS.
     for (k, (at, first)) in made.iter().enumerate() {
@@ -226,16 +242,15 @@ fn follow_commands_closer_than_a_frame_wait_for_the_idle_line() {
     let model = sbus_model("edgetx", true, "");
     let mut src = Feed::paced(&sim, &model, 40, 1);
     let mut line = SbusLine::new(&sim);
-    run_one(
+    run_checked(
         &sim,
         &model,
         cfg(100, FailsafeAction::Silence),
         &mut src,
-        LineRef::Whole(&mut line),
+        &mut line,
         70,
-    );
-    let values: Vec<u64> = src.made().iter().map(|m| u64::from(m.1)).collect();
-    check_sbus(&model, &line.frames, &values).unwrap();
+    )
+    .unwrap();
     let gap = model.follow_sync_ns().0;
     assert_eq!(gap, 400_000);
     let busy = line
@@ -266,16 +281,15 @@ fn grid_frames_sit_on_their_period() {
         );
         let mut src = Feed::paced(&sim, &model, 20, 10);
         let mut line = SbusLine::new(&sim);
-        let stats = run_one(
+        let stats = run_checked(
             &sim,
             &model,
             cfg(100, FailsafeAction::Hold),
             &mut src,
-            LineRef::Whole(&mut line),
+            &mut line,
             300,
-        );
-        let values: Vec<u64> = src.made().iter().map(|m| u64::from(m.1)).collect();
-        check_sbus(&model, &line.frames, &values).unwrap();
+        )
+        .unwrap();
         for w in line.due.windows(2) {
             assert_eq!(w[1] - w[0], period_ms * MS, "{receiver}");
         }
@@ -301,16 +315,7 @@ fn the_failsafe_flag_goes_out_when_commands_stop_and_before_the_first() {
     let mut settings = cfg(100, FailsafeAction::Flag);
     settings.failsafe.startup = FailsafeAction::Flag;
     let until_ms = (src.last_at() - START_NS) / MS + 200;
-    let stats = run_one(
-        &sim,
-        &model,
-        settings,
-        &mut src,
-        LineRef::Whole(&mut line),
-        until_ms,
-    );
-    let values: Vec<u64> = src.made().iter().map(|m| u64::from(m.1)).collect();
-    check_sbus(&model, &line.frames, &values).unwrap();
+    let stats = run_checked(&sim, &model, settings, &mut src, &mut line, until_ms).unwrap();
     let flagged = |f: &([u8; FRAME_LEN], u64)| f.0[sbus::FLAGS_INDEX] & 0x08 != 0;
     let first_cmd = src.made()[0].0;
     let last_cmd = src.last_at();
@@ -349,16 +354,15 @@ fn a_frame_that_leaves_late_moves_the_next_one_to_keep_the_idle_line() {
     let mut src = Feed::paced(&sim, &model, 20, 4);
     let mut line = SbusLine::new(&sim);
     line.stall = Some((4, 2_500_000));
-    let stats = run_one(
+    let stats = run_checked(
         &sim,
         &model,
         cfg(100, FailsafeAction::Silence),
         &mut src,
-        LineRef::Whole(&mut line),
+        &mut line,
         120,
-    );
-    let values: Vec<u64> = src.made().iter().map(|m| u64::from(m.1)).collect();
-    check_sbus(&model, &line.frames, &values).unwrap();
+    )
+    .unwrap();
     let s = line.starts();
     let gap = model.follow_sync_ns().0;
     // Its command came 4 ms after the 5th's, but the 6th waits for the
@@ -457,16 +461,7 @@ fn check_scenario(
         },
         ..cfg(100, action)
     };
-    let stats = run_one(
-        &sim,
-        &model,
-        settings,
-        &mut src,
-        LineRef::Whole(&mut line),
-        until_ms,
-    );
-    let values: Vec<u64> = src.made().iter().map(|m| u64::from(m.1)).collect();
-    check_sbus(&model, &line.frames, &values)?;
+    let stats = run_checked(&sim, &model, settings, &mut src, &mut line, until_ms)?;
     prop_assert_eq!(stats.frames.load(Relaxed), line.frames.len() as u64);
     prop_assert_eq!(stats.aborted_frames.load(Relaxed), 0);
     prop_assert_eq!(stats.write_errors.load(Relaxed), 0);
@@ -494,13 +489,9 @@ fn any_receiver() -> impl Strategy<Value = &'static str> {
     ]
 }
 
+/// Any failsafe action, SBUS's flag too.
 fn any_action() -> impl Strategy<Value = FailsafeAction> {
-    prop_oneof![
-        Just(FailsafeAction::Hold),
-        Just(FailsafeAction::Silence),
-        Just(FailsafeAction::Default),
-        Just(FailsafeAction::Flag),
-    ]
+    prop_oneof![super::properties::any_action(), Just(FailsafeAction::Flag)]
 }
 
 proptest! {
