@@ -86,7 +86,7 @@ fn check_expired_scenario(
 
 /// A simulated clock with these stalls (ms after the start, us long)
 /// and every sleep `late_us` late.
-fn scenario_sim(stalls: &[(u64, u64)], late_us: u64) -> Sim {
+pub(super) fn scenario_sim(stalls: &[(u64, u64)], late_us: u64) -> Sim {
     let sim = Sim::new();
     sim.set_wake_late_ns(late_us * 1_000);
     for (at_ms, us) in stalls {
@@ -96,7 +96,7 @@ fn scenario_sim(stalls: &[(u64, u64)], late_us: u64) -> Sim {
 }
 
 /// Commands (ms after the previous one, first value) as `[v, 1900]`.
-fn scenario_feed(sim: &Sim, model: &FrameModel, cmds: &[(u64, u64)]) -> Feed {
+pub(super) fn scenario_feed(sim: &Sim, model: &FrameModel, cmds: &[(u64, u64)]) -> Feed {
     let mut t = START_NS;
     let cmds: Vec<(u64, String)> = cmds
         .iter()

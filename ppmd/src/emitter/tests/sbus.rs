@@ -436,21 +436,8 @@ fn check_scenario(
     (receiver, follow, cmds, stalls, late_us, action, held): Scenario,
 ) -> Result<(), TestCaseError> {
     let model = sbus_model(receiver, follow, "");
-    let sim = Sim::new();
-    sim.set_wake_late_ns(late_us * 1_000);
-    for (at_ms, us) in &stalls {
-        sim.stall_at(START_NS + at_ms * MS, us * 1_000);
-    }
-    let mut t = START_NS;
-    let cmds: Vec<(u64, String)> = cmds
-        .iter()
-        .map(|(gap_ms, v)| {
-            t += gap_ms * MS;
-            (t, format!("[{v}, 1900]"))
-        })
-        .collect();
-    let cmds: Vec<(u64, &str)> = cmds.iter().map(|(t, c)| (*t, c.as_str())).collect();
-    let mut src = Feed::new(&sim, &model, &cmds);
+    let sim = super::properties::scenario_sim(&stalls, late_us);
+    let mut src = super::properties::scenario_feed(&sim, &model, &cmds);
     let mut line = SbusLine::new(&sim);
     line.stall = Some((held.0, held.1 * 1_000));
     let until_ms = (src.last_at() - START_NS) / MS + 150;
