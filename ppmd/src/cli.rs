@@ -22,7 +22,8 @@ pub struct Cli {
     /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, `gpio:CHIP:LINE` (CHIP:
     /// a path, name or label such as pinctrl-bcm2711; LINE: an offset or a
     /// name such as GPIO18), or `spi:DEVICE` (a spidev device such as
-    /// /dev/spidev0.0, MOSI as the line; runs alone). Overrides
+    /// /dev/spidev0.0, MOSI as the line; runs alone), or `serial:DEVICE`
+    /// (a UART such as /dev/ttyAMA0, for `ppm.protocol = "sbus"`). Overrides
     /// `ppmd.output`. Repeat as `--output NAME=SPEC` to drive several
     /// outputs from one timing thread, each fed by its own
     /// `udp-ingress --name NAME`.
