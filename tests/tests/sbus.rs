@@ -76,9 +76,31 @@ fn sbus_on_the_simulated_line_reaches_every_receiver() {
             assert_eq!(seen, sent, "every command on the line, in order");
         }
     }
-    // ppmd's frame log of the same run is not kept here; its counters are.
     let log = ppmd.log_text();
     assert!(log.contains("SBUS encoded for edgetx"), "{log}");
+    // The tools read the same trace as SBUS.
+    let trace_path = sb.dir.join("line.trace");
+    let run = |bin: &str, args: &[&str]| {
+        let out = std::process::Command::new(ppm_tests::bin(bin))
+            .args(args)
+            .arg(&trace_path)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{bin}: {out:?}");
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let jitter = run("jitter", &["--trace"]);
+    assert!(
+        jitter.contains(&format!(
+            "characters {} (0 with a parity or stop bit error)",
+            chars.len()
+        )) && jitter.contains(&format!("edgetx takes {frames} frames")),
+        "{jitter}"
+    );
+    let watch = run("ppm-watch", &["--once", "--actual"]);
+    let rows: Vec<&str> = watch.lines().collect();
+    assert_eq!(rows.len(), frames, "{watch}");
+    assert!(rows.iter().all(|r| r.contains("aux12  1900.0")), "{watch}");
 }
 
 /// On a pseudo-terminal: ppmd sets it raw at 100 000 baud with 2 stop bits

@@ -354,6 +354,9 @@ fn trace(path: &PathBuf, receiver: Option<Receiver>, plot: Option<&Path>) -> Res
     let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
     let t = Trace::read(std::io::BufReader::new(file))?;
     let receiver = receiver.unwrap_or(t.default_receiver());
+    if t.protocol == ppm_shared::frame::Protocol::Sbus {
+        return sbus_trace(path, &t, receiver, plot);
+    }
     let r = analyse_trace(&t, receiver);
     println!("# jitter --trace {}", path.display());
     println!(
@@ -376,6 +379,48 @@ fn trace(path: &PathBuf, receiver: Option<Receiver>, plot: Option<&Path>) -> Res
         plot_values(
             out,
             &format!("jitter --trace: edge error of {} edges", r.edges),
+            &errors,
+        )?;
+    }
+    Ok(())
+}
+
+/// Analysis of an SBUS output's sim trace: its bit edges' error (every
+/// edge of a frame has its write's), the characters a UART receiver reads
+/// from the edges as written, and the frames the receiver's framing takes.
+fn sbus_trace(path: &Path, t: &Trace, receiver: Receiver, plot: Option<&Path>) -> Result<()> {
+    use ppm_shared::sbus::SbusReceiver;
+    let r = match receiver {
+        Receiver::EdgeTx => SbusReceiver::EdgeTx,
+        Receiver::Betaflight => SbusReceiver::Betaflight2026,
+        Receiver::ArduPilot => SbusReceiver::ArduPilot,
+        Receiver::OpenTx => {
+            anyhow::bail!("OpenTX's SBUS input is not modelled: use --receiver edgetx, betaflight or ardupilot")
+        }
+    };
+    let mut errors: Vec<f64> = t.edges.iter().map(|e| e.error_ns() as f64).collect();
+    let chars = t.sbus_characters(true);
+    let bad = chars.iter().filter(|c| !c.parity_ok || !c.stop_ok).count();
+    println!("# jitter --trace {} (SBUS)", path.display());
+    println!(
+        "edges {} characters {} ({bad} with a parity or stop bit error), by actual time",
+        t.edges.len(),
+        chars.len()
+    );
+    println!(
+        "edge error us: {}",
+        Percentiles::of(&mut errors).line(1_000.0)
+    );
+    println!(
+        "{} takes {} frames (by actual time, as its UART and framing read them)",
+        r.name(),
+        t.sbus_taken(r, true).len()
+    );
+    if let Some(out) = plot {
+        let errors: Vec<f64> = t.edges.iter().map(|e| e.error_ns() as f64).collect();
+        plot_values(
+            out,
+            &format!("jitter --trace: edge error of {} SBUS edges", t.edges.len()),
             &errors,
         )?;
     }
