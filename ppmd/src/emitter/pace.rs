@@ -418,11 +418,11 @@ pub(super) fn place_follow<C: Clock + ?Sized>(
     if model.protocol() == Protocol::Sbus {
         return Some(place_follow_sbus(
             f,
+            prev_pulse,
             model,
             stats,
             ready,
-            fresh_arrived,
-            at_earliest,
+            (fresh_arrived, at_earliest),
         ));
     }
     // A lead-in pulse as soon as it can be written, clear of the gaps a
@@ -457,22 +457,24 @@ pub(super) fn place_follow<C: Clock + ?Sized>(
 /// write it, but not before the shortest idle line after the previous
 /// frame's end; a repeat at the longest. Never a lead-in: after silence, or
 /// however late, a frame starts when it is ready (counted as a late frame
-/// when it was decided at its planned time but late).
+/// when it was decided at its planned time but late), and after silence no
+/// earlier than the shortest idle line after the last frame there was
+/// (`prev_end`).
 fn place_follow_sbus(
     f: &Follow,
+    prev_end: Option<u64>,
     model: &FrameModel,
     stats: &Stats,
     ready: u64,
-    fresh_arrived: bool,
-    at_earliest: bool,
+    (fresh_arrived, at_earliest): (bool, bool),
 ) -> (u64, u64) {
+    let (gap_min, gap_max) = model.follow_sync_ns();
     let Some(last) = f.last_pulse else {
-        return (ready, 0);
+        return (ready.max(prev_end.map_or(0, |e| e + gap_min)), 0);
     };
     if !fresh_arrived {
         add(&stats.repeats, 1);
     }
-    let (gap_min, gap_max) = model.follow_sync_ns();
     let want = last + if fresh_arrived { gap_min } else { gap_max };
     if ready <= want {
         return (want, 0);

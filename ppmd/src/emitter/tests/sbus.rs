@@ -506,3 +506,42 @@ proptest! {
         check_scenario((receiver, follow, cmds, stalls, late_us, action, held))?;
     }
 }
+
+#[test]
+fn after_silence_a_frame_still_keeps_the_idle_line() {
+    // The longest idle line as short as the shortest, and a 1 ms failsafe:
+    // between commands 3.25 ms apart the line goes silent at the deadline,
+    // decided 150 us before the idle line is up; the next command comes
+    // 60 us later, and its frame waits for the idle line all the same.
+    let sim = Sim::new();
+    let model = sbus_model(
+        "edgetx",
+        true,
+        "follow_sync_min_us = 320\nfollow_sync_max_us = 320",
+    );
+    let cmds: Vec<(u64, String)> = (0..30)
+        .map(|k| {
+            (
+                START_NS + 20 * MS + k * 3_250_000,
+                format!("[{}, 1900]", 1_100 + k),
+            )
+        })
+        .collect();
+    let cmds: Vec<(u64, &str)> = cmds.iter().map(|(t, c)| (*t, c.as_str())).collect();
+    let mut src = Feed::new(&sim, &model, &cmds);
+    let mut line = SbusLine::new(&sim);
+    let stats = run_checked(
+        &sim,
+        &model,
+        cfg(1, FailsafeAction::Silence),
+        &mut src,
+        &mut line,
+        150,
+    )
+    .unwrap();
+    // The line went silent between commands (which the idle line check in
+    // `run_checked` then covers), and each command flew once or, waiting
+    // for the line past the 1 ms failsafe, was refused as expired.
+    assert!(stats.failsafe_entries.load(Relaxed) >= 1, "{stats:?}");
+    assert_eq!(line.frames.len() as u64 + stats.expired.load(Relaxed), 30);
+}
