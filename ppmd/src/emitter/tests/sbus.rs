@@ -5,6 +5,7 @@
 //! commands, stalls and late wake-ups.
 
 use super::*;
+use ppm_shared::sbus::timing::SbusChoice;
 use ppm_shared::sbus::{self, framing, Framer, SbusReceiver, Verdict, FRAME_LEN, FRAME_WIRE_NS};
 use proptest::prelude::*;
 use proptest::test_runner::TestCaseError;
@@ -434,8 +435,9 @@ type Scenario = (
 
 fn check_scenario(
     (receiver, follow, cmds, stalls, late_us, action, held): Scenario,
+    keys: Keys,
 ) -> Result<(), TestCaseError> {
-    let model = sbus_model(receiver, follow, "");
+    let model = sbus_model(receiver, follow, &keys.toml(receiver));
     let sim = super::properties::scenario_sim(&stalls, late_us);
     let mut src = super::properties::scenario_feed(&sim, &model, &cmds);
     let mut line = SbusLine::new(&sim);
@@ -455,16 +457,71 @@ fn check_scenario(
     // The newest command flies: the last one is on the line, unless the
     // failsafe silenced it at once (a stall can age it past 100 ms).
     let last = u64::from(src.made().last().unwrap().1);
-    let on_line = line
-        .frames
-        .iter()
-        .any(|(b, _)| firsts(&model, b).0.abs_diff(last.clamp(1_000, 2_000)) <= 1);
+    let on_line = line.frames.iter().any(|(b, _)| {
+        firsts(&model, b)
+            .0
+            .abs_diff(commanded(&model, last, 1_900)[0] / 1_000)
+            <= 1
+    });
     prop_assert!(
         on_line || !stalls.is_empty() || late_us > 0,
         "{} not on the line",
         last
     );
     Ok(())
+}
+
+/// The keys of an SBUS configuration the property draws, each an offset
+/// into its accepted range: the shortest idle line above the receivers'
+/// least, the longest above that, the grid period above its least, and
+/// the channel limits inside the values the receivers read (us).
+#[derive(Debug, Clone, Copy)]
+struct Keys {
+    gap_over: u64,
+    max_over: u64,
+    period_over: u64,
+    min_over: u64,
+    max_under: u64,
+}
+
+impl Keys {
+    /// The `[ppm]` lines for `receiver`, each inside its accepted range.
+    fn toml(&self, receiver: &str) -> String {
+        let choice = SbusChoice::new(receiver.parse().unwrap()).unwrap();
+        let least = choice.least_gap_us();
+        let (lo, hi) = choice.value_range_us();
+        let gap = least + self.gap_over;
+        format!(
+            "follow_sync_min_us = {gap}
+follow_sync_max_us = {}
+frame_us = {}
+min_us = {}
+max_us = {}",
+            (gap + self.max_over).min(60_000),
+            3_000 + least + self.period_over,
+            lo + self.min_over,
+            hi - self.max_under,
+        )
+    }
+}
+
+fn any_keys() -> impl Strategy<Value = Keys> {
+    (
+        0u64..2_000,
+        0u64..30_000,
+        0u64..15_000,
+        0u64..200,
+        0u64..200,
+    )
+        .prop_map(
+            |(gap_over, max_over, period_over, min_over, max_under)| Keys {
+                gap_over,
+                max_over,
+                period_over,
+                min_over,
+                max_under,
+            },
+        )
 }
 
 fn any_receiver() -> impl Strategy<Value = &'static str> {
@@ -486,7 +543,8 @@ proptest! {
         std::env::var("PROPTEST_CASES").map_or(64, |c| c.parse().expect("a number")),
     ))]
 
-    /// Whatever the receivers, timing, commands' pace, stalls, late
+    /// Whatever the receivers, the keys (within what ppm accepts for them),
+    /// timing, commands' pace, stalls, late
     /// wake-ups, failsafe action and writes held up: every modelled SBUS
     /// receiver of the configuration takes every frame, unchanged, with
     /// the receivers' least idle line before it; reads a flagged frame as
@@ -502,8 +560,9 @@ proptest! {
         late_us in prop_oneof![Just(0u64), 1u64..300],
         action in any_action(),
         held in (0usize..30, 0u64..6_000),
+        keys in any_keys(),
     ) {
-        check_scenario((receiver, follow, cmds, stalls, late_us, action, held))?;
+        check_scenario((receiver, follow, cmds, stalls, late_us, action, held), keys)?;
     }
 }
 
