@@ -7,6 +7,7 @@
 use libfuzzer_sys::fuzz_target;
 use ppm_fuzz::check_model;
 use ppm_shared::config::{Config, ConfigError};
+use ppm_shared::frame::Protocol;
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else {
@@ -23,8 +24,11 @@ fuzz_target!(|data: &[u8]| {
     match config.validate() {
         Ok(m) => {
             check_model(&m);
-            assert_eq!(m.channels(), config.ppm.channels as usize);
-            assert_eq!(m.idle_level(), config.ppm.idle_level);
+            assert_eq!(m.channels(), config.ppm.channels() as usize);
+            // SBUS's idle level depends on the output when not given.
+            if config.ppm.idle_level.is_some() || m.protocol() == Protocol::Ppm {
+                assert_eq!(m.idle_level(), config.ppm.idle_level());
+            }
         }
         Err(e) => {
             let key = e

@@ -10,7 +10,7 @@ use ppm_fuzz::check_model;
 use ppm_shared::config::{
     channel_names, ChannelOverride, Config, CpuChoice, FailsafeAction, SpinMargin, Timing,
 };
-use ppm_shared::frame::Level;
+use ppm_shared::frame::{Level, Protocol};
 use ppm_shared::receiver::{Receiver, ReceiverChoice};
 
 /// A float in microseconds, biased towards the limits that matter.
@@ -111,7 +111,10 @@ struct Input {
     channels: u8,
     order: u8,
     order_text: Option<String>,
-    idle_high: bool,
+    /// `ppm.idle_level`: unset, high or low.
+    idle_high: Option<bool>,
+    /// `ppm.protocol = "sbus"`.
+    sbus: bool,
     frame: Frame,
     pulse: Us,
     default: Option<Us>,
@@ -157,19 +160,23 @@ const ORDERS: &[&str] = &[
 fuzz_target!(|input: Input| {
     let mut c = Config::default();
     let p = &mut c.ppm;
-    p.channels = if input.channels < 200 {
-        (input.channels % 18) as u32
-    } else {
-        u32::MAX - input.channels as u32
+    if input.sbus {
+        p.protocol = Protocol::Sbus;
+    }
+    p.channels = match input.channels {
+        // The protocol's default (8, or SBUS's 16).
+        0 => None,
+        c if c < 200 => Some((c % 18) as u32),
+        c => Some(u32::MAX - c as u32),
     };
     p.order = match input.order_text {
         Some(t) if input.order % 8 == 7 => t,
         _ => ORDERS[input.order as usize % ORDERS.len()].to_string(),
     };
-    p.idle_level = if input.idle_high {
-        Level::High
-    } else {
-        Level::Low
+    p.idle_level = match input.idle_high {
+        None => None,
+        Some(true) => Some(Level::High),
+        Some(false) => Some(Level::Low),
     };
     p.pulse_us = input.pulse.get();
     if let Some(v) = input.default {
@@ -181,7 +188,7 @@ fuzz_target!(|input: Input| {
     if let Some(v) = input.max {
         p.max_us = v.get();
     }
-    let names = channel_names(&p.order, (p.channels as usize).min(16)).unwrap_or_default();
+    let names = channel_names(&p.order, (p.channels() as usize).min(16)).unwrap_or_default();
     for o in input.overrides.iter().take(20) {
         let key = match &o.who {
             Ok(i) if !names.is_empty() => names[*i as usize % names.len()].clone(),
@@ -204,7 +211,7 @@ fuzz_target!(|input: Input| {
             },
         );
     }
-    p.frame_us = match input.frame {
+    p.frame_us = Some(match input.frame {
         Frame::Any(v) => v.get(),
         Frame::Fitting(pick) => {
             // The channel limits as validation will resolve them (the
@@ -222,7 +229,7 @@ fuzz_target!(|input: Input| {
             );
             (lo + (hi - lo) * pick as f64 / 255.0).round()
         }
-    };
+    });
 
     c.ingress.allow = input.allow;
     c.ingress.auth_key = input.auth_key.map(Into::into);
@@ -270,7 +277,8 @@ fuzz_target!(|input: Input| {
             FailsafeAction::Silence,
             FailsafeAction::Hold,
             FailsafeAction::Default,
-        ][k as usize % 3]
+            FailsafeAction::Flag,
+        ][k as usize % 4]
     };
     c.failsafe.action = action(input.action);
     c.failsafe.startup = action(input.startup);
@@ -285,21 +293,22 @@ fuzz_target!(|input: Input| {
     if let Some((min, max)) = input.follow {
         c.ppm.timing = Timing::Follow;
         if let Some(v) = min {
-            c.ppm.follow_sync_min_us = v.get();
+            c.ppm.follow_sync_min_us = Some(v.get());
         }
         if let Some(v) = max {
-            c.ppm.follow_sync_max_us = v.get();
+            c.ppm.follow_sync_max_us = Some(v.get());
         }
     } else if let Some(v) = input.follow_sync_min {
         // Checked in grid timing too.
-        c.ppm.follow_sync_min_us = v.get();
+        c.ppm.follow_sync_min_us = Some(v.get());
     }
 
     match c.validate() {
         Ok(m) => {
             check_model(&m);
             assert_eq!(m.timing(), c.ppm.timing);
-            assert_eq!(m.channels(), c.ppm.channels as usize);
+            assert_eq!(m.channels(), c.ppm.channels() as usize);
+            assert_eq!(m.protocol(), c.ppm.protocol);
             assert_eq!(
                 m.names(),
                 channel_names(&c.ppm.order, m.channels()).unwrap()

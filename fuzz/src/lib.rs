@@ -5,10 +5,11 @@
 use ppm_shared::auth::{self, AuthKey, MAC_HEX_LEN};
 use ppm_shared::config::{Config, Timing, FOLLOW_SYNC_CEILING_US};
 use ppm_shared::decode::{decode, DecoderLimits};
-use ppm_shared::frame::{us_to_ns, Channels, FrameModel, Level};
+use ppm_shared::frame::{us_to_ns, Channels, FrameModel, Level, Protocol};
 use ppm_shared::ipc::CommandSample;
 use ppm_shared::protocol::{self, Command, Reject, RejectReason, To};
 use ppm_shared::receiver::{decode_as, Receiver, SYNC_MARGIN_US};
+use ppm_shared::sbus;
 use std::sync::OnceLock;
 
 /// Configurations the wire targets parse against.
@@ -113,6 +114,29 @@ default_us = 2200
 "#,
     ),
     (
+        // SBUS for every receiver: 16 channels at per-channel limits from
+        // the lowest value all of them read to the highest, unit ranges.
+        "sbus16",
+        r#"
+[ppm]
+protocol = "sbus"
+order = "TAER"
+min_us = 882
+max_us = 2159
+timing = "follow"
+[ppm.channel.thr]
+min_us = 1000
+max_us = 2000
+unit_min = 0
+unit_max = 100
+[ppm.channel.aux12]
+default_us = 2159
+unit_min = -1
+unit_max = 1
+reverse = true
+"#,
+    ),
+    (
         "one",
         "[ppm]\nreceiver = \"edgetx\"\nchannels = 1\nframe_us = 19300\npulse_us = 50\nmin_us = 820\nmax_us = 2180\n",
     ),
@@ -143,6 +167,9 @@ pub fn models() -> &'static [FrameModel] {
 
 /// What a validated model must satisfy, whatever configuration built it.
 pub fn check_model(m: &FrameModel) {
+    if m.protocol() == Protocol::Sbus {
+        return check_sbus_model(m);
+    }
     let n = m.channels();
     assert!((1..=16).contains(&n), "{n} channels");
     assert_eq!(m.names().len(), n);
@@ -225,8 +252,88 @@ pub fn check_model(m: &FrameModel) {
     }
 }
 
+/// Invariants of an SBUS model: 16 channels, named as PPM's; limits inside
+/// the values every receiver of `ppm.receiver` reads; idle lines and the
+/// grid period each receiver takes; and every channel at its extremes and
+/// defaults encoded into a frame that every receiver reads as sent (the one
+/// encoded for to within its step, the others within their offset), and
+/// flagged, into one each takes as failsafe.
+pub fn check_sbus_model(m: &FrameModel) {
+    let c = m.sbus().expect("an SBUS model has its receivers");
+    assert_eq!(m.channels(), sbus::CHANNELS);
+    let least = c.least_gap_us() * 1_000;
+    let (gap_min, gap_max) = m.follow_sync_ns();
+    assert!(
+        least <= gap_min && gap_min <= gap_max && gap_max <= us_to_ns(sbus::timing::GAP_MAX_US),
+        "idle lines {gap_min}..{gap_max}, least {least}"
+    );
+    assert!(
+        m.frame_ns() >= sbus::FRAME_WIRE_NS + least,
+        "period {}",
+        m.frame_ns()
+    );
+    let (lo, hi) = c.value_range_us();
+    for i in 0..m.channels() {
+        let (min, d, max) = (m.min_ns(i), m.default_ns(i), m.max_ns(i));
+        assert!(
+            lo * 1_000 <= min as u64 && min <= d && d <= max && max as u64 <= hi * 1_000,
+            "channel {i}: {min}..={max} (default {d}) outside {lo}..={hi} us"
+        );
+        assert_eq!(m.index_of(&m.names()[i]), Some(i), "duplicate name");
+        check_mapping(m, i);
+    }
+    let mins: Vec<u32> = (0..m.channels()).map(|i| m.min_ns(i)).collect();
+    let maxs: Vec<u32> = (0..m.channels()).map(|i| m.max_ns(i)).collect();
+    for ch in [
+        Channels::from_ns(&mins),
+        Channels::from_ns(&maxs),
+        m.defaults(),
+    ] {
+        check_sbus_frame(m, &ch);
+    }
+}
+
+/// An SBUS frame carrying `ch` (values within limits; missing ones at
+/// their defaults), as every receiver of the model reads it: the one
+/// encoded for within its step, the others within their offset; flagged,
+/// used by none.
+pub fn check_sbus_frame(m: &FrameModel, ch: &Channels) {
+    let c = m.sbus().expect("an SBUS model has its receivers");
+    let frame = m.encode_sbus(ch, false);
+    let exact = m.sbus_reads(&frame);
+    for (i, &got) in exact.iter().enumerate() {
+        let want = ch.as_ns().get(i).copied().unwrap_or(m.default_ns(i));
+        // Whole microseconds (EdgeTX, ArduPilot) or 0.625 us steps.
+        assert!(
+            got.abs_diff(want as u64) <= 625,
+            "channel {i}: {got} for {want}"
+        );
+    }
+    for r in c.receivers() {
+        match r.verdict(&frame) {
+            sbus::Verdict::Used(reading) => {
+                for (i, (&got, &want)) in reading.channels_ns.iter().zip(&exact).enumerate() {
+                    assert!(
+                        got.abs_diff(want) <= 7_000,
+                        "{r:?} channel {i}: {got} for {want}"
+                    );
+                }
+            }
+            v => panic!("{r:?}: {v:?} for {ch:?}"),
+        }
+        let flagged = m.encode_sbus(ch, true);
+        assert!(
+            !matches!(r.verdict(&flagged), sbus::Verdict::Used(_)),
+            "{r:?} used a flagged frame"
+        );
+    }
+}
+
 /// Invariants of one encoded frame carrying `c` (values within limits).
 pub fn check_frame(m: &FrameModel, c: &Channels) {
+    if m.protocol() == Protocol::Sbus {
+        return check_sbus_frame(m, c);
+    }
     let n = m.channels();
     let s = m.encode(c);
     let e = s.edges();
@@ -396,11 +503,9 @@ pub fn parse_checked(data: &[u8], m: &FrameModel) -> Result<Command, Reject> {
     match &r {
         Ok(cmd) => {
             check_accepted(m, cmd);
-            let seed = data
-                .iter()
-                .fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
-                    (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
-                });
+            let seed = data.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+                (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+            });
             check_sample(m, cmd, seed);
         }
         Err(e) => check_rejected(e),
@@ -590,7 +695,10 @@ pub fn check_open(data: &[u8], m: &FrameModel) {
     // reaches that output's seq gate.
     if opened.is_ok() {
         let copy = env.open(key(), OTHER_OUTPUT, m);
-        assert_eq!(copy.map(|_| ()).map_err(|e| e.reason), Err(RejectReason::WrongOutput));
+        assert_eq!(
+            copy.map(|_| ()).map_err(|e| e.reason),
+            Err(RejectReason::WrongOutput)
+        );
     }
 }
 
