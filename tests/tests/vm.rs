@@ -7,7 +7,9 @@
 //! frames, the line's release at its idle level, and the start-up errors.
 //! In the same boot ppmd's `spi:` output drives the kernel's spi-gpio master
 //! on three gpio-sim lines through spidev; the host rebuilds every transfer
-//! from the traced SCK, MOSI and CS and reads its frame in bit time.
+//! from the traced SCK, MOSI and CS and reads its frame in bit time. SBUS
+//! goes out on the guest's second serial port (its bytes captured on the
+//! host) and through the same spidev, read back as a UART receiver would.
 //!
 //! Needs the host packages tests/vm/prepare.sh names (qemu-system-x86,
 //! busybox-static, ...) and Debian's package archive; without them the test

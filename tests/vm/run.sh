@@ -141,10 +141,11 @@ QEMU=(qemu-system-x86_64
     -kernel "$KERNEL" -initrd "$INITRD"
     -append "console=ttyS0 panic=-1 quiet $BOOT_OPTS ${PPM_VM_APPEND:-}"
     -drive "file=$DISK,format=raw,if=virtio,cache=unsafe"
-    # A second serial port (the guest's ttyS1, COM2), whose bytes land in
+    # The console on ttyS0 (with the monitor, as -nographic has it), and a
+    # second serial port, the guest's ttyS1, whose bytes land in
     # OUTDIR/serial1.bin: the SBUS output's capture.
-    -chardev "file,id=serial1,path=$OUTDIR/serial1.bin"
-    -device isa-serial,chardev=serial1,index=1
+    -serial mon:stdio
+    -serial "file:$OUTDIR/serial1.bin"
 )
 log "booting $KREL ($FLAVOR), timeout ${TIMEOUT}s, console: $CONSOLE"
 start_ms=$(date +%s%3N)

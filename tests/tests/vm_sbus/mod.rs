@@ -122,15 +122,13 @@ pub(crate) fn check_sbus_spi(out: &Path, flavor: &str) {
         "MOSI changed between transfers on {flavor} at {:?} us",
         bus.mosi_changes_outside
     );
-    let mut frames = Vec::new();
+    let (mut frames, mut parks) = (Vec::new(), Vec::new());
     for (k, x) in bus.transfers.iter().enumerate() {
         let what = format!("transfer {k} of the SBUS spi output on {flavor}");
         if x.bits.iter().all(|&b| b == 0) {
-            // ppmd parking the line low when it opens the device.
-            assert!(
-                frames.is_empty(),
-                "{what}: an idle transfer among the frames"
-            );
+            // ppmd parking the line low when it opens the device and at
+            // exit: only before the first frame or after the last.
+            parks.push(k);
             continue;
         }
         assert_eq!(x.bits.len(), 304, "{what}: 38 bytes");
@@ -163,6 +161,11 @@ pub(crate) fn check_sbus_spi(out: &Path, flavor: &str) {
         frames.len() >= 40,
         "{} SBUS transfers on {flavor}",
         frames.len()
+    );
+    let (first, last) = (frames[0], frames[frames.len() - 1]);
+    assert!(
+        parks.iter().all(|&k| k < first || k > last),
+        "idle transfers {parks:?} among the frames {first}..={last} on {flavor}"
     );
     assert_eq!(
         logged_frames(out, "sbus_spi_frames.jsonl"),
