@@ -29,6 +29,9 @@ struct Run {
     sent: usize,
     /// Commands some frame carried.
     on_line: usize,
+    /// Frames on the line, and of those the receiver did not take (SBUS).
+    frames: usize,
+    lost: usize,
 }
 
 impl Run {
@@ -62,6 +65,8 @@ fn measure(sent: &[u64], carried: &[(u64, u32)]) -> Run {
         on_line: latency.len(),
         latency: Percentiles::of(&mut latency),
         sent: sent.len(),
+        frames: carried.len(),
+        lost: 0,
     }
 }
 
@@ -116,15 +121,20 @@ fn sbus_run(receiver: &str, hz: f64, count: u32) -> Result<Run> {
     let (t, sent) = run(receiver, &ppm, hz, count)?;
     let model = Config::parse(&format!("[ppm]\n{ppm}"))?.validate()?;
     let r = model.sbus().expect("an SBUS model").encode_for();
-    let carried: Vec<(u64, u32)> = t
-        .sbus_taken(r, true)
+    let taken = t.sbus_taken(r, true);
+    let carried: Vec<(u64, u32)> = taken
         .iter()
         .filter_map(|k| {
             let v = model.sbus_reads(&k.frame);
             decode((v[0] + 500) / 1_000, (v[1] + 500) / 1_000).map(|c| (k.at_ns, c))
         })
         .collect();
-    Ok(measure(&sent, &carried))
+    let on_wire = t.sbus_characters(true).len() / ppm_shared::sbus::FRAME_LEN;
+    Ok(Run {
+        frames: on_wire,
+        lost: on_wire.saturating_sub(taken.len()),
+        ..measure(&sent, &carried)
+    })
 }
 
 /// The idle line `receiver` gets by default, us, and so the highest rate
@@ -143,8 +153,8 @@ pub fn sbus(count_at_50: u32) -> Result<()> {
         "== 6. SBUS against PPM, follow timing, simulated line: send to the frame carrying each command whole at the receiver, and the share of commands on the line ({count_at_50} commands at 50 Hz, as many seconds' worth at each rate)"
     );
     println!(
-        "{:<22} {:>5} {:>6} {:>8} {:>8} {:>8} {:>8}",
-        "output", "Hz", "sent", "on line", "p50 ms", "p99 ms", "max ms"
+        "{:<22} {:>5} {:>6} {:>8} {:>8} {:>8} {:>8} {:>12}",
+        "output", "Hz", "sent", "on line", "p50 ms", "p99 ms", "max ms", "frames lost"
     );
     let mut table: Vec<(String, Vec<Run>)> = Vec::new();
     let outputs: [(&str, Option<&str>); 4] = [
@@ -163,12 +173,13 @@ pub fn sbus(count_at_50: u32) -> Result<()> {
             };
             let l = &r.latency;
             println!(
-                "{label:<22} {hz:>5} {:>6} {:>7.1}% {:>8.3} {:>8.3} {:>8.3}",
+                "{label:<22} {hz:>5} {:>6} {:>7.1}% {:>8.3} {:>8.3} {:>8.3} {:>12}",
                 r.sent,
                 r.share(),
                 l.p50 / 1e6,
                 l.p99 / 1e6,
-                l.max / 1e6
+                l.max / 1e6,
+                format!("{}/{}", r.lost, r.frames)
             );
             runs.push(r);
         }
@@ -214,7 +225,7 @@ pub fn sbus(count_at_50: u32) -> Result<()> {
             (3_000.0 + gap) / 1e3
         );
     }
-    println!("(PPM: whole at its last pulse's rising edge; SBUS: taken by the receiver's framing, EdgeTX one idle character (120 us) after the last byte)");
+    println!("(PPM: whole at its last pulse's rising edge; SBUS: taken by the receiver's framing, EdgeTX one idle character (120 us) after the last byte; frames lost: on the line but not taken by the receiver's framing, of all frames on the line (PPM: frames read))");
     Ok(())
 }
 
