@@ -62,3 +62,36 @@ pub mod source;
 pub mod startup;
 pub mod timing;
 pub mod watchdog;
+
+/// Whether `e` says the configured output is not on this machine: a GPIO
+/// chip or line it does not have, or a serial or SPI device that does not
+/// exist or is no such device. ppmd then exits with
+/// [`EXIT_CONFIG`](ppm_shared::daemon::EXIT_CONFIG), as for a bad key:
+/// restarting cannot help.
+pub fn output_missing(e: &(dyn std::error::Error + 'static)) -> bool {
+    use line::gpio::GpioError;
+    use line::serial::{SerialError, SerialStep};
+    use line::spi::SpiError;
+    if let Some(g) = e.downcast_ref::<GpioError>() {
+        return matches!(
+            g,
+            GpioError::NoSuchChip { .. }
+                | GpioError::AmbiguousChip { .. }
+                | GpioError::NotAChip { .. }
+                | GpioError::NoSuchLine { .. }
+        );
+    }
+    let missing = |io: &std::io::Error| io.kind() == std::io::ErrorKind::NotFound;
+    if let Some(s) = e.downcast_ref::<SerialError>() {
+        return match s {
+            SerialError::NotATty { .. } => true,
+            SerialError::Device { step, source, .. } => {
+                *step == SerialStep::Open && missing(source)
+            }
+        };
+    }
+    if let Some(SpiError::Device { what, source, .. }) = e.downcast_ref::<SpiError>() {
+        return *what == "not a spidev device" || missing(source);
+    }
+    false
+}

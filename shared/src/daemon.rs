@@ -28,10 +28,49 @@ impl DaemonArgs {
     }
 }
 
+/// The exit status of a daemon stopped by its configuration (a bad key, a
+/// missing file, an output this machine does not have): `EX_CONFIG` of
+/// sysexits.h. The units say `RestartPreventExitStatus=78`, so systemd does
+/// not restart into the same error every second.
+pub const EXIT_CONFIG: i32 = 78;
+
+/// The exit status of any other fatal error.
+pub const EXIT_FAILURE: i32 = 1;
+
+/// The exit status for a daemon's fatal error `e`: [`EXIT_CONFIG`] when
+/// the configuration is at fault (a [`ConfigError`](crate::config::ConfigError)
+/// or a key file's [`KeyError`](crate::auth::KeyError) anywhere in its
+/// chain, or a cause that `is_config` says is one), else
+/// [`EXIT_FAILURE`].
+pub fn exit_status(
+    e: &anyhow::Error,
+    is_config: impl Fn(&(dyn std::error::Error + 'static)) -> bool,
+) -> i32 {
+    let config = e.chain().any(|c| {
+        c.is::<crate::config::ConfigError>() || c.is::<crate::auth::KeyError>() || is_config(c)
+    });
+    if config {
+        EXIT_CONFIG
+    } else {
+        EXIT_FAILURE
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use clap::Parser;
+
+    #[test]
+    fn configuration_errors_exit_78_others_1() {
+        let e = anyhow::Error::new(crate::config::ConfigError::invalid("ppm.channels", "bad"))
+            .context("starting");
+        assert_eq!(exit_status(&e, |_| false), EXIT_CONFIG);
+        let e = anyhow::anyhow!("a socket failed");
+        assert_eq!(exit_status(&e, |_| false), EXIT_FAILURE);
+        let io = anyhow::Error::new(std::io::Error::other("no such line")).context("output `x`");
+        assert_eq!(exit_status(&io, |c| c.is::<std::io::Error>()), EXIT_CONFIG);
+    }
 
     #[derive(Parser)]
     struct Daemon {

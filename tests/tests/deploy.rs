@@ -97,6 +97,9 @@ fn units_share_the_root_and_read_the_config() {
             ("User", "ppm"),
             ("Restart", "always"),
             ("RestartSec", "1"),
+            // The daemons' exit status for a configuration error
+            // (ppm_shared::daemon::EXIT_CONFIG): no restart into it.
+            ("RestartPreventExitStatus", "78"),
             ("RuntimeDirectoryPreserve", "yes"),
             ("PrivateTmp", "yes"),
             ("WantedBy", "multi-user.target"),

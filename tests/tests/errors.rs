@@ -5,11 +5,18 @@ use ppm_tests::{Sandbox, GENTLE_RT};
 use std::time::Duration;
 
 /// Runs `binary` with `args` to its refusal and returns its one error line,
-/// without the log prefix (`[time ERROR target] `).
-fn refusal(sb: &Sandbox, binary: &str, args: &[&str], log: &str) -> String {
+/// without the log prefix (`[time ERROR target] `); its exit status must be
+/// `code` (78, EX_CONFIG, for what the configuration can fix).
+fn refusal(sb: &Sandbox, binary: &str, args: &[&str], log: &str, code: i32) -> String {
     let mut p = sb.spawn(binary, args, log);
     let status = p.wait(Duration::from_secs(30));
     assert!(!status.success(), "{binary} {args:?} started");
+    assert_eq!(
+        status.code(),
+        Some(code),
+        "{binary} {args:?}: {}",
+        p.log_text()
+    );
     let text = p.log_text();
     let errors: Vec<&str> = text
         .lines()
@@ -56,12 +63,13 @@ fn a_key_file_that_cannot_be_read_says_why_once() {
             "udp-ingress",
             &["--config", cfg, "--auth-key", key],
             &format!("key{i}"),
+            78,
         );
         assert_eq!(got, format!("cannot read auth key file {key}: {why}"));
     }
     // The config file's own refusal, for comparison: also once.
     let fifo = fifo.to_str().unwrap();
-    let got = refusal(&sb, "udp-ingress", &["--config", fifo], "config");
+    let got = refusal(&sb, "udp-ingress", &["--config", fifo], "config", 78);
     assert_eq!(
         got,
         format!("cannot read config file {fifo}: it is a FIFO (named pipe), not a regular file")
@@ -84,6 +92,7 @@ fn a_missing_spi_device_says_why_once() {
             &format!("spi:{dev}"),
         ],
         "ppmd",
+        78,
     );
     assert_eq!(
         got,
@@ -109,6 +118,7 @@ fn a_second_ppmd_on_one_name_is_refused_and_a_dead_ones_name_is_free() {
         "ppmd",
         &["--config", cfg.to_str().unwrap(), "--output", &b],
         "second",
+        1,
     );
     assert_eq!(
         got,
@@ -131,4 +141,54 @@ fn a_second_ppmd_on_one_name_is_refused_and_a_dead_ones_name_is_free() {
         third.pid().to_string()
     );
     third.kill();
+}
+
+/// An output this machine does not have stops ppmd with 78 (EX_CONFIG),
+/// which the unit does not restart on, naming what the machine has.
+#[test]
+fn a_missing_output_is_a_configuration_error() {
+    let sb = Sandbox::new("errors-missing");
+    let cfg = sb.config(GENTLE_RT);
+    let cfg = cfg.to_str().unwrap();
+    let got = refusal(
+        &sb,
+        "ppmd",
+        &["--config", cfg, "--output", "gpio:pinctrl-nosuch:GPIO18"],
+        "gpio",
+        78,
+    );
+    assert!(got.contains("pinctrl-nosuch"), "{got}");
+    let sbus = sb.config(&format!("{GENTLE_RT}[ppm]\nprotocol = \"sbus\"\n"));
+    let tty = sb.dir.join("ttyNONE");
+    let got = refusal(
+        &sb,
+        "ppmd",
+        &[
+            "--config",
+            sbus.to_str().unwrap(),
+            "--output",
+            &format!("serial:{}", tty.display()),
+        ],
+        "serial",
+        78,
+    );
+    assert!(
+        got.contains(&format!("opening {}: No such file", tty.display())),
+        "{got}"
+    );
+    // A file that is not a tty.
+    let file = sb.write_file("not-a-tty", "", 0o600);
+    let got = refusal(
+        &sb,
+        "ppmd",
+        &[
+            "--config",
+            sbus.to_str().unwrap(),
+            "--output",
+            &format!("serial:{}", file.display()),
+        ],
+        "notty",
+        78,
+    );
+    assert!(got.contains("is not a tty"), "{got}");
 }

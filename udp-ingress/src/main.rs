@@ -22,7 +22,7 @@ fn main() {
     cli.daemon.init_logging();
     if let Err(e) = run(cli) {
         log::error!("{e:#}");
-        std::process::exit(1);
+        std::process::exit(ppm_shared::daemon::exit_status(&e, |_| false));
     }
 }
 
