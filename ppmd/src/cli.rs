@@ -21,7 +21,8 @@ pub struct Cli {
     pub name: Option<String>,
     /// `sim` (trace in ppm-NAME.trace), `sim:PATH`, `gpio:CHIP:LINE` (CHIP:
     /// a path, name or label such as pinctrl-bcm2711; LINE: an offset or a
-    /// name such as GPIO18), or `spi:DEVICE` (a spidev device such as
+    /// name such as GPIO18), `gpio:LINE` (the chip that has a line of
+    /// that name), `spi:DEVICE` (a spidev device such as
     /// /dev/spidev0.0, MOSI as the line; runs alone), or `serial:DEVICE`
     /// (a UART such as /dev/ttyAMA0, for `ppm.protocol = "sbus"`). Overrides
     /// `ppmd.output`. Repeat as `--output NAME=SPEC` to drive several

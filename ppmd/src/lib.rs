@@ -79,6 +79,9 @@ pub fn output_missing(e: &(dyn std::error::Error + 'static)) -> bool {
                 | GpioError::AmbiguousChip { .. }
                 | GpioError::NotAChip { .. }
                 | GpioError::NoSuchLine { .. }
+                | GpioError::NoLineAnywhere { .. }
+                | GpioError::AmbiguousLine { .. }
+                | GpioError::OffsetWithoutChip { .. }
         );
     }
     let missing = |io: &std::io::Error| io.kind() == std::io::ErrorKind::NotFound;

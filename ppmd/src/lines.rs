@@ -115,8 +115,19 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                 each[i] = Some(OpenLine::Whole(Box::new(out)));
             }
             OutputSpec::Gpio { chip, line } => {
+                let spec = if chip.is_empty() {
+                    format!("gpio:{line}")
+                } else {
+                    format!("gpio:{chip}:{line}")
+                };
                 let (_, summary, _) = crate::line::gpio::resolve_line(&chip, &line)
-                    .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
+                    .with_context(|| format!("output `{}`: {spec}", cfg.name))?;
+                // `gpio:LINE`: the chip that has it, by its path.
+                let chip = if chip.is_empty() {
+                    summary.path.to_string_lossy().into_owned()
+                } else {
+                    chip
+                };
                 match chips.iter_mut().find(|c| c.0 == summary.path) {
                     Some(c) => c.2.push((i, line)),
                     None => chips.push((summary.path, chip, vec![(i, line)])),

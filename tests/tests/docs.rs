@@ -410,9 +410,18 @@ fn the_synopsis_lists_every_option_of_every_program() {
         .output()
         .unwrap();
     let help = String::from_utf8_lossy(&help.stdout);
-    for kind in ["sim", "gpio:CHIP:LINE", "spi:DEVICE"] {
+    for (kind, synopsis) in [
+        ("sim", "sim"),
+        ("gpio:CHIP:LINE", "gpio:[CHIP:]LINE"),
+        ("gpio:LINE", "gpio:[CHIP:]LINE"),
+        ("spi:DEVICE", "spi:DEVICE"),
+        ("serial:DEVICE", "serial:DEVICE"),
+    ] {
         assert!(help.contains(kind), "ppmd --help lacks {kind}");
-        assert!(synopses[0].1.contains(kind), "ppmd's synopsis lacks {kind}");
+        assert!(
+            synopses[0].1.contains(synopsis),
+            "ppmd's synopsis lacks {synopsis}"
+        );
     }
 }
 

@@ -502,6 +502,11 @@ fn check_follow(out: &Path, gpio18: u32, flavor: &str) {
     let log = read(out, "follow_ppmd.log");
     assert_eq!(read(out, "follow_ppmd_exit.txt").trim(), "0", "{log}");
     assert!(log.contains("follow timing, sync 5000..18000 us"), "{log}");
+    // Given as gpio:GPIO18, found on the gpio-sim chip that has it.
+    assert!(
+        log.contains("gpio GPIO18 (offset 1) on /dev/gpiochip") && log.contains(", ppm, 4 lines)"),
+        "{log}"
+    );
     let sets = sets(
         &read(out, "follow_trace.txt"),
         &read(out, "follow_trace_raw.txt"),

@@ -135,11 +135,12 @@ kill -TERM "$ing_a" "$ing_b"
 wait "$ing_a" "$ing_b" || true
 
 # Follow timing on GPIO18 (released by the first ppmd): frames start when
-# the commands come.
+# the commands come. The line is named without its chip (gpio:LINE): ppmd
+# finds the chip that has it.
 start_gpio_trace gpio_value
 udp-ingress --config /tmp/ppm.toml --listen 127.0.0.1:5008 2> /out/follow_ingress.log &
 fing=$!
-ppmd --config /tmp/ppm.toml --timing follow --output "gpio:$chip:GPIO18" \
+ppmd --config /tmp/ppm.toml --timing follow --output gpio:GPIO18 \
     --frame-log /out/follow_frames.jsonl 2> /out/follow_ppmd.log &
 fppmd=$!
 sleep 1

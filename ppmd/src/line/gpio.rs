@@ -368,6 +368,30 @@ pub enum GpioError {
         /// The names of its named lines.
         names: Vec<String>,
     },
+    /// No chip has a line of this name (`gpio:LINE`, no CHIP).
+    #[error("{}", no_line_anywhere(.line, .chips))]
+    NoLineAnywhere {
+        /// LINE as given.
+        line: String,
+        /// Every chip found, with the names of its lines.
+        chips: Vec<(ChipSummary, Vec<String>)>,
+    },
+    /// Several chips have a line of this name (`gpio:LINE`, no CHIP).
+    #[error("GPIO line `{line}` is on {} chips; name the chip too, gpio:CHIP:{line}:\n{}", .chips.len(), chip_list(.chips))]
+    AmbiguousLine {
+        /// LINE as given.
+        line: String,
+        /// The chips that have it.
+        chips: Vec<ChipSummary>,
+    },
+    /// `gpio:N`: an offset means nothing without its chip.
+    #[error("`gpio:{line}`: a line offset needs its chip (gpio:CHIP:{line}); without a chip, name the line (gpio:GPIO18). GPIO chips here:\n{}", chip_list(.available))]
+    OffsetWithoutChip {
+        /// LINE as given.
+        line: String,
+        /// Every chip found on the system.
+        available: Vec<ChipSummary>,
+    },
     /// Someone else holds the line.
     #[error("{}", busy(.chip, .line, .consumer))]
     Busy {
@@ -419,6 +443,107 @@ fn no_such_chip(chip: &str, available: &[ChipSummary]) -> String {
             chip_list(available)
         )
     }
+}
+
+fn no_line_anywhere(line: &str, chips: &[(ChipSummary, Vec<String>)]) -> String {
+    if chips.is_empty() {
+        return format!(
+            "no GPIO line `{line}`: no GPIO chips found (no /dev/gpiochip*): this board has no GPIO driver loaded or the kernel lacks the GPIO character device (needs CONFIG_GPIO_CDEV); set ppmd.output to this board's line (gpio:CHIP:LINE), or sim without GPIO hardware"
+        );
+    }
+    let each: Vec<String> = chips
+        .iter()
+        .map(|(c, names)| {
+            let more = if names.len() > NAMES_SHOWN {
+                ", ..."
+            } else {
+                ""
+            };
+            let shown: Vec<&str> = names.iter().take(NAMES_SHOWN).map(|s| s.as_str()).collect();
+            if names.is_empty() {
+                format!("  {c}: lines without names")
+            } else {
+                format!("  {c}: {}{more}", shown.join(", "))
+            }
+        })
+        .collect();
+    format!(
+        "no GPIO chip here has a line named `{line}` (a Raspberry Pi 4 or 5 has GPIO18 on pinctrl-bcm2711 or pinctrl-rp1): set ppmd.output to this board's line, gpio:CHIP:LINE or gpio:LINE with one of these names (`gpioinfo` lists them all):\n{}",
+        each.join("\n")
+    )
+}
+
+/// The chip that has the line named `line`, for `gpio:LINE` without a
+/// chip: the one chip among `chips` (each with its lines' infos) with a
+/// line of exactly that name, or else the one with it in another case.
+pub fn chip_with_line<'a>(
+    line: &str,
+    chips: &'a [(ChipSummary, Vec<LineInfo>)],
+) -> Result<&'a ChipSummary, GpioError> {
+    if let LineSpec::Offset(_) = LineSpec::parse(line) {
+        return Err(GpioError::OffsetWithoutChip {
+            line: line.into(),
+            available: chips.iter().map(|c| c.0.clone()).collect(),
+        });
+    }
+    let with = |exact: bool| -> Vec<&'a ChipSummary> {
+        chips
+            .iter()
+            .filter(|(_, lines)| {
+                lines.iter().any(|l| {
+                    if exact {
+                        l.name == line
+                    } else {
+                        l.name.eq_ignore_ascii_case(line)
+                    }
+                })
+            })
+            .map(|(c, _)| c)
+            .collect()
+    };
+    let mut found = with(true);
+    if found.is_empty() {
+        found = with(false);
+    }
+    match found.as_slice() {
+        [one] => Ok(one),
+        [] => Err(GpioError::NoLineAnywhere {
+            line: line.into(),
+            chips: chips
+                .iter()
+                .map(|(c, lines)| {
+                    let names = lines
+                        .iter()
+                        .filter(|l| !l.name.is_empty())
+                        .map(|l| l.name.clone())
+                        .collect();
+                    (c.clone(), names)
+                })
+                .collect(),
+        }),
+        many => Err(GpioError::AmbiguousLine {
+            line: line.into(),
+            chips: many.iter().map(|c| (*c).clone()).collect(),
+        }),
+    }
+}
+
+/// The path of the chip that has the line named `line` on this system (see
+/// [`chip_with_line`]); chips that cannot be read are passed over.
+pub fn find_chip_with_line(line: &str) -> Result<PathBuf, GpioError> {
+    let chips: Vec<(ChipSummary, Vec<LineInfo>)> = list_chips()
+        .into_iter()
+        .filter(|c| c.unreadable.is_none())
+        .filter_map(|c| {
+            let chip = Chip::from_path(&c.path).ok()?;
+            let lines = chip
+                .line_info_iter()
+                .and_then(|it| it.collect::<Result<Vec<_>, _>>())
+                .ok()?;
+            Some((c, lines))
+        })
+        .collect();
+    Ok(chip_with_line(line, &chips)?.path.clone())
 }
 
 fn no_such_line(chip: &str, line: &str, num_lines: u32, names: &[String]) -> String {
@@ -685,10 +810,18 @@ pub fn open_bank(chip: &str, lines: &[(String, Level)]) -> Result<GpioBank, Gpio
     })
 }
 
-/// Finds the chip CHIP and its line LINE (as [`open`] does), for tools that
-/// request the line themselves; returns the open chip, its summary and the
-/// line's info.
+/// Finds the chip CHIP and its line LINE (as [`open`] does; an empty CHIP:
+/// the chip that has a line named LINE, [`find_chip_with_line`]), for
+/// tools that request the line themselves; returns the open chip, its
+/// summary and the line's info.
 pub fn resolve_line(chip: &str, line: &str) -> Result<(Chip, ChipSummary, LineInfo), GpioError> {
+    let found;
+    let chip = if chip.is_empty() {
+        found = find_chip_with_line(line)?;
+        found.to_str().unwrap_or_default()
+    } else {
+        chip
+    };
     let (handle, summary, lines) = chip_lines(chip)?;
     let info = find_line(&summary, line, &lines)?.clone();
     Ok((handle, summary, info))

@@ -368,7 +368,8 @@ impl Default for IpcSection {
 pub enum OutputSpec {
     /// The simulated line: every edge is written to a trace file.
     Sim { path: Option<PathBuf> },
-    /// A GPIO line through the GPIO character device.
+    /// A GPIO line through the GPIO character device; an empty `chip`
+    /// (`gpio:LINE`): the chip that has a line named `line`.
     Gpio { chip: String, line: String },
     /// A spidev device: each frame is one SPI transfer on MOSI.
     Spi { device: PathBuf },
@@ -405,8 +406,13 @@ impl std::str::FromStr for OutputSpec {
                         line: line.into(),
                     })
                 }
+                // gpio:LINE: the chip that has a line of this name.
+                None if !rest.is_empty() => Ok(OutputSpec::Gpio {
+                    chip: String::new(),
+                    line: rest.into(),
+                }),
                 _ => Err(format!(
-                    "`{s}`: a gpio output is gpio:CHIP:LINE, e.g. gpio:gpiochip0:18"
+                    "`{s}`: a gpio output is gpio:CHIP:LINE (e.g. gpio:gpiochip0:18) or gpio:LINE (e.g. gpio:GPIO18, on whichever chip has a line of that name)"
                 )),
             },
             _ => Err(format!(

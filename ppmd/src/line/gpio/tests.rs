@@ -284,3 +284,50 @@ fn gpio_level_high_is_active() {
     assert_eq!(value_of(Level::High), Value::Active);
     assert_eq!(value_of(Level::Low), Value::Inactive);
 }
+
+/// `gpio:GPIO18`: the chip that has the line, on a Pi 4 (pinctrl-bcm2711,
+/// gpiochip0) and on a Pi 5 whose RP1 chip moved between kernels.
+#[test]
+fn a_line_named_without_its_chip_is_found_on_the_chip_that_has_it() {
+    let exp: Vec<LineInfo> = (0..8).map(|o| line(o, &format!("EXP{o}"))).collect();
+    let pi4 = vec![
+        (chip(0, "pinctrl-bcm2711", 58), bcm_lines()),
+        (chip(1, "raspberrypi-exp-gpio", 8), exp.clone()),
+    ];
+    assert_eq!(chip_with_line("GPIO18", &pi4).unwrap().name, "gpiochip0");
+    assert_eq!(chip_with_line("gpio18", &pi4).unwrap().name, "gpiochip0");
+    let rp1: Vec<LineInfo> = (0..54).map(|o| line(o, &format!("GPIO{o}"))).collect();
+    let pi5 = vec![
+        (
+            chip(0, "gpio-brcmstb@107d508500", 32),
+            vec![line(0, "RP1_SDA")],
+        ),
+        (chip(4, "pinctrl-rp1", 54), rp1),
+    ];
+    assert_eq!(chip_with_line("GPIO18", &pi5).unwrap().name, "gpiochip4");
+    // Elsewhere: none has it, and the message lists what they have.
+    let other = vec![(chip(0, "pl061", 8), exp)];
+    let e = chip_with_line("GPIO18", &other).unwrap_err();
+    assert!(matches!(e, GpioError::NoLineAnywhere { .. }), "{e}");
+    let m = e.to_string();
+    assert!(
+        m.contains("`GPIO18`")
+            && m.contains("pl061")
+            && m.contains("EXP0")
+            && m.contains("ppmd.output"),
+        "{m}"
+    );
+    let m = chip_with_line("GPIO18", &[]).unwrap_err().to_string();
+    assert!(m.contains("no GPIO chips found"), "{m}");
+    // Two chips with it: name the chip.
+    let two = vec![
+        (chip(0, "a", 58), bcm_lines()),
+        (chip(1, "b", 58), bcm_lines()),
+    ];
+    let e = chip_with_line("GPIO18", &two).unwrap_err();
+    assert!(matches!(e, GpioError::AmbiguousLine { .. }), "{e}");
+    assert!(e.to_string().contains("gpio:CHIP:GPIO18"), "{e}");
+    // An offset means nothing without its chip.
+    let e = chip_with_line("18", &pi4).unwrap_err();
+    assert!(matches!(e, GpioError::OffsetWithoutChip { .. }), "{e}");
+}

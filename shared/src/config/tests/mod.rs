@@ -403,7 +403,15 @@ fn output_specs() {
             device: "/dev/spidev0.0".into()
         })
     );
-    for bad in ["", "sim:", "gpio:", "gpio:chip", "gpio::3", "pwm:1", "spi:"] {
+    // gpio:LINE: the chip that has a line of this name.
+    assert_eq!(
+        "gpio:GPIO18".parse(),
+        Ok(OutputSpec::Gpio {
+            chip: String::new(),
+            line: "GPIO18".into()
+        })
+    );
+    for bad in ["", "sim:", "gpio:", "gpio::3", "pwm:1", "spi:"] {
         assert!(bad.parse::<OutputSpec>().is_err(), "{bad}");
     }
 }
