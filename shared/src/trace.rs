@@ -87,6 +87,9 @@ pub struct Trace {
     pub receiver: Option<ReceiverChoice>,
     /// From a `# protocol NAME` comment (PPM when absent).
     pub protocol: Protocol,
+    /// From a `# channels NAME,NAME,...` comment: how many channels a
+    /// whole frame has.
+    pub channels: Option<usize>,
 }
 
 impl Trace {
@@ -105,6 +108,9 @@ impl Trace {
             }
             if text.trim() == "# protocol sbus" {
                 trace.protocol = Protocol::Sbus;
+            }
+            if let Some(v) = text.trim().strip_prefix("# channels ") {
+                trace.channels = Some(v.trim().split(',').count());
             }
             match parse_line(&text) {
                 None => {}

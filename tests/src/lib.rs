@@ -381,17 +381,20 @@ pub fn channel_of_frames(trace: &ppm_shared::trace::Trace, i: usize) -> Vec<u64>
         .collect()
 }
 
-/// The frames a sim trace carries whole, decoded by scheduled time. ppmd
-/// runs these tests without real-time priority, so on a loaded machine a
-/// frame is now and then aborted at a late edge: it shows as a short frame
-/// (the channels before the abort, exact), left out here.
+/// The frames a sim trace carries whole (as many channels as its header
+/// names), decoded by scheduled time. ppmd runs these tests without
+/// real-time priority, so on a loaded machine a frame is now and then
+/// aborted at a late edge: it shows as a short frame (the channels before
+/// the abort, exact), left out here.
 pub fn whole_frames(trace: &ppm_shared::trace::Trace) -> Vec<ppm_shared::decode::DecodedFrame> {
     let frames = trace.decode(false);
-    let n = frames
-        .iter()
-        .map(|f| f.channels_ns.len())
-        .max()
-        .unwrap_or(0);
+    let n = trace.channels.unwrap_or_else(|| {
+        frames
+            .iter()
+            .map(|f| f.channels_ns.len())
+            .max()
+            .unwrap_or(0)
+    });
     frames
         .into_iter()
         .filter(|f| f.channels_ns.len() == n)
