@@ -25,7 +25,9 @@ use std::sync::OnceLock;
 
 mod vm_sbus;
 mod vm_spi;
+mod vm_trace;
 use vm_spi::{check_spi, spi_frame, spi_transfers, trace_sets, SpiLines};
+use vm_trace::{paired_events, sets};
 
 const COMMAND_US: [u64; 8] = [1000, 1200, 1700, 2000, 1500, 1500, 1500, 1500];
 
@@ -118,49 +120,6 @@ fn run_vm(flavor: &str) -> PathBuf {
 
 fn read(dir: &Path, file: &str) -> String {
     std::fs::read_to_string(dir.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"))
-}
-
-/// `(time_ns, level)` of every value set on global GPIO `gpio`. ftrace's
-/// text output (`TASK-PID [CPU] FLAGS SECONDS.MICROS: gpio_value: N set V`)
-/// has the fields with microsecond times; its raw output (`PID CPU NS type:
-/// ID`) has the same events in the same order with nanosecond times. The
-/// two are paired line by line, and each pair must agree to the microsecond.
-fn sets(text: &str, raw: &str, gpio: u32) -> Vec<(u64, u8)> {
-    let (text, raw) = paired_events(text, raw);
-    let needle = format!("gpio_value: {gpio} set ");
-    text.iter()
-        .zip(&raw)
-        .filter_map(|(t, r)| {
-            let (head, value) = t.split_once(&needle)?;
-            let stamp = head.trim_end().strip_suffix(':')?.rsplit(' ').next()?;
-            let (s, us) = stamp.split_once('.')?;
-            let us = s.parse::<u64>().ok()? * 1_000_000 + us.parse::<u64>().ok()?;
-            let ns: u64 = r.split_whitespace().nth(2)?.parse().ok()?;
-            // The text rounds to the microsecond.
-            assert!(
-                ns.abs_diff(us * 1_000) <= 500,
-                "raw `{r}` does not pair with `{t}`"
-            );
-            Some((ns, value.trim().parse().ok()?))
-        })
-        .collect()
-}
-
-/// The event lines of a trace's text and raw renderings, which list the
-/// same events in the same order.
-fn paired_events<'a>(text: &'a str, raw: &'a str) -> (Vec<&'a str>, Vec<&'a str>) {
-    let events = |s: &'a str| -> Vec<&'a str> {
-        s.lines()
-            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-            .collect()
-    };
-    let (text, raw) = (events(text), events(raw));
-    assert_eq!(
-        text.len(),
-        raw.len(),
-        "the text and raw traces list different events"
-    );
-    (text, raw)
 }
 
 /// An independent PPM reader: rising-edge periods; 4..19 ms is a sync,
