@@ -459,3 +459,47 @@ pub fn unit_directives(unit: &str) -> Vec<(String, String)> {
         })
         .collect()
 }
+
+/// Every program the workspace builds, in the order the docs list them
+/// (and the package ships them).
+pub const PROGRAMS: [&str; 9] = [
+    "ppmd",
+    "udp-ingress",
+    "ppm-send",
+    "ppm-status",
+    "ppm-watch",
+    "jitter",
+    "timing-bench",
+    "ppm-bench",
+    "ppm-interfere",
+];
+
+/// Runs `cmd` and returns its standard output; the test fails, with both
+/// outputs, unless it succeeds.
+pub fn run_ok(cmd: &mut Command) -> String {
+    let out = cmd.output().unwrap_or_else(|e| panic!("{cmd:?}: {e}"));
+    assert!(
+        out.status.success(),
+        "{cmd:?} failed:\n{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Builds the arm64 Debian package with `tools/package arm64`; returns
+/// the .deb (target/debian/ppm_VERSION-1_arm64.deb).
+pub fn arm64_package() -> PathBuf {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    run_ok(
+        Command::new(root.join("tools/package"))
+            .arg("arm64")
+            .current_dir(&root),
+    );
+    let deb = root.join(format!(
+        "target/debian/ppm_{}-1_arm64.deb",
+        env!("CARGO_PKG_VERSION")
+    ));
+    assert!(deb.exists(), "{}", deb.display());
+    deb
+}

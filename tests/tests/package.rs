@@ -6,51 +6,23 @@
 //! and the licenses. Needs cargo-deb (`tools/package` installs it) and
 //! Debian's dpkg-deb and aarch64 binutils.
 
+use ppm_tests::{arm64_package, run_ok, PROGRAMS};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 const ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
 
-/// Every program the package ships.
-const PROGRAMS: [&str; 9] = [
-    "ppmd",
-    "udp-ingress",
-    "ppm-send",
-    "ppm-status",
-    "ppm-watch",
-    "jitter",
-    "timing-bench",
-    "ppm-bench",
-    "ppm-interfere",
-];
-
-fn run(cmd: &mut Command) -> String {
-    let out = cmd.output().unwrap_or_else(|e| panic!("{cmd:?}: {e}"));
-    assert!(
-        out.status.success(),
-        "{cmd:?} failed:\n{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8(out.stdout).unwrap()
-}
-
 /// Builds the arm64 package (once) and unpacks it: its .deb, the unpacked
 /// tree and its control files.
 fn package() -> (PathBuf, PathBuf, PathBuf) {
     let root = Path::new(ROOT);
-    run(Command::new(root.join("tools/package"))
-        .arg("arm64")
-        .current_dir(root));
-    let version = env!("CARGO_PKG_VERSION");
-    let deb = root.join(format!("target/debian/ppm_{version}-1_arm64.deb"));
-    assert!(deb.exists(), "{}", deb.display());
+    let deb = arm64_package();
     let out = root.join("target/package/arm64");
     let _ = std::fs::remove_dir_all(&out);
     let (tree, control) = (out.join("tree"), out.join("control"));
     std::fs::create_dir_all(&out).unwrap();
-    run(Command::new("dpkg-deb").arg("-x").arg(&deb).arg(&tree));
-    run(Command::new("dpkg-deb").arg("-e").arg(&deb).arg(&control));
+    run_ok(Command::new("dpkg-deb").arg("-x").arg(&deb).arg(&tree));
+    run_ok(Command::new("dpkg-deb").arg("-e").arg(&deb).arg(&control));
     (deb, tree, control)
 }
 
@@ -58,7 +30,7 @@ fn package() -> (PathBuf, PathBuf, PathBuf) {
 fn the_arm64_package_holds_everything_a_pi_needs() {
     let (deb, tree, control) = package();
     let field = |name: &str| {
-        run(Command::new("dpkg-deb").arg("-f").arg(&deb).arg(name))
+        run_ok(Command::new("dpkg-deb").arg("-f").arg(&deb).arg(name))
             .trim()
             .to_string()
     };
@@ -70,9 +42,11 @@ fn the_arm64_package_holds_everything_a_pi_needs() {
     // package, by build id.
     for p in PROGRAMS {
         let bin = tree.join("usr/bin").join(p);
-        let sections = run(Command::new("aarch64-linux-gnu-readelf")
-            .arg("-S")
-            .arg(&bin));
+        let sections = run_ok(
+            Command::new("aarch64-linux-gnu-readelf")
+                .arg("-S")
+                .arg(&bin),
+        );
         assert!(
             sections.contains("AArch64") || sections.contains(".text"),
             "{p}"
@@ -84,7 +58,7 @@ fn the_arm64_package_holds_everything_a_pi_needs() {
         "ppm-dbgsym_{}-1_arm64.ddeb",
         env!("CARGO_PKG_VERSION")
     ));
-    let debug = run(Command::new("dpkg-deb").arg("-c").arg(&dbgsym));
+    let debug = run_ok(Command::new("dpkg-deb").arg("-c").arg(&dbgsym));
     assert!(
         debug.matches("/usr/lib/debug/.build-id/").count() >= PROGRAMS.len(),
         "{debug}"

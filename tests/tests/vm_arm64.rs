@@ -18,6 +18,7 @@
 
 use ppm_shared::frame::Level;
 use ppm_shared::receiver::{decode_as, Receiver};
+use ppm_tests::{arm64_package, run_ok};
 use std::collections::BTreeMap;
 use std::net::UdpSocket;
 use std::path::{Path, PathBuf};
@@ -47,31 +48,6 @@ fn workspace() -> PathBuf {
         .to_owned()
 }
 
-fn run(cmd: &mut Command) -> String {
-    let out = cmd.output().unwrap_or_else(|e| panic!("{cmd:?}: {e}"));
-    assert!(
-        out.status.success(),
-        "{cmd:?} failed:\n{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-/// The arm64 package, as `tools/package arm64` builds it.
-fn package() -> PathBuf {
-    let ws = workspace();
-    run(Command::new(ws.join("tools/package"))
-        .arg("arm64")
-        .current_dir(&ws));
-    let deb = ws.join(format!(
-        "target/debian/ppm_{}-1_arm64.deb",
-        env!("CARGO_PKG_VERSION")
-    ));
-    assert!(deb.exists(), "{}", deb.display());
-    deb
-}
-
 /// One boot at a time: each takes the machine's cores.
 static BOOT: Mutex<()> = Mutex::new(());
 
@@ -94,7 +70,7 @@ fn boot(flavor: &str) -> PathBuf {
         "tests/vm/arm64/prepare.sh failed (it names any host package to install):\n{}",
         String::from_utf8_lossy(&prepare.stderr)
     );
-    let deb = package();
+    let deb = arm64_package();
     let _ = std::fs::remove_dir_all(&share);
     std::fs::create_dir_all(&share).unwrap();
     std::fs::copy(ws.join("tests/vm/arm64/guest.sh"), share.join("guest.sh")).unwrap();
@@ -103,7 +79,7 @@ fn boot(flavor: &str) -> PathBuf {
     let version = env!("CARGO_PKG_VERSION");
     let tree = ws.join("target/package/arm64-next");
     let _ = std::fs::remove_dir_all(&tree);
-    run(Command::new("dpkg-deb").arg("-R").arg(&deb).arg(&tree));
+    run_ok(Command::new("dpkg-deb").arg("-R").arg(&deb).arg(&tree));
     let control = tree.join("DEBIAN/control");
     let text = std::fs::read_to_string(&control).unwrap();
     let old = format!("Version: {version}-1\n");
@@ -113,10 +89,12 @@ fn boot(flavor: &str) -> PathBuf {
         text.replace(&old, &format!("Version: {version}-2\n")),
     )
     .unwrap();
-    run(Command::new("dpkg-deb")
-        .args(["--root-owner-group", "-Zgzip", "-b"])
-        .arg(&tree)
-        .arg(share.join(format!("ppm_{version}-2_arm64.deb"))));
+    run_ok(
+        Command::new("dpkg-deb")
+            .args(["--root-owner-group", "-Zgzip", "-b"])
+            .arg(&tree)
+            .arg(share.join(format!("ppm_{version}-2_arm64.deb"))),
+    );
 
     let port = UdpSocket::bind("127.0.0.1:0")
         .unwrap()
