@@ -19,6 +19,8 @@
 #      stays and the services restart;
 #   6. `apt-get remove` stops the services; `apt-get purge` removes
 #      /etc/ppm and /var/log/ppm.
+# With a file `short` in the share it stops after 4: the steps after it do
+# not depend on the kernel, and the host runs them in one boot only.
 # Every check that fails here stops the script with "FAIL: ..." in
 # guest.log; what the host checks is in results.txt (KEY=VALUE lines).
 set -euo pipefail
@@ -134,6 +136,11 @@ restarted() { active ppmd.service && [ "$(main_pid ppmd.service)" != "$before" ]
 wait_for 60 restarted || fail "ppmd, stopped, was not restarted"
 result watchdog_restarts "$(($(systemctl show -p NRestarts --value ppmd.service) - restarts))"
 result watchdog_result "$(journalctl -u ppmd.service --no-pager -q -o cat | grep -c 'Watchdog timeout' || true)"
+
+if [ -e "$OUT/short" ]; then
+    step "done (short)"
+    exit 0
+fi
 
 step "an upgrade over an edited configuration"
 sed -i 's/^after_ms = 200$/after_ms = 250/' /etc/ppm/ppm.toml

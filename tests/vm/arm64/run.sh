@@ -6,6 +6,12 @@
 # vCPUs as a Pi 4 or 5 has), on Debian's standard (std) or PREEMPT_RT (rt)
 # arm64 kernel. The root disk is a copy-on-write overlay of the cached
 # image: every boot starts from the same system.
+# Guest time counts instructions (-icount shift=0: 1 ns each), so that
+# the host's other work cannot make the guest's ppmd late: a vCPU held up
+# on the host is held up in guest time too. With sleep=on an idle guest's
+# clock follows the host's, so that commands the host sends 20 ms apart
+# reach the guest about 20 ms apart. The four vCPUs then share one host
+# thread, taking turns: ppmd can still be held up while another vCPU runs.
 #   - SHARE is the guest's /mnt/out (virtio 9p): put guest.sh and what it
 #     needs there; the guest's test-runner unit runs it once the system is
 #     up, writes SHARE/guest.log and SHARE/status (its exit status), and
@@ -16,7 +22,7 @@
 # Exit status: the guest's; 124 on timeout, 125 when the guest wrote none.
 #
 # Environment: PPM_VM_CACHE (see prepare.sh), PPM_VM_TIMEOUT (wall-clock
-# limit in seconds, default 600).
+# limit in seconds, default 900).
 set -euo pipefail
 
 die() { echo "arm64/run.sh: error: $1" >&2; exit "${2:-2}"; }
@@ -43,10 +49,11 @@ trap 'rm -rf "$STAGE"' EXIT
 qemu-img create -q -f qcow2 -b "$IMAGE" -F raw "$STAGE/root.qcow2"
 rm -f "$SHARE/status" "$SHARE/console.log"
 
-TIMEOUT=${PPM_VM_TIMEOUT:-600}
+TIMEOUT=${PPM_VM_TIMEOUT:-900}
 # shellcheck disable=SC2054 # commas belong to qemu option values
 QEMU=(qemu-system-aarch64
     -M virt -cpu cortex-a72 -smp 4 -m 1024
+    -icount shift=0,sleep=on
     -name ppm-arm64,debug-threads=on
     -nographic -no-reboot
     -kernel "$VMLINUZ" -initrd "$INITRD"
@@ -64,28 +71,6 @@ log "booting $KREL ($FLAVOR), timeout ${TIMEOUT}s, console $SHARE/console.log"
 start=$SECONDS
 timeout -k 10 "$TIMEOUT" "${QEMU[@]}" </dev/null >"$STAGE/qemu.log" 2>&1 &
 vm=$!
-# ppmd runs on the guest's CPU 3 (the configuration's rt.cpu), spinning
-# before each edge: the host runs that vCPU's thread at real-time priority,
-# so that the host's other work, the other vCPUs included, holds it up
-# less. (QEMU's main loop at real-time priority too once hung a guest.)
-# Without it (not root, no chrt), the test still runs, with more frames cut
-# short where the guest's ppmd is held up.
-for _ in $(seq 50); do
-    qemu_pid=$(pgrep -P "$vm" -x qemu-system-aar || true)
-    tid=
-    if [ -n "$qemu_pid" ]; then
-        tid=$(grep -lx 'CPU 3/TCG' /proc/"$qemu_pid"/task/*/comm 2>/dev/null | cut -d/ -f5 | head -1 || true)
-    fi
-    if [ -n "$tid" ]; then
-        if chrt -f -p 1 "$tid" 2>/dev/null; then
-            log "vCPU 3 (thread $tid) runs SCHED_FIFO"
-        else
-            log "could not give vCPU 3 real-time priority"
-        fi
-        break
-    fi
-    sleep 0.1
-done
 set +e
 wait "$vm"
 qemu_rc=$?
