@@ -38,9 +38,9 @@ pub struct Cli {
     /// Overrides `ppmd.frame_log`.
     #[arg(long, value_name = "FILE")]
     pub frame_log: Option<PathBuf>,
-    /// When frames start: `grid` (one every `ppm.frame_us`) or `follow` (a
-    /// fresh command starts its frame as soon as the sync allows). Overrides
-    /// `ppm.timing`, for every output.
+    /// When frames start: `follow` (the default: a fresh command starts its
+    /// frame as soon as the sync allows) or `grid` (one every
+    /// `ppm.frame_us`). Overrides `ppm.timing`, for every output.
     #[arg(long, value_name = "grid|follow")]
     pub timing: Option<Timing>,
     /// Append an HdrHistogram interval log of edge error and write duration

@@ -379,7 +379,9 @@ fn two_outputs_on_a_bank_do_not_allocate() {
     let log_path =
         std::env::temp_dir().join(format!("ppmd-noalloc-{}-two.jsonl", std::process::id()));
     let (mut producer, mut log_writer) = ppmd::framelog::open(&log_path, u64::MAX).unwrap();
-    let grid = Config::default().validate().unwrap();
+    let mut grid_cfg = Config::default();
+    grid_cfg.ppm.timing = Timing::Grid;
+    let grid = grid_cfg.validate().unwrap();
     let mut follow_cfg = Config::default();
     follow_cfg.ppm.timing = Timing::Follow;
     let follow = follow_cfg.validate().unwrap();

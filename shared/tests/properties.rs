@@ -2,7 +2,7 @@
 //! reads back exactly what the encoder was given, and every invalid
 //! configuration is refused with a message naming its key.
 
-use ppm_shared::config::{ChannelOverride, Config, PpmSection};
+use ppm_shared::config::{ChannelOverride, Config, PpmSection, Timing};
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::{Channels, FrameModel, Level};
 use ppm_shared::protocol;
@@ -97,6 +97,9 @@ fn ppm_section() -> impl Strategy<Value = PpmSection> {
                     order,
                     channel,
                     receiver,
+                    // On a grid: the frame length is part of what is
+                    // checked.
+                    timing: Timing::Grid,
                     ..PpmSection::default()
                 })
             },

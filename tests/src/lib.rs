@@ -155,13 +155,21 @@ impl Sandbox {
         // on a loaded test machine a few-us guard cuts frames short often,
         // which the tests of the guard cover; elsewhere it would only make
         // frame counts vary with the load.
-        let extra = if extra.contains("late_edge_guard_us") {
-            extra.to_string()
-        } else if let Some(at) = extra.find("[ppm]\n") {
+        // Grid timing unless the test sets the timing: the tests that set
+        // none count frames on the grid (follow, the default, is tested
+        // where it is set).
+        let mut ppm_keys = String::new();
+        if !extra.contains("late_edge_guard_us") {
+            ppm_keys += "late_edge_guard_us = 20\n";
+        }
+        if !extra.contains("timing") {
+            ppm_keys += "timing = \"grid\"\n";
+        }
+        let extra = if let Some(at) = extra.find("[ppm]\n") {
             let (head, tail) = extra.split_at(at + "[ppm]\n".len());
-            format!("{head}late_edge_guard_us = 20\n{tail}")
+            format!("{head}{ppm_keys}{tail}")
         } else {
-            format!("{extra}\n[ppm]\nlate_edge_guard_us = 20\n")
+            format!("{extra}\n[ppm]\n{ppm_keys}")
         };
         let text = format!(
             "name = \"{}\"\n[ingress]\nlisten = \"127.0.0.1:{}\"\n{ingress}\n[ipc]\nroot = \"{}\"\n{rt}{extra}\n",
@@ -292,15 +300,17 @@ pub fn rejected_total(status: &StatusReply) -> u64 {
     status.datagrams.rejected.total()
 }
 
-/// Writes `ppm.toml` with two outputs, `<name>a` (the defaults, on the
-/// sandbox's port, line `sim:a.trace`, frame log `a.jsonl`) and `<name>b`
-/// (line `sim:b.trace`, on `port_b`), with `b_keys` added to b's entry
-/// (keys, then its `[outputs.*]` sections); returns the path and the names.
+/// Writes `ppm.toml` with two outputs in grid timing, `<name>a` (the
+/// defaults otherwise, on the sandbox's port, line `sim:a.trace`, frame
+/// log `a.jsonl`) and `<name>b` (line `sim:b.trace`, on `port_b`), with
+/// `b_keys` added to b's entry (keys, then its `[outputs.*]` sections);
+/// returns the path and the names.
 pub fn two_outputs(sb: &Sandbox, port_b: u16, b_keys: &str) -> (PathBuf, [String; 2]) {
     let (a, b) = (format!("{}a", sb.name), format!("{}b", sb.name));
     let path = sb.dir.join("ppm.toml");
     let text = format!(
-        "[ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n\n\
+        "[ppm]\ntiming = \"grid\"\n\
+         [ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n\n\
          [[outputs]]\nname = \"{a}\"\noutput = \"sim:a.trace\"\nframe_log = \"a.jsonl\"\n\n\
          [[outputs]]\nname = \"{b}\"\noutput = \"sim:b.trace\"\ningress.listen = \"127.0.0.1:{port_b}\"\n{b_keys}\n",
         sb.port,

@@ -82,7 +82,7 @@ fn docs_document_every_key_of_the_example() {
 
 #[test]
 fn docs_error_example_is_the_real_message() {
-    let err = Config::parse("[ppm]\nframe_us = 19000")
+    let err = Config::parse("[ppm]\ntiming = \"grid\"\nframe_us = 19000")
         .unwrap()
         .validate()
         .unwrap_err();

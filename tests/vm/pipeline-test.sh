@@ -63,12 +63,16 @@ base=$(sim_chip_base "$chip")
 echo "$chip $base" > /out/chip.txt
 uname -v > /out/uname.txt
 
+# Grid timing where a run sets none: these runs count frames on the grid
+# (follow, the default, runs with --timing follow below).
 cat > /tmp/ppm.toml <<CONF
 name = "vm"
 [ingress]
 listen = "127.0.0.1:5005"
 [ipc]
 root = "/tmp/ppm-ipc"
+[ppm]
+timing = "grid"
 CONF
 
 # Error paths (each must fail, with its message in the log).
@@ -102,6 +106,8 @@ wait "$ingress" || true
 cat > /tmp/two.toml <<CONF
 [ipc]
 root = "/tmp/ppm-ipc"
+[ppm]
+timing = "grid"
 [[outputs]]
 name = "two-a"
 output = "gpio:$chip:GPIO19"
@@ -202,6 +208,8 @@ name = "vm-spi"
 listen = "127.0.0.1:5009"
 [ipc]
 root = "/tmp/ppm-ipc"
+[ppm]
+timing = "grid"
 [ppmd]
 spi_hz = $spi_hz
 CONF

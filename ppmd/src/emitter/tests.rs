@@ -307,8 +307,9 @@ fn run_logged(
     kit.stats
 }
 
-fn default_model() -> FrameModel {
-    Config::default().validate().unwrap()
+/// The defaults, on a grid (the default timing is follow).
+fn grid_model() -> FrameModel {
+    timed_model(false, "")
 }
 
 const CMD: &str = "[1100, 1200, 1300, 1400]";
@@ -323,7 +324,7 @@ fn run_once(
     until_ms: u64,
 ) -> (Sim, Stats) {
     let sim = Sim::new();
-    let model = default_model();
+    let model = grid_model();
     let mut src = Feed::new(&sim, &model, &[(START_NS, CMD)]);
     let stats = run_one(
         &sim,

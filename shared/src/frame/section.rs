@@ -49,9 +49,9 @@ pub struct PpmSection {
     /// `"ardupilot"`. Settings it would misread are refused at start. SBUS
     /// values are encoded for it (EdgeTX's scaling under `"any"`).
     pub receiver: ReceiverChoice,
-    /// When frames start: `"grid"` (default: every `frame_us`, whenever
-    /// commands come) or `"follow"` (a fresh command starts its frame as soon
-    /// as the previous frame's sync allows; see [`Timing`]).
+    /// When frames start: `"follow"` (default: a fresh command starts its
+    /// frame as soon as the previous frame's sync allows) or `"grid"` (every
+    /// `frame_us`, whenever commands come); see [`Timing`].
     pub timing: Timing,
     /// `follow`: the shortest sync gap left before a frame, in microseconds,
     /// at least 4500 (EdgeTX's 4000 us plus a margin; 3200 for Betaflight or
@@ -88,7 +88,7 @@ impl Default for PpmSection {
             max_us: 2_000.0,
             channel: BTreeMap::new(),
             receiver: ReceiverChoice::Any,
-            timing: Timing::Grid,
+            timing: Timing::Follow,
             follow_sync_min_us: None,
             follow_sync_max_us: None,
             late_edge_guard_us: LATE_EDGE_GUARD_US,

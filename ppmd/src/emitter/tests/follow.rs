@@ -138,7 +138,7 @@ fn a_broken_wake_fd_is_counted_and_the_output_polls() {
 #[test]
 fn a_follow_output_and_a_grid_output_share_the_loop() {
     let sim = Sim::new();
-    let grid = default_model();
+    let grid = grid_model();
     let follow = follow_model("channels = 6\norder = 'TAER'");
     let mut src_f = Feed::paced(&sim, &follow, 20, 23);
     let made = src_f.made();

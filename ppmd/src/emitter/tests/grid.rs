@@ -53,7 +53,7 @@ fn frames_carry_the_command_then_fall_silent() {
 /// flight controllers drop it; no receiver reads a value not commanded.
 #[test]
 fn a_timed_edge_found_late_is_not_written_and_its_frame_ends_there() {
-    let model = default_model();
+    let model = grid_model();
     let (clean, _) = stalled_run(&model, None, 800);
     // The lead-in pulse's two edges, then 18 per frame.
     let frame2 = 2 + 18;
@@ -93,10 +93,7 @@ fn a_timed_edge_found_late_is_not_written_and_its_frame_ends_there() {
 /// is a sync).
 #[test]
 fn idle_high_a_pulse_held_up_ends_a_sync_after_the_last_timed_edge() {
-    let model = Config::parse("[ppm]\nidle_level = 'high'")
-        .unwrap()
-        .validate()
-        .unwrap();
+    let model = timed_model(false, "idle_level = 'high'");
     let (clean, _) = stalled_run(&model, None, 800);
     let frame2 = 2 + 18;
     // Pulse 2 of frame 2: its start (falling), then its end (rising).
@@ -147,7 +144,7 @@ fn read_cut_after_its_first_channel(edges: &[TraceEdge], cut: u64) {
 /// next one gets a lead-in pulse.
 #[test]
 fn a_whole_frame_output_starts_no_frame_past_the_longest_sync() {
-    let model = default_model();
+    let model = grid_model();
     let run = |stall: Option<(u64, u64)>| {
         let sim = Sim::new();
         if let Some((at, ns)) = stall {
@@ -230,7 +227,7 @@ fn whole_frame_outputs_get_each_frame_in_one_call() {
 #[test]
 fn a_silent_line_reports_its_margin() {
     let sim = Sim::new();
-    let model = default_model();
+    let model = grid_model();
     let mut src = Feed::new(&sim, &model, &[]);
     let mut out = Recorder::default();
     let cfg = Settings {
@@ -260,7 +257,7 @@ fn the_frame_after_skipped_ones_is_read_too() {
         stall: Some((stall_after, 50 * MS, sim.clone())),
         ..Recorder::default()
     };
-    let model = default_model();
+    let model = grid_model();
     let mut src = Feed::new(&sim, &model, &[(START_NS, CMD)]);
     let stats = run_one(
         &sim,
@@ -305,7 +302,7 @@ fn the_frame_after_skipped_ones_is_read_too() {
 #[test]
 fn a_frame_decided_late_moves_and_the_next_returns_to_the_grid() {
     let sim = Sim::new();
-    let model = default_model();
+    let model = grid_model();
     let mut src = Feed::new(&sim, &model, &[(START_NS, CMD)]);
     let mut out = Recorder::default();
     // Frame 2 is decided at s0 + 2 frames - DECIDE_NS; a 3 ms stall just
@@ -378,7 +375,7 @@ fn hold_repeats_the_last_command() {
 fn the_automatic_margin_covers_the_wake_up_lateness() {
     let sim = Sim::new();
     sim.set_wake_late_ns(40_000);
-    let model = default_model();
+    let model = grid_model();
     let mut src = Fresh::new(&sim, &model, CMD);
     let mut out = Recorder::default();
     let cfg = Settings {
@@ -404,10 +401,7 @@ fn the_automatic_margin_covers_the_wake_up_lateness() {
     // With a fixed margin below the lateness, every edge after a sleep
     // is late by the difference: within the guard (20 us here), written
     // so.
-    let guard_20 = Config::parse("[ppm]\nlate_edge_guard_us = 20.0")
-        .unwrap()
-        .validate()
-        .unwrap();
+    let guard_20 = timed_model(false, "late_edge_guard_us = 20.0");
     let sim = Sim::new();
     sim.set_wake_late_ns(40_000);
     let mut src = Fresh::new(&sim, &guard_20, CMD);
@@ -461,7 +455,7 @@ fn the_frame_log_has_every_frame_and_change_as_sent() {
     let _ = std::fs::remove_file(&path);
     let (mut log, mut writer) = framelog::open(&path, 1 << 20).unwrap();
     let sim = Sim::new();
-    let model = default_model();
+    let model = grid_model();
     let mut src = Feed::new(&sim, &model, &[(START_NS, CMD)]);
     let mut out = Recorder::default();
     let default = cfg(60, FailsafeAction::Default);
@@ -544,12 +538,8 @@ fn align_finds_the_next_grid_point() {
 #[test]
 fn two_outputs_emit_their_own_frames_from_one_loop() {
     let sim = Sim::new();
-    let a = default_model();
-    let mut cb = Config::default();
-    cb.ppm.channels = Some(6);
-    cb.ppm.order = "TAER".into();
-    cb.ppm.frame_us = Some(20_000.0);
-    let b = cb.validate().unwrap();
+    let a = grid_model();
+    let b = timed_model(false, SIX_AT_20_MS);
     let mut src_a = Fresh::new(&sim, &a, CMD);
     let mut src_b = Fresh::new(&sim, &b, "[1900, 1800, 1700, 1600, 1500, 1000]");
     let (mut out_a, mut out_b) = (Recorder::default(), Recorder::default());
@@ -598,7 +588,7 @@ fn two_outputs_emit_their_own_frames_from_one_loop() {
 #[test]
 fn a_bank_writes_simultaneous_edges_in_one_call() {
     let sim = Sim::new();
-    let model = default_model();
+    let model = grid_model();
     // Same values on lines 0 and 1: every edge coincides. Other values
     // on line 2: only its frame starts coincide (its grid joins line
     // 0's).
@@ -678,7 +668,7 @@ fn a_bank_writes_simultaneous_edges_in_one_call() {
 /// frame is whole.
 #[test]
 fn a_write_held_up_glitches_its_frame_and_the_log_has_what_the_line_carried() {
-    let model = default_model();
+    let model = grid_model();
     for stamped in [false, true] {
         let dir =
             std::env::temp_dir().join(format!("ppmd-glitch-{}-{stamped}", std::process::id()));

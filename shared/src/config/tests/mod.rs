@@ -202,7 +202,7 @@ fn receivers_bound_the_grid_sync() {
         ("betaflight", 3_200.0, 65_036.0),
         ("ardupilot", 3_200.0, 65_036.0),
     ] {
-        let frame = |us: f64| format!("frame_us = {us}");
+        let frame = |us: f64| format!("timing = 'grid'\nframe_us = {us}");
         assert_eq!(under(receiver, &frame(16_000.0 + shortest)), Ok(()));
         assert_eq!(
             under(receiver, &frame(16_000.0 + shortest - 1.0)),
@@ -228,7 +228,7 @@ fn receivers_bound_the_grid_sync() {
     // No receiver takes an endless frame (the fuzzer's 1e300).
     for r in ["any", "edgetx", "opentx", "betaflight", "ardupilot"] {
         assert_eq!(
-            under(r, "frame_us = 1e300"),
+            under(r, "timing = 'grid'\nframe_us = 1e300"),
             Err("ppm.frame_us".into()),
             "{r}"
         );
@@ -264,7 +264,7 @@ fn follow_timing_keys() {
     let m = c.validate().unwrap();
     assert_eq!(m.timing(), Timing::Follow);
     assert_eq!(m.follow_sync_ns(), (4_500_000, 18_500_000));
-    assert_eq!(Config::default().ppm.timing, Timing::Grid);
+    assert_eq!(Config::default().ppm.timing, Timing::Follow);
     assert_eq!(
         Config::default().validate().unwrap().follow_sync_ns(),
         (5_000_000, 18_000_000)
@@ -312,12 +312,12 @@ fn follow_timing_keys() {
     let e = Plan::resolve(&c).unwrap_err();
     assert_eq!(e.key(), Some("outputs[1].ppm.follow_sync_min_us"));
     let c = Config::parse(
-        "[[outputs]]\nname = 'a'\noutput = 'sim:a'\n[[outputs]]\nname = 'b'\noutput = 'sim:b'\nppm.timing = 'follow'\ningress.listen = '127.0.0.1:5006'",
+        "[[outputs]]\nname = 'a'\noutput = 'sim:a'\n[[outputs]]\nname = 'b'\noutput = 'sim:b'\nppm.timing = 'grid'\ningress.listen = '127.0.0.1:5006'",
     )
     .unwrap();
     let outs = Plan::resolve(&c).unwrap().outputs;
-    assert_eq!(outs[0].model.timing(), Timing::Grid);
-    assert_eq!(outs[1].model.timing(), Timing::Follow);
+    assert_eq!(outs[0].model.timing(), Timing::Follow);
+    assert_eq!(outs[1].model.timing(), Timing::Grid);
 }
 
 #[test]
@@ -472,8 +472,11 @@ fn invalid_keys_are_named() {
         ),
         ("[ppm]\npulse_us = 1000", "ppm.pulse_us"),
         ("[ppm]\npulse_us = 0", "ppm.pulse_us"),
-        ("[ppm]\nframe_us = 19000", "ppm.frame_us"),
-        ("[ppm]\nchannels = 3\nreceiver = 'edgetx'", "ppm.frame_us"),
+        ("[ppm]\ntiming = 'grid'\nframe_us = 19000", "ppm.frame_us"),
+        (
+            "[ppm]\ntiming = 'grid'\nchannels = 3\nreceiver = 'edgetx'",
+            "ppm.frame_us",
+        ),
         ("[ppm]\nchannels = 3", "ppm.channels"),
         ("[ppm.channel.aux9]\nmin_us = 900", "ppm.channel.aux9"),
         ("[ppm.channel.ail]\nmax_us = 2250", "ppm.channel.ail.max_us"),
@@ -533,7 +536,7 @@ fn invalid_keys_are_named() {
 
 #[test]
 fn sync_error_gives_the_numbers() {
-    let c = Config::parse("[ppm]\nframe_us = 19000\n").unwrap();
+    let c = Config::parse("[ppm]\ntiming = 'grid'\nframe_us = 19000\n").unwrap();
     let e = c.validate().unwrap_err().to_string();
     assert!(e.contains("16000") && e.contains("4000"), "{e}");
 }

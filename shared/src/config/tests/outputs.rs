@@ -68,7 +68,10 @@ fn output_entries_are_checked_and_named() {
     let e = refusal(&TWO_OUTPUTS.replace("name = \"rover\"\n", ""));
     assert_eq!(e.key(), Some("outputs[1].name"), "{e}");
     // An inherited value that fails for one output keeps its own key.
-    let e = refusal(&TWO_OUTPUTS.replace("order = \"AETR\"", "order = \"AETR\"\nchannels = 12"));
+    let e = refusal(&TWO_OUTPUTS.replace(
+        "order = \"AETR\"",
+        "order = \"AETR\"\ntiming = \"grid\"\nchannels = 12",
+    ));
     assert_eq!(e.key(), Some("ppm.frame_us"), "{e}");
     assert!(e.to_string().contains("output `plane`"), "{e}");
     let e = refusal(&with("[rt]\npriority = 100\n"));
