@@ -555,16 +555,6 @@ fn shell_words(line: &str) -> Option<Vec<String>> {
 /// `sudo`, a path such as `target/release/`, `&&`, or
 /// `cargo run ... --bin PROGRAM [-- ARGS]`).
 fn documented_commands() -> Vec<(String, String, String, Vec<String>)> {
-    const PROGRAMS: [&str; 8] = [
-        "ppmd",
-        "udp-ingress",
-        "ppm-send",
-        "ppm-status",
-        "ppm-watch",
-        "jitter",
-        "timing-bench",
-        "ppm-bench",
-    ];
     let mut out = vec![];
     for (file, text) in documentation() {
         let mut sh = false;
@@ -599,7 +589,7 @@ fn documented_commands() -> Vec<(String, String, String, Vec<String>)> {
                     Some(first) => (first.rsplit('/').next().unwrap(), w[1..].to_vec()),
                     None => continue,
                 };
-                if PROGRAMS.contains(&program) {
+                if ppm_tests::PROGRAMS.contains(&program) {
                     out.push((
                         file.clone(),
                         t.to_string(),
