@@ -14,6 +14,8 @@
 //! - [`sbus`]: the SBUS frame, its encoder, and SBUS input as EdgeTX,
 //!   Betaflight and ArduPilot frame and read it, each modelled on its firmware.
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
+//! - [`mavlink`]: MAVLink 1 and 2 commands (RC_CHANNELS_OVERRIDE,
+//!   MANUAL_CONTROL) on the same socket, and their frames.
 //! - [`files`]: bounded reads of the configuration, key and seq files.
 //! - [`auth`]: the key, HMAC-SHA256 signatures and the signed envelope.
 //! - [`logging`]: log lines for a terminal or for systemd's journal.
@@ -35,6 +37,7 @@ pub mod frame;
 pub mod ipc;
 pub mod line;
 pub mod logging;
+pub mod mavlink;
 pub mod protocol;
 pub mod receiver;
 pub mod sbus;

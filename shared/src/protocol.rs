@@ -80,11 +80,22 @@ pub enum RejectReason {
     /// A signed command without `to` (the output it is for): a signature
     /// alone does not say which vehicle it may fly.
     NoTo,
+    /// A MAVLink datagram with bytes that start no frame (before, between
+    /// or after its frames).
+    MavlinkJunk,
+    /// A MAVLink frame cut short (its header, payload, CRC or signature).
+    MavlinkTruncated,
+    /// A MAVLink message whose payload length does not fit its id.
+    MavlinkBadLength,
+    /// A MAVLink frame whose CRC (with its message's CRC_EXTRA) is wrong.
+    MavlinkBadCrc,
+    /// A MAVLink message ppm does not take (any id but 0, 69 and 70).
+    MavlinkUnknownMessage,
 }
 
 impl RejectReason {
     /// Every reason, in counter order.
-    pub const ALL: [RejectReason; 14] = [
+    pub const ALL: [RejectReason; 19] = [
         RejectReason::InvalidUtf8,
         RejectReason::InvalidJson,
         RejectReason::NotANumber,
@@ -99,6 +110,11 @@ impl RejectReason {
         RejectReason::NotAllowed,
         RejectReason::WrongOutput,
         RejectReason::NoTo,
+        RejectReason::MavlinkJunk,
+        RejectReason::MavlinkTruncated,
+        RejectReason::MavlinkBadLength,
+        RejectReason::MavlinkBadCrc,
+        RejectReason::MavlinkUnknownMessage,
     ];
 
     /// The counter name (`snake_case`).
@@ -118,6 +134,11 @@ impl RejectReason {
             RejectReason::NotAllowed => "not_allowed",
             RejectReason::WrongOutput => "wrong_output",
             RejectReason::NoTo => "no_to",
+            RejectReason::MavlinkJunk => "mavlink_junk",
+            RejectReason::MavlinkTruncated => "mavlink_truncated",
+            RejectReason::MavlinkBadLength => "mavlink_bad_length",
+            RejectReason::MavlinkBadCrc => "mavlink_bad_crc",
+            RejectReason::MavlinkUnknownMessage => "mavlink_unknown_message",
         }
     }
 

@@ -1,0 +1,537 @@
+//! MAVLink 1 and 2 commands on the command socket.
+//!
+//! A datagram whose first byte is a MAVLink start byte (0xFE for MAVLink 1,
+//! 0xFD for MAVLink 2) is read as MAVLink; anything else as JSON. No JSON
+//! text can start with either byte: neither is valid UTF-8 anywhere, let
+//! alone as a first byte. So one socket, one port, one allowlist and one
+//! set of counters serve both, and a groundstation needs no second port.
+//!
+//! A datagram holds one or more whole frames back to back (the MAVLink
+//! senders we know put exactly one in each). Every frame is checked (start
+//! byte, length, CRC with the message's CRC_EXTRA); any byte that is not
+//! part of a good frame rejects the whole datagram, which is then never
+//! applied in part. A MAVLink 2 payload trimmed of its trailing zeros is
+//! zero-extended, as the specification asks.
+//!
+//! Messages taken ([`Message`]):
+//! - `RC_CHANNELS_OVERRIDE` (70): chan1..8, and chan9..18 (a MAVLink 2
+//!   extension). `UINT16_MAX` keeps the channel's current value (0 too on
+//!   chan9..18); 0 on chan1..8 and `UINT16_MAX - 1` on chan9..18 release the
+//!   channel to its configured default. Any other value is a period in
+//!   microseconds, checked and clamped as a JSON value is.
+//! - `MANUAL_CONTROL` (69): the x, y, z and r axes, ±1000, onto the
+//!   channels [`Settings::axes`] names (pitch, roll, thrust, yaw onto ele,
+//!   ail, thr, rud by default); `INT16_MAX` keeps the channel's value.
+//! - `HEARTBEAT` (0): a peer's presence; no command.
+//!
+//! Any other message id is `mavlink_unknown_message`: its CRC cannot be
+//! checked without its CRC_EXTRA, so it is no more trusted than junk.
+
+use crate::frame::{Channels, FrameModel, MAX_CHANNELS};
+use crate::protocol::{Command, Reject, RejectReason, VALUE_MAX_US, VALUE_MIN_US};
+
+/// MAVLink 1's start byte.
+pub const STX_V1: u8 = 0xFE;
+/// MAVLink 2's start byte.
+pub const STX_V2: u8 = 0xFD;
+/// MAVLink 2's incompat flag for a signed frame (13 signature bytes follow
+/// the CRC).
+pub const IFLAG_SIGNED: u8 = 0x01;
+/// The length of a MAVLink 2 signature.
+pub const SIGNATURE_LEN: usize = 13;
+
+/// True when the datagram is read as MAVLink (its first byte is a start byte).
+pub fn is_mavlink(datagram: &[u8]) -> bool {
+    matches!(datagram.first(), Some(&STX_V1 | &STX_V2))
+}
+
+/// What ppm knows of one message: id, CRC_EXTRA, and payload lengths.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Spec {
+    /// The message id.
+    pub id: u32,
+    /// Its name in the common dialect.
+    pub name: &'static str,
+    /// The seed byte added to its CRC (from its field layout).
+    pub crc_extra: u8,
+    /// Its payload in MAVLink 1 (no extension fields).
+    pub v1_len: u8,
+    /// Its whole payload in MAVLink 2, extensions included.
+    pub max_len: u8,
+}
+
+/// `HEARTBEAT`.
+pub const HEARTBEAT: Spec = Spec {
+    id: 0,
+    name: "HEARTBEAT",
+    crc_extra: 50,
+    v1_len: 9,
+    max_len: 9,
+};
+/// `RC_CHANNELS`: what ppm sends back (the values on the line).
+pub const RC_CHANNELS: Spec = Spec {
+    id: 65,
+    name: "RC_CHANNELS",
+    crc_extra: 118,
+    v1_len: 42,
+    max_len: 42,
+};
+/// `MANUAL_CONTROL`.
+pub const MANUAL_CONTROL: Spec = Spec {
+    id: 69,
+    name: "MANUAL_CONTROL",
+    crc_extra: 243,
+    v1_len: 11,
+    max_len: 30,
+};
+/// `RC_CHANNELS_OVERRIDE`.
+pub const RC_CHANNELS_OVERRIDE: Spec = Spec {
+    id: 70,
+    name: "RC_CHANNELS_OVERRIDE",
+    crc_extra: 124,
+    v1_len: 18,
+    max_len: 38,
+};
+
+/// Every message ppm reads or writes.
+pub const SPECS: [Spec; 4] = [HEARTBEAT, RC_CHANNELS, MANUAL_CONTROL, RC_CHANNELS_OVERRIDE];
+
+/// The spec of message `id`, if ppm knows it.
+pub fn spec(id: u32) -> Option<&'static Spec> {
+    SPECS.iter().find(|s| s.id == id)
+}
+
+/// MAVLink's CRC (CRC-16/MCRF4XX, the X.25 polynomial) of `bytes`,
+/// continued from `crc` (start with 0xFFFF).
+pub fn crc_accumulate(mut crc: u16, bytes: &[u8]) -> u16 {
+    for &b in bytes {
+        let mut tmp = b ^ (crc & 0xFF) as u8;
+        tmp ^= tmp << 4;
+        crc = (crc >> 8) ^ ((tmp as u16) << 8) ^ ((tmp as u16) << 3) ^ ((tmp as u16) >> 4);
+    }
+    crc
+}
+
+/// A frame's header.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Header {
+    /// 1 or 2.
+    pub version: u8,
+    /// The sender's 8-bit, wrapping frame count.
+    pub seq: u8,
+    /// The sender's system id.
+    pub sysid: u8,
+    /// The sender's component id.
+    pub compid: u8,
+    /// The message id.
+    pub msgid: u32,
+    /// A MAVLink 2 frame with a signature (not checked here).
+    pub signed: bool,
+}
+
+/// `RC_CHANNELS_OVERRIDE`'s fields.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RcOverride {
+    /// The system it is for (0: any).
+    pub target_system: u8,
+    /// The component it is for (0: any).
+    pub target_component: u8,
+    /// chan1_raw..chan18_raw (chan9..18 are 0 in MAVLink 1).
+    pub chan: [u16; 18],
+}
+
+/// `MANUAL_CONTROL`'s fields that ppm uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ManualControl {
+    /// The system it is for (0: any).
+    pub target: u8,
+    /// x, y, z, r: pitch, roll, thrust, yaw; ±1000, `INT16_MAX` invalid.
+    pub axes: [i16; 4],
+    /// buttons (1..16) and buttons2 (17..32), a bit each.
+    pub buttons: u32,
+}
+
+/// A message ppm takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Message {
+    /// A peer's heartbeat.
+    Heartbeat,
+    /// Channel values.
+    RcOverride(RcOverride),
+    /// Joystick axes.
+    ManualControl(ManualControl),
+}
+
+impl Message {
+    /// True for the messages that carry a command.
+    pub fn is_command(&self) -> bool {
+        !matches!(self, Message::Heartbeat)
+    }
+}
+
+fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
+    Reject {
+        reason,
+        detail: detail.into(),
+    }
+}
+
+/// Little-endian field readers over a payload that is zero beyond its end
+/// (a MAVLink 2 payload trimmed of trailing zeros).
+struct Payload<'a>(&'a [u8]);
+
+impl Payload<'_> {
+    fn u8(&self, at: usize) -> u8 {
+        self.0.get(at).copied().unwrap_or(0)
+    }
+    fn u16(&self, at: usize) -> u16 {
+        u16::from_le_bytes([self.u8(at), self.u8(at + 1)])
+    }
+    fn i16(&self, at: usize) -> i16 {
+        self.u16(at) as i16
+    }
+}
+
+/// Reads one frame at the start of `bytes`: its header, its message, and
+/// its length in bytes (signature included).
+pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
+    let (version, header_len) = match bytes.first() {
+        Some(&STX_V1) => (1u8, 6usize),
+        Some(&STX_V2) => (2u8, 10usize),
+        _ => {
+            return Err(reject(
+                RejectReason::MavlinkJunk,
+                format!(
+                    "{} byte(s) that start no MAVLink frame (0xFE or 0xFD)",
+                    bytes.len()
+                ),
+            ))
+        }
+    };
+    if bytes.len() < header_len {
+        return Err(reject(
+            RejectReason::MavlinkTruncated,
+            format!(
+                "a MAVLink {version} header is {header_len} bytes, {} left",
+                bytes.len()
+            ),
+        ));
+    }
+    let len = bytes[1] as usize;
+    let (seq, sysid, compid, msgid, signed) = if version == 1 {
+        (bytes[2], bytes[3], bytes[4], bytes[5] as u32, false)
+    } else {
+        let (incompat, seq, sysid, compid) = (bytes[2], bytes[4], bytes[5], bytes[6]);
+        if incompat & !IFLAG_SIGNED != 0 {
+            return Err(reject(
+                RejectReason::BadShape,
+                format!("MAVLink 2 incompat flags {incompat:#04x}: only 0x01 (signed) is known, so the frame cannot be read"),
+            ));
+        }
+        let msgid = u32::from_le_bytes([bytes[7], bytes[8], bytes[9], 0]);
+        (seq, sysid, compid, msgid, incompat & IFLAG_SIGNED != 0)
+    };
+    let total = header_len + len + 2 + if signed { SIGNATURE_LEN } else { 0 };
+    if bytes.len() < total {
+        return Err(reject(
+            RejectReason::MavlinkTruncated,
+            format!(
+                "message {msgid} says {total} bytes with its CRC{}, {} left",
+                if signed { " and signature" } else { "" },
+                bytes.len()
+            ),
+        ));
+    }
+    let Some(spec) = spec(msgid) else {
+        return Err(reject(
+            RejectReason::MavlinkUnknownMessage,
+            format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69) and HEARTBEAT (0)"),
+        ));
+    };
+    let good_len = if version == 1 {
+        len == spec.v1_len as usize
+    } else {
+        len <= spec.max_len as usize
+    };
+    if !good_len {
+        let want = if version == 1 {
+            format!("{}", spec.v1_len)
+        } else {
+            format!("at most {}", spec.max_len)
+        };
+        return Err(reject(
+            RejectReason::MavlinkBadLength,
+            format!(
+                "{} in MAVLink {version}: a {len}-byte payload, {want} expected",
+                spec.name
+            ),
+        ));
+    }
+    let body = &bytes[1..header_len + len];
+    let crc = crc_accumulate(crc_accumulate(0xFFFF, body), &[spec.crc_extra]);
+    let got = u16::from_le_bytes([bytes[header_len + len], bytes[header_len + len + 1]]);
+    if crc != got {
+        return Err(reject(
+            RejectReason::MavlinkBadCrc,
+            format!(
+                "{} CRC {got:#06x}, {crc:#06x} computed (with CRC_EXTRA {})",
+                spec.name, spec.crc_extra
+            ),
+        ));
+    }
+    let p = Payload(&bytes[header_len..header_len + len]);
+    let message = match msgid {
+        0 => Message::Heartbeat,
+        69 => Message::ManualControl(ManualControl {
+            axes: [p.i16(0), p.i16(2), p.i16(4), p.i16(6)],
+            buttons: p.u16(8) as u32 | (p.u16(11) as u32) << 16,
+            target: p.u8(10),
+        }),
+        70 => {
+            let mut chan = [0u16; 18];
+            for (i, c) in chan.iter_mut().enumerate().take(8) {
+                *c = p.u16(2 * i);
+            }
+            for (i, c) in chan.iter_mut().enumerate().skip(8) {
+                *c = p.u16(18 + 2 * (i - 8));
+            }
+            Message::RcOverride(RcOverride {
+                target_system: p.u8(16),
+                target_component: p.u8(17),
+                chan,
+            })
+        }
+        _ => {
+            return Err(reject(
+                RejectReason::MavlinkUnknownMessage,
+                format!("{} is sent by ppm, not taken", spec.name),
+            ))
+        }
+    };
+    let header = Header {
+        version,
+        seq,
+        sysid,
+        compid,
+        msgid,
+        signed,
+    };
+    Ok((header, message, total))
+}
+
+/// What a MAVLink datagram holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Datagram {
+    /// Its last command message, if any (an earlier one in the same
+    /// datagram is superseded by it).
+    pub command: Option<(Header, Message)>,
+    /// Its frames.
+    pub frames: usize,
+    /// A frame was signed.
+    pub signed: bool,
+}
+
+/// Reads a whole MAVLink datagram: every frame must be good, or the
+/// datagram is rejected with the first fault.
+pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
+    let mut d = Datagram {
+        command: None,
+        frames: 0,
+        signed: false,
+    };
+    let mut at = 0;
+    while at < bytes.len() {
+        let (header, message, len) = read_frame(&bytes[at..]).map_err(|mut r| {
+            if d.frames > 0 {
+                r.detail = format!("after {} good frame(s): {}", d.frames, r.detail);
+            }
+            r
+        })?;
+        d.frames += 1;
+        d.signed |= header.signed;
+        if message.is_command() {
+            d.command = Some((header, message));
+        }
+        at += len;
+    }
+    Ok(d)
+}
+
+/// How z, MANUAL_CONTROL's thrust axis, maps onto its channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Thrust {
+    /// 0..1000: 0 is the channel's minimum, 1000 its maximum (what
+    /// QGroundControl sends, and ArduPilot reads). A negative z clamps.
+    #[default]
+    Positive,
+    /// -1000..1000 like the other axes (-1000 the minimum, 0 the middle).
+    Signed,
+}
+
+/// What a MAVLink command needs from the configuration.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Settings {
+    /// ppm's system id: a message's target system must be it, or 0.
+    pub system_id: u8,
+    /// ppm's component id: an RC_CHANNELS_OVERRIDE's target component must
+    /// be it, or 0.
+    pub component_id: u8,
+    /// The channels MANUAL_CONTROL's x, y, z and r drive (`None`: that
+    /// axis is not used).
+    pub axes: [Option<usize>; 4],
+    /// How z is read.
+    pub thrust: Thrust,
+}
+
+impl Settings {
+    /// Ids 1 and 1, and the axes onto ele, ail, thr and rud (every
+    /// channel order has them).
+    pub fn defaults_for(model: &FrameModel) -> Settings {
+        Settings {
+            system_id: 1,
+            component_id: 1,
+            axes: DEFAULT_AXES.map(|n| model.index_of(n)),
+            thrust: Thrust::Positive,
+        }
+    }
+}
+
+/// The channels MANUAL_CONTROL's x, y, z and r drive by default.
+pub const DEFAULT_AXES: [&str; 4] = ["ele", "ail", "thr", "rud"];
+
+/// The command a message carries, for a line now carrying `current` (the
+/// values "keep" keeps).
+pub fn command(
+    message: &Message,
+    model: &FrameModel,
+    settings: &Settings,
+    current: &Channels,
+) -> Result<Command, Reject> {
+    let n = model.channels();
+    let mut ns = [0u32; MAX_CHANNELS];
+    ns[..n].copy_from_slice(current.as_ns());
+    let mut clamped = 0;
+    let target = |system: u8| -> Result<(), Reject> {
+        if system == 0 || system == settings.system_id {
+            Ok(())
+        } else {
+            Err(reject(
+                RejectReason::WrongOutput,
+                format!(
+                    "target system {system}: this is system {} (mavlink.system_id)",
+                    settings.system_id
+                ),
+            ))
+        }
+    };
+    match message {
+        Message::Heartbeat => {
+            return Err(reject(RejectReason::BadShape, "a HEARTBEAT is no command"))
+        }
+        Message::RcOverride(o) => {
+            target(o.target_system)?;
+            let c = o.target_component;
+            if c != 0 && c != settings.component_id {
+                return Err(reject(
+                    RejectReason::WrongOutput,
+                    format!(
+                        "target component {c}: this is component {} (mavlink.component_id)",
+                        settings.component_id
+                    ),
+                ));
+            }
+            for (i, &v) in o.chan.iter().enumerate() {
+                let (keep, release) = if i < 8 {
+                    (v == u16::MAX, v == 0)
+                } else {
+                    (v == u16::MAX || v == 0, v == u16::MAX - 1)
+                };
+                if keep {
+                    continue;
+                }
+                if i >= n {
+                    if release {
+                        continue;
+                    }
+                    return Err(reject(
+                        RejectReason::TooManyValues,
+                        format!("chan{}_raw is {v} but the frame has {n} channels", i + 1),
+                    ));
+                }
+                if release {
+                    ns[i] = model.default_ns(i);
+                    continue;
+                }
+                let us = v as f64;
+                if !(VALUE_MIN_US..=VALUE_MAX_US).contains(&us) {
+                    return Err(reject(
+                        RejectReason::OutOfRange,
+                        format!(
+                            "chan{}_raw is {v} us, outside {VALUE_MIN_US}..={VALUE_MAX_US}",
+                            i + 1
+                        ),
+                    ));
+                }
+                let (c, was) = model.clamp(i, v as u32 * 1_000);
+                ns[i] = c;
+                clamped += was as u32;
+            }
+        }
+        Message::ManualControl(m) => {
+            target(m.target)?;
+            for (axis, (&v, ch)) in m.axes.iter().zip(settings.axes).enumerate() {
+                let Some(i) = ch else { continue };
+                if v == i16::MAX {
+                    continue;
+                }
+                let norm = if axis == 2 && settings.thrust == Thrust::Positive {
+                    v as f64 / 500.0 - 1.0
+                } else {
+                    v as f64 / 1000.0
+                };
+                let (c, was) = model.norm_to_ns(i, norm);
+                ns[i] = c;
+                clamped += was as u32;
+            }
+        }
+    }
+    Ok(Command {
+        seq: None,
+        channels: Channels::from_ns(&ns[..n]),
+        clamped,
+    })
+}
+
+/// One frame of `spec`'s message with `payload` (MAVLink 2 trims its
+/// trailing zeros), unsigned: what ppm sends, and what its tests send.
+pub fn frame(version: u8, header: (u8, u8, u8), spec: &Spec, payload: &[u8]) -> Vec<u8> {
+    let (seq, sysid, compid) = header;
+    let mut out = Vec::with_capacity(payload.len() + 12);
+    if version == 1 {
+        out.extend_from_slice(&[
+            STX_V1,
+            payload.len() as u8,
+            seq,
+            sysid,
+            compid,
+            spec.id as u8,
+        ]);
+        out.extend_from_slice(payload);
+    } else {
+        let mut len = payload.len();
+        while len > 1 && payload[len - 1] == 0 {
+            len -= 1;
+        }
+        let id = spec.id.to_le_bytes();
+        out.extend_from_slice(&[
+            STX_V2, len as u8, 0, 0, seq, sysid, compid, id[0], id[1], id[2],
+        ]);
+        out.extend_from_slice(&payload[..len]);
+    }
+    let crc = crc_accumulate(crc_accumulate(0xFFFF, &out[1..]), &[spec.crc_extra]);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,314 @@
+//! Frames from pymavlink 2.4.50 (`rc_channels_override_send`,
+//! `manual_control_send`, `heartbeat_send`, with signing for one) are read
+//! back to their fields; the checks refuse each fault by its reason.
+
+use super::*;
+use crate::frame::PpmSection;
+
+/// rc_channels_override_send(1, 1, 1100, 1200, ..., 1800), MAVLink 1,
+/// from system 255, component 190.
+const V1_OVERRIDE: [u8; 26] = [
+    0xfe, 0x12, 0x00, 0xff, 0xbe, 0x46, 0x4c, 0x04, 0xb0, 0x04, 0x14, 0x05, 0x78, 0x05, 0xdc, 0x05,
+    0x40, 0x06, 0xa4, 0x06, 0x08, 0x07, 0x01, 0x01, 0xae, 0x1d,
+];
+/// The same in MAVLink 2, with chan9..14 = 1900, 0, 65535, 65534, 0, 0
+/// (the rest 0, trimmed).
+const V2_OVERRIDE: [u8; 38] = [
+    0xfd, 0x1a, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x46, 0x00, 0x00, 0x4c, 0x04, 0xb0, 0x04, 0x14, 0x05,
+    0x78, 0x05, 0xdc, 0x05, 0x40, 0x06, 0xa4, 0x06, 0x08, 0x07, 0x01, 0x01, 0x6c, 0x07, 0x00, 0x00,
+    0xff, 0xff, 0xfe, 0xff, 0x1d, 0x24,
+];
+/// rc_channels_override_send(0, 0, 1500, 0, 65535, 0, ...): MAVLink 2
+/// trims the payload to its first 6 bytes.
+const V2_OVERRIDE_TRIMMED: [u8; 18] = [
+    0xfd, 0x06, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x46, 0x00, 0x00, 0xdc, 0x05, 0x00, 0x00, 0xff, 0xff,
+    0x0e, 0x03,
+];
+/// manual_control_send(1, 100, -200, 500, 0, 5), MAVLink 2.
+const V2_MANUAL: [u8; 23] = [
+    0xfd, 0x0b, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x45, 0x00, 0x00, 0x64, 0x00, 0x38, 0xff, 0xf4, 0x01,
+    0x00, 0x00, 0x05, 0x00, 0x01, 0xab, 0x0f,
+];
+/// The same in MAVLink 1.
+const V1_MANUAL: [u8; 19] = [
+    0xfe, 0x0b, 0x00, 0xff, 0xbe, 0x45, 0x64, 0x00, 0x38, 0xff, 0xf4, 0x01, 0x00, 0x00, 0x05, 0x00,
+    0x01, 0x67, 0xa3,
+];
+/// heartbeat_send(6 GCS, 8 INVALID, 0, 0, 4), MAVLink 2.
+const V2_HEARTBEAT: [u8; 21] = [
+    0xfd, 0x09, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x06, 0x08,
+    0x00, 0x04, 0x03, 0x3d, 0x48,
+];
+/// V1_OVERRIDE's command in MAVLink 2, signed (link 3).
+const V2_SIGNED: [u8; 43] = [
+    0xfd, 0x12, 0x01, 0x00, 0x00, 0xff, 0xbe, 0x46, 0x00, 0x00, 0x4c, 0x04, 0xb0, 0x04, 0x14, 0x05,
+    0x78, 0x05, 0xdc, 0x05, 0x40, 0x06, 0xa4, 0x06, 0x08, 0x07, 0x01, 0x01, 0xbb, 0x96, 0x03, 0xe8,
+    0x03, 0x00, 0x00, 0x00, 0x00, 0xa4, 0x56, 0x32, 0x3e, 0x76, 0x18,
+];
+/// param_request_list_send(1, 1), MAVLink 2: a message ppm does not take.
+const V2_PARAM_REQUEST_LIST: [u8; 14] = [
+    0xfd, 0x02, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x15, 0x00, 0x00, 0x01, 0x01, 0x88, 0xc0,
+];
+
+fn model(extra: &str) -> FrameModel {
+    let ppm: PpmSection = toml::from_str(extra).unwrap();
+    FrameModel::build(&ppm).unwrap()
+}
+
+fn override_of(bytes: &[u8]) -> (Header, RcOverride) {
+    match read_frame(bytes).unwrap() {
+        (h, Message::RcOverride(o), len) => {
+            assert_eq!(len, bytes.len());
+            (h, o)
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+fn reason(bytes: &[u8]) -> RejectReason {
+    read_datagram(bytes).unwrap_err().reason
+}
+
+fn us(c: &Command) -> Vec<f64> {
+    c.channels
+        .as_ns()
+        .iter()
+        .map(|&ns| ns as f64 / 1e3)
+        .collect()
+}
+
+#[test]
+fn pymavlink_frames_read_back_to_their_fields() {
+    let (h, o) = override_of(&V1_OVERRIDE);
+    assert_eq!((h.version, h.sysid, h.compid, h.msgid), (1, 255, 190, 70));
+    assert_eq!((o.target_system, o.target_component), (1, 1));
+    assert_eq!(
+        o.chan[..8],
+        [1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800]
+    );
+    assert_eq!(o.chan[8..], [0; 10]);
+
+    let (h, o2) = override_of(&V2_OVERRIDE);
+    assert_eq!((h.version, h.signed), (2, false));
+    assert_eq!(o2.chan[..8], o.chan[..8]);
+    assert_eq!(o2.chan[8..12], [1900, 0, 65535, 65534]);
+
+    let (_, t) = override_of(&V2_OVERRIDE_TRIMMED);
+    assert_eq!((t.target_system, t.target_component), (0, 0));
+    assert_eq!(t.chan[..3], [1500, 0, 65535]);
+    assert!(t.chan[3..].iter().all(|&c| c == 0));
+
+    for bytes in [&V2_MANUAL[..], &V1_MANUAL[..]] {
+        let (_, m, _) = read_frame(bytes).unwrap();
+        assert_eq!(
+            m,
+            Message::ManualControl(ManualControl {
+                target: 1,
+                axes: [100, -200, 500, 0],
+                buttons: 5
+            })
+        );
+    }
+    assert_eq!(read_frame(&V2_HEARTBEAT).unwrap().1, Message::Heartbeat);
+
+    let (h, s) = override_of(&V2_SIGNED);
+    assert!(h.signed);
+    assert_eq!(s, o);
+}
+
+#[test]
+fn our_frames_are_pymavlinks() {
+    let mut payload = vec![];
+    for v in [1100u16, 1200, 1300, 1400, 1500, 1600, 1700, 1800] {
+        payload.extend_from_slice(&v.to_le_bytes());
+    }
+    payload.extend_from_slice(&[1, 1]);
+    assert_eq!(
+        frame(1, (0, 255, 190), &RC_CHANNELS_OVERRIDE, &payload),
+        V1_OVERRIDE
+    );
+    for v in [1900u16, 0, 65535, 65534, 0, 0, 0, 0, 0, 0] {
+        payload.extend_from_slice(&v.to_le_bytes());
+    }
+    assert_eq!(
+        frame(2, (0, 255, 190), &RC_CHANNELS_OVERRIDE, &payload),
+        V2_OVERRIDE
+    );
+    let hb = [0, 0, 0, 0, 6, 8, 0, 4, 3];
+    assert_eq!(frame(2, (0, 255, 190), &HEARTBEAT, &hb), V2_HEARTBEAT);
+}
+
+#[test]
+fn every_fault_has_its_reason() {
+    use RejectReason::*;
+    // A flipped payload bit, a wrong CRC_EXTRA (the CRC of another layout).
+    let mut bad = V2_OVERRIDE;
+    bad[12] ^= 1;
+    assert_eq!(reason(&bad), MavlinkBadCrc);
+    let mut payload = V1_OVERRIDE[6..24].to_vec();
+    let mut other = RC_CHANNELS_OVERRIDE;
+    other.crc_extra ^= 0x55;
+    let wrong_extra = frame(1, (0, 255, 190), &other, &payload);
+    assert_eq!(reason(&wrong_extra), MavlinkBadCrc);
+    // Cut anywhere: truncated.
+    for cut in 1..V2_OVERRIDE.len() {
+        assert_eq!(
+            reason(&V2_OVERRIDE[..cut]),
+            MavlinkTruncated,
+            "cut at {cut}"
+        );
+    }
+    for cut in 1..V2_SIGNED.len() {
+        assert_eq!(reason(&V2_SIGNED[..cut]), MavlinkTruncated, "cut at {cut}");
+    }
+    // MAVLink 1 carries no extensions; MAVLink 2 no more than the message has.
+    payload.extend_from_slice(&[0x6c, 0x07]);
+    assert_eq!(
+        reason(&frame(1, (0, 255, 190), &RC_CHANNELS_OVERRIDE, &payload)),
+        MavlinkBadLength
+    );
+    payload.resize(39, 7);
+    assert_eq!(
+        reason(&frame(2, (0, 255, 190), &RC_CHANNELS_OVERRIDE, &payload)),
+        MavlinkBadLength
+    );
+    assert_eq!(reason(&V2_PARAM_REQUEST_LIST), MavlinkUnknownMessage);
+    // An incompat flag ppm does not know.
+    let mut flagged = V2_OVERRIDE;
+    flagged[2] = 0x02;
+    assert_eq!(reason(&flagged), BadShape);
+    // Junk after, or between, good frames; a good frame does not save it.
+    for junk in [&b"\n"[..], b"{\"ch\":[1]}", &[0u8; 3]] {
+        let mut d = V1_OVERRIDE.to_vec();
+        d.extend_from_slice(junk);
+        let r = read_datagram(&d).unwrap_err();
+        assert_eq!(r.reason, MavlinkJunk);
+        assert!(r.detail.starts_with("after 1 good frame(s)"), "{r}");
+        d.extend_from_slice(&V2_OVERRIDE);
+        assert_eq!(reason(&d), MavlinkJunk);
+    }
+    assert!(!is_mavlink(b"[1500]") && !is_mavlink(b"") && is_mavlink(&V1_OVERRIDE));
+}
+
+#[test]
+fn a_datagram_of_several_frames_gives_its_last_command() {
+    let mut d = V2_HEARTBEAT.to_vec();
+    d.extend_from_slice(&V2_MANUAL);
+    d.extend_from_slice(&V1_OVERRIDE);
+    d.extend_from_slice(&V2_HEARTBEAT);
+    let r = read_datagram(&d).unwrap();
+    assert_eq!(r.frames, 4);
+    assert_eq!(r.command.unwrap().0.msgid, 70);
+    let r = read_datagram(&V2_HEARTBEAT).unwrap();
+    assert_eq!((r.frames, r.command), (1, None));
+}
+
+#[test]
+fn override_sets_keeps_and_releases_channels() {
+    let m = model("order = \"AETR\"\nchannels = 10\n[channel.thr]\ndefault_us = 1000\n");
+    let s = Settings::defaults_for(&m);
+    let current = Channels::from_ns(&[1_234_000; 10]);
+    let (_, o) = override_of(&V2_OVERRIDE);
+    let c = command(&Message::RcOverride(o), &m, &s, &current).unwrap();
+    // chan9 is set, chan10 (0 on chan9..18) kept.
+    assert_eq!(
+        us(&c),
+        [1100.0, 1200.0, 1300.0, 1400.0, 1500.0, 1600.0, 1700.0, 1800.0, 1900.0, 1234.0]
+    );
+    assert_eq!((c.seq, c.clamped), (None, 0));
+    // chan1 set, chan2 released (0), chan3 kept (UINT16_MAX), chan4..8 released.
+    let (_, t) = override_of(&V2_OVERRIDE_TRIMMED);
+    let c = command(&Message::RcOverride(t), &m, &s, &current).unwrap();
+    let mut want: Vec<f64> = (0..10).map(|i| m.default_ns(i) as f64 / 1e3).collect();
+    want[0] = 1500.0;
+    want[2] = 1234.0;
+    want[8] = 1234.0;
+    want[9] = 1234.0;
+    assert_eq!(us(&c), want);
+    // UINT16_MAX - 1 on chan12 releases a channel the frame does not have:
+    // nothing to do; a value there is too many.
+    let mut o8 = o;
+    o8.chan[8] = 0;
+    let m8 = model("");
+    let c = command(&Message::RcOverride(o8), &m8, &s, &m8.defaults()).unwrap();
+    assert_eq!(us(&c)[7], 1800.0);
+    let err = command(&Message::RcOverride(o), &m8, &s, &m8.defaults()).unwrap_err();
+    assert_eq!(err.reason, RejectReason::TooManyValues, "{err}");
+}
+
+#[test]
+fn override_values_are_checked_and_clamped_as_json_values_are() {
+    let m = model("");
+    let s = Settings::defaults_for(&m);
+    let (_, mut o) = override_of(&V1_OVERRIDE);
+    o.chan[0] = 2_100;
+    o.chan[1] = 600;
+    let c = command(&Message::RcOverride(o), &m, &s, &m.defaults()).unwrap();
+    assert_eq!(us(&c)[..2], [2000.0, 1000.0]);
+    assert_eq!(c.clamped, 2);
+    for v in [1, 499, 2_501, 65_533] {
+        o.chan[3] = v;
+        let err = command(&Message::RcOverride(o), &m, &s, &m.defaults()).unwrap_err();
+        assert_eq!(err.reason, RejectReason::OutOfRange, "{v}: {err}");
+    }
+}
+
+#[test]
+fn targets_must_be_ours_or_zero() {
+    let m = model("");
+    let s = Settings {
+        system_id: 7,
+        component_id: 190,
+        ..Settings::defaults_for(&m)
+    };
+    let (_, mut o) = override_of(&V1_OVERRIDE);
+    for (sys, comp, ok) in [
+        (7, 190, true),
+        (0, 0, true),
+        (7, 0, true),
+        (0, 190, true),
+        (1, 190, false),
+        (7, 1, false),
+    ] {
+        (o.target_system, o.target_component) = (sys, comp);
+        let r = command(&Message::RcOverride(o), &m, &s, &m.defaults());
+        assert_eq!(r.is_ok(), ok, "{sys}/{comp}: {r:?}");
+        if let Err(e) = r {
+            assert_eq!(e.reason, RejectReason::WrongOutput);
+        }
+    }
+    let (_, manual, _) = read_frame(&V2_MANUAL).unwrap();
+    let err = command(&manual, &m, &s, &m.defaults()).unwrap_err();
+    assert_eq!(err.reason, RejectReason::WrongOutput);
+    assert!(err.detail.contains("target system 1"), "{err}");
+}
+
+#[test]
+fn manual_control_drives_its_axes_channels() {
+    let m = model("");
+    let mut s = Settings::defaults_for(&m);
+    // AETR: x (pitch) onto ele, y (roll) onto ail, z onto thr, r onto rud.
+    assert_eq!(s.axes, [Some(1), Some(0), Some(2), Some(3)]);
+    let (_, manual, _) = read_frame(&V2_MANUAL).unwrap();
+    let c = command(&manual, &m, &s, &m.defaults()).unwrap();
+    // x 100 -> +0.1, y -200 -> -0.2, z 500 of 0..1000 -> the middle, r 0.
+    assert_eq!(us(&c)[..5], [1400.0, 1550.0, 1500.0, 1500.0, 1500.0]);
+    s.thrust = Thrust::Signed;
+    let c = command(&manual, &m, &s, &m.defaults()).unwrap();
+    assert_eq!(us(&c)[2], 1750.0);
+    // INT16_MAX keeps; beyond ±1000 clamps and counts.
+    let current = Channels::from_ns(&[1_111_000; 8]);
+    let m2 = Message::ManualControl(ManualControl {
+        target: 0,
+        axes: [i16::MAX, 1500, -5, -1000],
+        buttons: 0,
+    });
+    s.thrust = Thrust::Positive;
+    let c = command(&m2, &m, &s, &current).unwrap();
+    assert_eq!(us(&c)[..5], [2000.0, 1111.0, 1000.0, 1000.0, 1111.0]);
+    assert_eq!(c.clamped, 2);
+    // An axis onto no channel is not used.
+    s.axes = [None; 4];
+    let c = command(&m2, &m, &s, &current).unwrap();
+    assert_eq!(c.channels, current);
+}
