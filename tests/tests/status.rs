@@ -184,6 +184,11 @@ fn status_counts_every_datagram_and_reports_ppmd() {
                 "not_allowed": 0,
                 "wrong_output": 0,
                 "no_to": 0,
+                "mavlink_junk": 0,
+                "mavlink_truncated": 0,
+                "mavlink_bad_length": 0,
+                "mavlink_bad_crc": 0,
+                "mavlink_unknown_message": 0,
             },
         }),
         "{reply}"

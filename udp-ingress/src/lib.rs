@@ -34,6 +34,7 @@ use ppm_shared::auth::{self, AuthKey};
 use ppm_shared::frame::FrameModel;
 use ppm_shared::ipc::TimingSnapshot;
 use ppm_shared::line::LineState;
+use ppm_shared::mavlink;
 use ppm_shared::protocol::{
     self, Command, Reject, RejectReason, SeqGate, To, STATUS_REPLY_MAX_RATIO,
 };
@@ -83,6 +84,9 @@ pub struct Counters {
     /// Status queries answered with `{"pad_to": N}` instead of the reply:
     /// too short for it from a source outside `ingress.status_allow`.
     pub status_short: u64,
+    /// MAVLink datagrams of HEARTBEATs only (a groundstation's presence,
+    /// not a command): counted here only, never in `received`.
+    pub mavlink_heartbeats: u64,
 }
 
 impl Counters {
@@ -137,6 +141,8 @@ pub enum Outcome {
     Rejected(RejectReason, Option<String>),
     /// A status query: answer it with [`Intake::status`] (nothing changed).
     Status,
+    /// MAVLink HEARTBEATs and no command (nothing changed).
+    Heartbeat,
 }
 
 /// A read-only query a datagram may carry instead of a command.
@@ -240,6 +246,7 @@ pub struct Intake {
     /// The output's name: what a command's `to` must be.
     name: String,
     model: FrameModel,
+    mavlink: mavlink::Settings,
     key: Option<AuthKey>,
     allow: Vec<IpNet>,
     /// The `seq` of the last command that passed the gate.
@@ -264,6 +271,7 @@ impl Intake {
     pub fn new(name: &str, model: FrameModel, log_interval: Duration) -> Intake {
         Intake {
             name: name.to_owned(),
+            mavlink: mavlink::Settings::defaults_for(&model),
             model,
             key: None,
             allow: Vec::new(),
@@ -308,6 +316,13 @@ impl Intake {
         self
     }
 
+    /// MAVLink commands are for this system and component, and
+    /// MANUAL_CONTROL drives these channels ([`mavlink::Settings`]).
+    pub fn with_mavlink(mut self, settings: mavlink::Settings) -> Intake {
+        self.mavlink = settings;
+        self
+    }
+
     /// Drops datagrams from sources outside `nets` (`not_allowed`) before
     /// parsing them; status queries too. Empty: any source.
     pub fn with_allowlist(mut self, nets: Vec<IpNet>) -> Intake {
@@ -337,6 +352,15 @@ impl Intake {
                 reason: RejectReason::NotAllowed,
                 detail: format!("source {} is not in ingress.allow", from.ip()),
             })
+        } else if mavlink::is_mavlink(datagram) {
+            match self.mavlink_command(datagram, now) {
+                Ok(Some(command)) => Ok(command),
+                Ok(None) => {
+                    self.counters.mavlink_heartbeats += 1;
+                    return Outcome::Heartbeat;
+                }
+                Err(r) => Err(r),
+            }
         } else {
             match query(datagram) {
                 Some(Ok(Query::Status)) => {
@@ -464,6 +488,36 @@ impl Intake {
         }
     }
 
+    /// The command a MAVLink datagram carries (`None`: HEARTBEATs only).
+    /// Its "keep" values are those of the last accepted command while that
+    /// is fresh (younger than the failsafe's `after_ms`, given as
+    /// [`Intake::forget_seq_after`]), the channels' defaults otherwise: a
+    /// "keep" never brings back a command the line has already given up.
+    /// With a key set, MAVLink commands are refused as `unsigned`: ppm does
+    /// not check MAVLink signatures yet.
+    fn mavlink_command(&self, datagram: &[u8], now: Instant) -> Result<Option<Command>, Reject> {
+        let d = mavlink::read_datagram(datagram)?;
+        let Some((_, message)) = d.command else {
+            return Ok(None);
+        };
+        if self.key.is_some() {
+            return Err(Reject {
+                reason: RejectReason::Unsigned,
+                detail: "ingress.auth_key is set, and MAVLink commands are not checked against it: send signed JSON commands".into(),
+            });
+        }
+        let fresh = match (self.forget_seq, self.last_accepted) {
+            (_, None) => false,
+            (None, Some(_)) => true,
+            (Some(after), Some(t)) => now.saturating_duration_since(t) < after,
+        };
+        let current = match self.latest {
+            Some(r) if fresh => r.command.channels,
+            _ => self.model.defaults(),
+        };
+        mavlink::command(&message, &self.model, &self.mavlink, &current).map(Some)
+    }
+
     /// The newest valid command since the last call (to be published).
     pub fn take(&mut self) -> Option<Received> {
         let r = self.newest.take();
@@ -533,6 +587,7 @@ impl Intake {
             status_requests: c.status_requests,
             status_dropped: c.status_dropped,
             status_short: c.status_short,
+            mavlink_heartbeats: c.mavlink_heartbeats,
             newest_command_age_ms: self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
             newest_seq: self.latest.and_then(|r| r.command.seq),
             publish_latency_us: PublishLatency {

@@ -428,6 +428,11 @@ fn status_reply_is_built_from_the_counters() {
                     "not_allowed": 0,
                     "wrong_output": 0,
                     "no_to": 0,
+                    "mavlink_junk": 0,
+                    "mavlink_truncated": 0,
+                    "mavlink_bad_length": 0,
+                    "mavlink_bad_crc": 0,
+                    "mavlink_unknown_message": 0,
                 },
                 "clamped": 1,
                 "clamped_values": 2,
@@ -438,6 +443,7 @@ fn status_reply_is_built_from_the_counters() {
             "status_requests": 1,
             "status_dropped": 1,
             "status_short": 0,
+            "mavlink_heartbeats": 0,
             "newest_command_age_ms": 7.0,
             "newest_seq": null,
             "publish_latency_us": {"count": 0, "p50": 0.0, "p99": 0.0, "max": 0.0},
@@ -461,12 +467,12 @@ fn status_reply_is_built_from_the_counters() {
             "ppmd_stale": false,
         })
     );
-    assert!(reply.to_string().len() < 1_000, "one small datagram");
+    assert!(reply.to_string().len() < 1_200, "one small datagram");
     // The text as udp-ingress sent it before the reply had a type: its
     // keys sorted at every level, numbers as serde_json writes an f64.
     assert_eq!(
         typed.to_json(),
-        r#"{"datagrams":{"applied":2,"clamped":1,"clamped_values":2,"received":6,"rejected":{"bad_mac":0,"bad_shape":1,"invalid_json":1,"invalid_utf8":0,"no_seq":0,"no_to":0,"not_a_number":0,"not_allowed":0,"out_of_range":0,"replay":0,"too_many_values":0,"unknown_channel":0,"unsigned":0,"wrong_output":0},"seq_resets":0,"stale":1,"superseded":1},"name":"pi","newest_command_age_ms":7.0,"newest_seq":null,"ppmd":{"aborted_frames":4,"degraded":true,"edge_error_us":{"max":17000.4,"p50":0.031,"p99":1.25},"expired_commands":0,"failsafe_entries":3,"frames":400,"glitched_frames":5,"late_frames":2,"log_errors":0,"mismatched_commands":0,"overruns":1,"repeats":0,"snapshot_age_ms":250.0,"state":"active","timing":"grid"},"ppmd_stale":false,"publish_latency_us":{"count":0,"max":0.0,"p50":0.0,"p99":0.0},"receiver":{"cpu":1,"degraded":true,"policy":"fifo","priority":70,"wait":"busy_poll"},"status_dropped":1,"status_requests":1,"status_short":0,"uptime_s":2345.678}"#
+        r#"{"datagrams":{"applied":2,"clamped":1,"clamped_values":2,"received":6,"rejected":{"bad_mac":0,"bad_shape":1,"invalid_json":1,"invalid_utf8":0,"mavlink_bad_crc":0,"mavlink_bad_length":0,"mavlink_junk":0,"mavlink_truncated":0,"mavlink_unknown_message":0,"no_seq":0,"no_to":0,"not_a_number":0,"not_allowed":0,"out_of_range":0,"replay":0,"too_many_values":0,"unknown_channel":0,"unsigned":0,"wrong_output":0},"seq_resets":0,"stale":1,"superseded":1},"mavlink_heartbeats":0,"name":"pi","newest_command_age_ms":7.0,"newest_seq":null,"ppmd":{"aborted_frames":4,"degraded":true,"edge_error_us":{"max":17000.4,"p50":0.031,"p99":1.25},"expired_commands":0,"failsafe_entries":3,"frames":400,"glitched_frames":5,"late_frames":2,"log_errors":0,"mismatched_commands":0,"overruns":1,"repeats":0,"snapshot_age_ms":250.0,"state":"active","timing":"grid"},"ppmd_stale":false,"publish_latency_us":{"count":0,"max":0.0,"p50":0.0,"p99":0.0},"receiver":{"cpu":1,"degraded":true,"policy":"fifo","priority":70,"wait":"busy_poll"},"status_dropped":1,"status_requests":1,"status_short":0,"uptime_s":2345.678}"#
     );
 
     let old = snapshot(now - PPMD_STALE_AFTER_NS - 1);
@@ -808,4 +814,107 @@ fn reject_log_is_rate_limited_per_reason() {
         l.note(RejectReason::InvalidJson, t + Duration::from_millis(1001)),
         Some(2)
     );
+}
+
+/// An RC_CHANNELS_OVERRIDE frame for any target: `chan` on chan1.., the
+/// other channels of chan1..8 released (0), chan9..18 ignored.
+fn rc_override(version: u8, chan: &[u16]) -> Vec<u8> {
+    let mut payload = vec![];
+    for i in 0..18 {
+        let v = chan.get(i).copied().unwrap_or(0);
+        payload.extend_from_slice(&v.to_le_bytes());
+        if i == 7 {
+            payload.extend_from_slice(&[0, 0]);
+        }
+    }
+    if version == 1 {
+        payload.truncate(18);
+    }
+    mavlink::frame(
+        version,
+        (0, 255, 190),
+        &mavlink::RC_CHANNELS_OVERRIDE,
+        &payload,
+    )
+}
+
+#[test]
+fn mavlink_commands_take_the_json_path() {
+    let mut i = intake().forget_seq_after(Duration::from_millis(200));
+    let t = Instant::now();
+    let ch = |i: &mut Intake| -> Vec<u32> {
+        let r = i.take().expect("a command");
+        r.command
+            .channels
+            .as_ns()
+            .iter()
+            .map(|ns| ns / 1_000)
+            .collect()
+    };
+    assert_eq!(
+        i.offer(&rc_override(1, &[1100, 1200, 1300, 1400]), from(), 1, 1, t),
+        Outcome::Accepted
+    );
+    assert_eq!(ch(&mut i), [1100, 1200, 1300, 1400, 1500, 1500, 1500, 1500]);
+    // UINT16_MAX keeps the fresh command's value; 0 releases to the default.
+    let keep = rc_override(2, &[u16::MAX, 0, 1700, u16::MAX, 1800]);
+    assert_eq!(i.offer(&keep, from(), 2, 2, t), Outcome::Accepted);
+    assert_eq!(ch(&mut i), [1100, 1500, 1700, 1400, 1800, 1500, 1500, 1500]);
+    // Past the failsafe's after_ms, "keep" keeps the defaults instead.
+    let later = t + Duration::from_millis(250);
+    assert_eq!(i.offer(&keep, from(), 3, 3, later), Outcome::Accepted);
+    assert_eq!(ch(&mut i), [1500, 1500, 1700, 1500, 1800, 1500, 1500, 1500]);
+    // HEARTBEATs alone are no command, and are not received datagrams.
+    let hb = mavlink::frame(
+        2,
+        (0, 255, 190),
+        &mavlink::HEARTBEAT,
+        &[0, 0, 0, 0, 6, 8, 0, 4, 3],
+    );
+    assert_eq!(i.offer(&hb, from(), 4, 4, later), Outcome::Heartbeat);
+    assert_eq!(i.take(), None);
+    // Faults are counted by reason and change nothing.
+    let mut bad = rc_override(2, &[1000]);
+    let n = bad.len();
+    bad[n - 1] ^= 0xFF;
+    for (d, reason) in [
+        (bad, RejectReason::MavlinkBadCrc),
+        (
+            rc_override(2, &[1000])[..9].to_vec(),
+            RejectReason::MavlinkTruncated,
+        ),
+        (rc_override(1, &[400]), RejectReason::OutOfRange),
+        (
+            [&rc_override(1, &[1000])[..], b"x"].concat(),
+            RejectReason::MavlinkJunk,
+        ),
+    ] {
+        assert!(
+            matches!(i.offer(&d, from(), 5, 5, later), Outcome::Rejected(r, _) if r == reason),
+            "{reason:?}"
+        );
+    }
+    assert_eq!(i.take(), None);
+    let c = i.counters().clone();
+    assert_eq!((c.received, c.published, c.rejected_total()), (7, 3, 4));
+    assert_eq!(c.mavlink_heartbeats, 1);
+    for r in [
+        RejectReason::MavlinkBadCrc,
+        RejectReason::MavlinkTruncated,
+        RejectReason::OutOfRange,
+        RejectReason::MavlinkJunk,
+    ] {
+        assert_eq!(c.rejected[r.index()], 1, "{r:?}");
+    }
+}
+
+#[test]
+fn with_a_key_mavlink_commands_are_unsigned() {
+    let mut i = intake().with_auth(key(), None);
+    let t = Instant::now();
+    assert!(matches!(
+        i.offer(&rc_override(2, &[1000]), from(), 1, 1, t),
+        Outcome::Rejected(RejectReason::Unsigned, _)
+    ));
+    assert_eq!(i.take(), None);
 }
