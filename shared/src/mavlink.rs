@@ -358,7 +358,8 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
 }
 
 /// How z, MANUAL_CONTROL's thrust axis, maps onto its channel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Thrust {
     /// 0..1000: 0 is the channel's minimum, 1000 its maximum (what
     /// QGroundControl sends, and ArduPilot reads). A negative z clamps.
@@ -381,17 +382,21 @@ pub struct Settings {
     pub axes: [Option<usize>; 4],
     /// How z is read.
     pub thrust: Thrust,
+    /// The channels buttons 1.. drive (pressed: the channel's maximum,
+    /// released: its minimum).
+    pub buttons: Vec<usize>,
 }
 
 impl Settings {
-    /// Ids 1 and 1, and the axes onto ele, ail, thr and rud (every
-    /// channel order has them).
+    /// Ids 1 and 1, and the axes onto ele, ail, thr and rud, those of them
+    /// the frame has.
     pub fn defaults_for(model: &FrameModel) -> Settings {
         Settings {
             system_id: 1,
             component_id: 1,
             axes: DEFAULT_AXES.map(|n| model.index_of(n)),
             thrust: Thrust::Positive,
+            buttons: Vec::new(),
         }
     }
 }
@@ -492,6 +497,13 @@ pub fn command(
                 let (c, was) = model.norm_to_ns(i, norm);
                 ns[i] = c;
                 clamped += was as u32;
+            }
+            for (b, &i) in settings.buttons.iter().enumerate() {
+                ns[i] = if m.buttons & (1 << b) != 0 {
+                    model.max_ns(i)
+                } else {
+                    model.min_ns(i)
+                };
             }
         }
     }

@@ -558,7 +558,8 @@ impl Server {
             model,
             Duration::from_millis(cfg.ingress.reject_log_interval_ms),
         )
-        .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms));
+        .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms))
+        .with_mavlink(cfg.mavlink.clone());
         if let (Some(key), Some(file)) = (key, &seq_file) {
             log::info!(
                 "commands must be signed with the key in {} and name this output (\"to\": \"{}\"); status queries need no signature; {} (the last accepted seq is kept in {})",

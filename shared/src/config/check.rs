@@ -5,6 +5,7 @@ use super::schema::{Config, CpuChoice, FailsafeAction, IngressSection, OutputSpe
 use super::ConfigError;
 use crate::frame::PpmSection;
 use crate::frame::{FrameModel, Level};
+use crate::mavlink;
 use crate::signal::Protocol;
 use std::path::PathBuf;
 
@@ -125,7 +126,76 @@ impl Config {
                 ),
             ));
         }
-        Ok(FrameModel::build(&self.resolved_ppm(&output))?)
+        let model = FrameModel::build(&self.resolved_ppm(&output))?;
+        self.mavlink_settings(&model)?;
+        Ok(model)
+    }
+
+    /// `[mavlink]` against the output's channels (`model`, from
+    /// [`Config::validate`]).
+    pub fn mavlink_settings(&self, model: &FrameModel) -> Result<mavlink::Settings, ConfigError> {
+        let m = &self.mavlink;
+        for (key, id) in [
+            ("mavlink.system_id", m.system_id),
+            ("mavlink.component_id", m.component_id),
+        ] {
+            if id == 0 {
+                return Err(ConfigError::invalid(
+                    key,
+                    "0 is outside 1..=255 (0 addresses every system or component)",
+                ));
+            }
+        }
+        let channel = |key: &str, name: &str| {
+            model.index_of(name).ok_or_else(|| {
+                ConfigError::invalid(
+                    key,
+                    format!(
+                        "no channel `{name}`; channels are {}",
+                        model.names().join(", ")
+                    ),
+                )
+            })
+        };
+        let axes = match &m.axes {
+            None => mavlink::Settings::defaults_for(model).axes,
+            Some(names) => {
+                let [x, y, z, r] = &names[..] else {
+                    return Err(ConfigError::invalid(
+                        "mavlink.axes",
+                        format!(
+                            "{} names, 4 wanted: the channels of x, y, z and r, or \"none\"",
+                            names.len()
+                        ),
+                    ));
+                };
+                let mut axes = [None; 4];
+                for (a, name) in axes.iter_mut().zip([x, y, z, r]) {
+                    if name != "none" {
+                        *a = Some(channel("mavlink.axes", name)?);
+                    }
+                }
+                axes
+            }
+        };
+        if m.buttons.len() > 32 {
+            return Err(ConfigError::invalid(
+                "mavlink.buttons",
+                format!("{} names, MANUAL_CONTROL has 32 buttons", m.buttons.len()),
+            ));
+        }
+        let buttons = m
+            .buttons
+            .iter()
+            .map(|name| channel("mavlink.buttons", name))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(mavlink::Settings {
+            system_id: m.system_id,
+            component_id: m.component_id,
+            axes,
+            thrust: m.thrust,
+            buttons,
+        })
     }
 
     /// `[ppm]` with the idle level an SBUS output takes when the key is not

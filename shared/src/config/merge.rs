@@ -140,7 +140,7 @@ impl Config {
                             t.insert(k, v);
                         }
                     }
-                    "ppm" | "ingress" | "failsafe" => {
+                    "ppm" | "ingress" | "failsafe" | "mavlink" => {
                         collect_keys(&k, &v, &mut keys);
                         let base = merged
                             .entry(k.as_str())
@@ -149,7 +149,7 @@ impl Config {
                     }
                     _ => {
                         return Err(parse_error(format!(
-                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log and the sections [outputs.ppm], [outputs.ingress] and [outputs.failsafe] (rt, ipc, frame_log_max_mb, trace_max_mb and spi_hz are shared: set them at the top level)"
+                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log and the sections [outputs.ppm], [outputs.ingress], [outputs.failsafe] and [outputs.mavlink] (rt, ipc, frame_log_max_mb, trace_max_mb and spi_hz are shared: set them at the top level)"
                         )))
                     }
                 }

@@ -59,6 +59,8 @@ pub struct OutputPlan {
     pub seq_file: PathBuf,
     /// Its `[failsafe]`.
     pub failsafe: FailsafeSection,
+    /// Its `[mavlink]`, resolved against its channels.
+    pub mavlink: crate::mavlink::Settings,
 }
 
 impl Plan {
@@ -180,6 +182,7 @@ impl OutputPlan {
     fn new(c: &Config, model: FrameModel) -> Result<OutputPlan, ConfigError> {
         Ok(OutputPlan {
             name: c.name.clone(),
+            mavlink: c.mavlink_settings(&model)?,
             model,
             output: c.output()?,
             frame_log: c.ppmd.frame_log.clone(),

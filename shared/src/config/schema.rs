@@ -5,6 +5,7 @@
 use super::merge::OutputEntry;
 use super::ConfigError;
 use crate::frame::PpmSection;
+use crate::mavlink::Thrust;
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -32,6 +33,8 @@ pub struct Config {
     pub failsafe: FailsafeSection,
     /// Shared memory between the two processes.
     pub ipc: IpcSection,
+    /// MAVLink commands on the command socket.
+    pub mavlink: MavlinkSection,
     /// `[[outputs]]`: several outputs driven by one ppmd, each seen as a
     /// whole configuration (see [`OutputEntry`]). Empty when the file has
     /// no `[[outputs]]`: the file then describes one output.
@@ -49,6 +52,7 @@ impl Default for Config {
             rt: RtSection::default(),
             failsafe: FailsafeSection::default(),
             ipc: IpcSection::default(),
+            mavlink: MavlinkSection::default(),
             outputs: Vec::new(),
         }
     }
@@ -283,6 +287,43 @@ impl TryFrom<NumberOrWord> for SpinMargin {
             NumberOrWord::Number(n) if (0..=5_000).contains(&n) => Ok(SpinMargin::Fixed(n as u32)),
             NumberOrWord::Word(w) if w == "auto" => Ok(SpinMargin::Auto),
             _ => Err("rt.spin_margin_us must be \"auto\" or 0..=5000 microseconds".into()),
+        }
+    }
+}
+
+/// `[mavlink]`: MAVLink commands, taken on the command socket
+/// ([`crate::mavlink`]).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MavlinkSection {
+    /// ppm's MAVLink system id, 1..=255: a command's target system must be
+    /// it, or 0 (any). Default 1.
+    pub system_id: u8,
+    /// ppm's MAVLink component id, 1..=255: an RC_CHANNELS_OVERRIDE's
+    /// target component must be it, or 0 (any). Default 1.
+    pub component_id: u8,
+    /// The channels MANUAL_CONTROL's x, y, z and r axes drive, by name, or
+    /// `"none"`. Default (`None`) `["ele", "ail", "thr", "rud"]`, those of
+    /// them the frame has.
+    pub axes: Option<Vec<String>>,
+    /// How z, the thrust axis, is read: `"positive"` (0..1000, what
+    /// QGroundControl sends) or `"signed"` (-1000..1000). Default
+    /// `"positive"`.
+    pub thrust: Thrust,
+    /// The channels MANUAL_CONTROL's buttons drive, by name: the first
+    /// for button 1, ... (up to 32); pressed is the channel's `max_us`,
+    /// released its `min_us`. Default none.
+    pub buttons: Vec<String>,
+}
+
+impl Default for MavlinkSection {
+    fn default() -> Self {
+        MavlinkSection {
+            system_id: 1,
+            component_id: 1,
+            axes: None,
+            thrust: Thrust::Positive,
+            buttons: Vec::new(),
         }
     }
 }

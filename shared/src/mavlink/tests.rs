@@ -312,3 +312,23 @@ fn manual_control_drives_its_axes_channels() {
     let c = command(&m2, &m, &s, &current).unwrap();
     assert_eq!(c.channels, current);
 }
+
+#[test]
+fn buttons_drive_their_channels_to_the_ends() {
+    let m = model("[channel.aux2]\nmin_us = 1100\nmax_us = 1900\n");
+    let s = Settings {
+        buttons: vec![5, 4],
+        ..Settings::defaults_for(&m)
+    };
+    let current = Channels::from_ns(&[1_500_000; 8]);
+    // pymavlink's buttons = 5: buttons 1 and 3 pressed.
+    let (_, manual, _) = read_frame(&V2_MANUAL).unwrap();
+    let c = command(&manual, &m, &s, &current).unwrap();
+    assert_eq!(us(&c)[4..], [1000.0, 1900.0, 1500.0, 1500.0]);
+    let Message::ManualControl(mut mc) = manual else {
+        unreachable!()
+    };
+    mc.buttons = 1 << 1;
+    let c = command(&Message::ManualControl(mc), &m, &s, &current).unwrap();
+    assert_eq!(us(&c)[4..6], [2000.0, 1100.0]);
+}

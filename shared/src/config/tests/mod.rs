@@ -564,3 +564,47 @@ fn ingress_allow_and_seq_file() {
         "{e}"
     );
 }
+
+#[test]
+fn mavlink_keys_resolve_against_the_channels_or_name_the_key() {
+    let plan = |text: &str| -> Result<crate::mavlink::Settings, String> {
+        let c = Config::parse(text).map_err(|e| e.to_string())?;
+        Plan::resolve(&c)
+            .map(|p| p.outputs[0].mavlink.clone())
+            .map_err(|e| e.to_string())
+    };
+    let s = plan("").unwrap();
+    assert_eq!((s.system_id, s.component_id), (1, 1));
+    // AETR: x (pitch) ele, y (roll) ail, z thr, r rud.
+    assert_eq!(s.axes, [Some(1), Some(0), Some(2), Some(3)]);
+    let s = plan("[ppm]\norder = 'TAER'\n[mavlink]\nsystem_id = 42\naxes = ['none', 'ail', 'aux1', 'rud']\nbuttons = ['aux2', 'aux1']\nthrust = 'signed'").unwrap();
+    assert_eq!(s.system_id, 42);
+    assert_eq!(s.axes, [None, Some(1), Some(4), Some(3)]);
+    assert_eq!(s.buttons, [5, 4]);
+    assert_eq!(s.thrust, crate::mavlink::Thrust::Signed);
+    // A frame of 2 channels (EdgeTX reads one or more): the axes it has.
+    let s = plan("[ppm]\nreceiver = 'edgetx'\ntiming = 'follow'\nchannels = 2").unwrap();
+    assert_eq!(s.axes, [Some(1), Some(0), None, None]);
+    for (text, key) in [
+        ("[mavlink]\nsystem_id = 0", "mavlink.system_id"),
+        ("[mavlink]\ncomponent_id = 0", "mavlink.component_id"),
+        ("[mavlink]\nsystem_id = 256", "mavlink.system_id"),
+        ("[mavlink]\naxes = ['ele', 'ail', 'thr']", "mavlink.axes"),
+        (
+            "[mavlink]\naxes = ['ele', 'ail', 'thr', 'yaw']",
+            "mavlink.axes",
+        ),
+        ("[mavlink]\nbuttons = ['aux9']", "mavlink.buttons"),
+        ("[mavlink]\nthrust = 'unsigned'", "thrust"),
+        ("[mavlink]\nsysid = 3", "sysid"),
+    ] {
+        let e = plan(text).unwrap_err();
+        assert!(e.contains(key), "{text}: {e}");
+    }
+    // Each output its own system id.
+    let two = "[[outputs]]\nname = 'a'\noutput = 'sim:a.trace'\n[outputs.mavlink]\nsystem_id = 2\n[[outputs]]\nname = 'b'\noutput = 'sim:b.trace'\ningress.listen = '127.0.0.1:5006'\n";
+    let c = Config::parse(two).unwrap();
+    let p = Plan::resolve(&c).unwrap();
+    let ids: Vec<u8> = p.outputs.iter().map(|o| o.mavlink.system_id).collect();
+    assert_eq!(ids, [2, 1]);
+}
