@@ -54,7 +54,8 @@ pub struct Spec {
     pub name: &'static str,
     /// The seed byte added to its CRC (from its field layout).
     pub crc_extra: u8,
-    /// Its payload in MAVLink 1 (no extension fields).
+    /// Its payload without the extension fields: the least a MAVLink 1
+    /// frame carries (MAVLink 2 trims trailing zeros).
     pub v1_len: u8,
     /// Its whole payload in MAVLink 2, extensions included.
     pub max_len: u8,
@@ -248,17 +249,15 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
             format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69) and HEARTBEAT (0)"),
         ));
     };
-    let good_len = if version == 1 {
-        len == spec.v1_len as usize
+    // MAVLink 1 is never trimmed, and pymavlink (like the C library's
+    // reader) packs the extension fields into it as well.
+    let least = if version == 1 {
+        spec.v1_len as usize
     } else {
-        len <= spec.max_len as usize
+        0
     };
-    if !good_len {
-        let want = if version == 1 {
-            format!("{}", spec.v1_len)
-        } else {
-            format!("at most {}", spec.max_len)
-        };
+    if !(least..=spec.max_len as usize).contains(&len) {
+        let want = format!("{least}..={}", spec.max_len);
         return Err(reject(
             RejectReason::MavlinkBadLength,
             format!(

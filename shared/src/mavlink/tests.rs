@@ -110,6 +110,13 @@ fn pymavlink_frames_read_back_to_their_fields() {
         );
     }
     assert_eq!(read_frame(&V2_HEARTBEAT).unwrap().1, Message::Heartbeat);
+    // pymavlink's MAVLink 1 with force_mavlink1 packs the extensions too
+    // (38 bytes), as the C library's reader takes.
+    let mut whole = V1_OVERRIDE[6..24].to_vec();
+    whole.resize(38, 0);
+    whole[18..20].copy_from_slice(&1900u16.to_le_bytes());
+    let (h, o1) = override_of(&frame(1, (0, 255, 190), &RC_CHANNELS_OVERRIDE, &whole));
+    assert_eq!((h.version, o1.chan[8]), (1, 1900));
 
     let (h, s) = override_of(&V2_SIGNED);
     assert!(h.signed);
@@ -161,17 +168,28 @@ fn every_fault_has_its_reason() {
     for cut in 1..V2_SIGNED.len() {
         assert_eq!(reason(&V2_SIGNED[..cut]), MavlinkTruncated, "cut at {cut}");
     }
-    // MAVLink 1 carries no extensions; MAVLink 2 no more than the message has.
-    payload.extend_from_slice(&[0x6c, 0x07]);
+    // MAVLink 1 is never trimmed; neither carries more than the message has.
     assert_eq!(
-        reason(&frame(1, (0, 255, 190), &RC_CHANNELS_OVERRIDE, &payload)),
+        reason(&frame(
+            1,
+            (0, 255, 190),
+            &RC_CHANNELS_OVERRIDE,
+            &payload[..17]
+        )),
         MavlinkBadLength
     );
     payload.resize(39, 7);
-    assert_eq!(
-        reason(&frame(2, (0, 255, 190), &RC_CHANNELS_OVERRIDE, &payload)),
-        MavlinkBadLength
-    );
+    for version in [1, 2] {
+        assert_eq!(
+            reason(&frame(
+                version,
+                (0, 255, 190),
+                &RC_CHANNELS_OVERRIDE,
+                &payload
+            )),
+            MavlinkBadLength
+        );
+    }
     assert_eq!(reason(&V2_PARAM_REQUEST_LIST), MavlinkUnknownMessage);
     // An incompat flag ppm does not know.
     let mut flagged = V2_OVERRIDE;

@@ -1,0 +1,96 @@
+//! MAVLink from pymavlink (from PyPI, a client nobody here wrote) against
+//! the real udp-ingress and ppmd: RC_CHANNELS_OVERRIDE in MAVLink 1 and 2
+//! at 50 Hz, MANUAL_CONTROL, a signed frame, commands for another system;
+//! the line carries exactly the commanded values, in order, and nothing of
+//! what was refused.
+
+use ppm_shared::protocol::RejectReason;
+use ppm_tests::{python3, read_trace, status, stop_all, Sandbox};
+
+/// The sender: each phase sends its message 25 times at 50 Hz (0.5 s).
+/// argv: the port. pymavlink writes MAVLink 2 when MAVLINK20 is set before
+/// it is imported, and MAVLink 1 for a message sent with `force_mavlink1`.
+const SENDER: &str = r#"
+import os, sys, time
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
+
+port = int(sys.argv[1])
+m = mavutil.mavlink_connection("udpout:127.0.0.1:%d" % port, source_system=255, source_component=190)
+
+def phase(send):
+    for _ in range(25):
+        send()
+        time.sleep(0.02)
+
+m.mav.heartbeat_send(6, 8, 0, 0, 4)
+# A: MAVLink 1, all eight channels.
+phase(lambda: m.mav.rc_channels_override_send(1, 1, 1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800, force_mavlink1=True))
+# B: MAVLink 2: chan2 kept, chan5 released, chan9..18 ignored (0) or released (65534).
+phase(lambda: m.mav.rc_channels_override_send(1, 1, 1900, 65535, 1250, 1750, 0, 1000, 2000, 1600, 0, 65534, 0, 0, 0, 0, 0, 0, 0, 0))
+# Refused: for system 9, and for component 7.
+phase(lambda: m.mav.rc_channels_override_send(9, 1, 1111, 1111, 1111, 1111, 1111, 1111, 1111, 1111))
+phase(lambda: m.mav.rc_channels_override_send(1, 7, 1111, 1111, 1111, 1111, 1111, 1111, 1111, 1111))
+# C: MANUAL_CONTROL to system 0 (any): pitch 500, roll -1000, thrust 250, yaw 0, button 2.
+phase(lambda: m.mav.manual_control_send(0, 500, -1000, 250, 0, 2))
+# D: signed MAVLink 2 (ppm reads it; it does not check signatures yet).
+m.setup_signing(bytes(range(32)), sign_outgoing=True)
+phase(lambda: m.mav.rc_channels_override_send(0, 0, 1010, 1020, 1030, 1040, 1050, 1060, 1070, 1080))
+print(mavutil.mavlink.WIRE_PROTOCOL_VERSION)
+"#;
+
+#[test]
+fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
+    if !pymavlink_present() {
+        panic!("pymavlink is needed for this test: python3 -m pip install pymavlink");
+    }
+    let sb = Sandbox::new("mavlink");
+    let cfg = sb.config("[mavlink]\nbuttons = [\"aux1\", \"aux2\"]\n");
+    let trace = sb.dir.join("line.trace");
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    let out = python3(&sb.dir, "", &["-c", SENDER, &sb.port.to_string()]);
+    assert_eq!(out.trim(), "2.0", "the sender's wire version");
+    let s = status(sb.addr());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
+
+    let d = &s.datagrams;
+    assert_eq!(d.received, 6 * 25, "{s:?}");
+    assert_eq!(d.rejected.count(RejectReason::WrongOutput), 50, "{s:?}");
+    assert_eq!(d.rejected.total(), 50, "{s:?}");
+    assert_eq!(d.applied + d.superseded + d.stale, 100, "{s:?}");
+    assert_eq!(s.mavlink_heartbeats, 1, "{s:?}");
+
+    // AETR, eight channels, defaults 1500.
+    let a = [1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800];
+    let b = [1900, 1200, 1250, 1750, 1500, 1000, 2000, 1600];
+    // x 500 onto ele, y -1000 onto ail, z 250 of 0..1000 onto thr, r 0
+    // onto rud; button 2 (aux2) pressed, button 1 (aux1) released; aux3
+    // and aux4 kept, but B is a second old by then (the refused phases),
+    // past the failsafe: they keep their defaults, not B's values.
+    let c = [1000, 1750, 1250, 1500, 1000, 2000, 1500, 1500];
+    let signed = [1010, 1020, 1030, 1040, 1050, 1060, 1070, 1080];
+    let sent = [a, b, c, signed];
+    let frames = read_trace(&trace).decode(false);
+    let mut seen = vec![];
+    for f in &frames {
+        let got = f.channels_us();
+        let Some(k) = sent
+            .iter()
+            .position(|w| got.len() <= 8 && w[..got.len()] == got[..])
+        else {
+            panic!("a frame at {} carries {got:?}, never sent", f.start_ns);
+        };
+        if got.len() == 8 && seen.last() != Some(&k) {
+            seen.push(k);
+        }
+    }
+    assert_eq!(seen, [0, 1, 2, 3], "the commands in the order sent");
+}
+
+fn pymavlink_present() -> bool {
+    std::process::Command::new("python3")
+        .args(["-c", "import pymavlink"])
+        .status()
+        .is_ok_and(|s| s.success())
+}
