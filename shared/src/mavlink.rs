@@ -170,6 +170,41 @@ impl Message {
     }
 }
 
+impl Message {
+    /// The message's spec and its whole payload (extensions included; [`frame`]
+    /// trims it for MAVLink 2). A HEARTBEAT is a groundstation's: type GCS
+    /// (6), autopilot INVALID (8).
+    pub fn encode(&self) -> (&'static Spec, Vec<u8>) {
+        let mut p = Vec::with_capacity(38);
+        match self {
+            Message::Heartbeat => {
+                p.extend_from_slice(&[0, 0, 0, 0, 6, 8, 0, 0, 3]);
+                (&HEARTBEAT, p)
+            }
+            Message::RcOverride(o) => {
+                for c in &o.chan[..8] {
+                    p.extend_from_slice(&c.to_le_bytes());
+                }
+                p.extend_from_slice(&[o.target_system, o.target_component]);
+                for c in &o.chan[8..] {
+                    p.extend_from_slice(&c.to_le_bytes());
+                }
+                (&RC_CHANNELS_OVERRIDE, p)
+            }
+            Message::ManualControl(m) => {
+                for a in m.axes {
+                    p.extend_from_slice(&a.to_le_bytes());
+                }
+                p.extend_from_slice(&(m.buttons as u16).to_le_bytes());
+                p.push(m.target);
+                p.extend_from_slice(&((m.buttons >> 16) as u16).to_le_bytes());
+                p.resize(MANUAL_CONTROL.max_len as usize, 0);
+                (&MANUAL_CONTROL, p)
+            }
+        }
+    }
+}
+
 fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
     Reject {
         reason,

@@ -350,3 +350,28 @@ fn buttons_drive_their_channels_to_the_ends() {
     let c = command(&Message::ManualControl(mc), &m, &s, &current).unwrap();
     assert_eq!(us(&c)[4..6], [2000.0, 1100.0]);
 }
+
+#[test]
+fn messages_encode_to_what_they_were_read_from() {
+    for bytes in [
+        &V1_OVERRIDE[..],
+        &V2_OVERRIDE,
+        &V2_OVERRIDE_TRIMMED,
+        &V2_MANUAL,
+        &V1_MANUAL,
+    ] {
+        let (h, m, _) = read_frame(bytes).unwrap();
+        let (spec, payload) = m.encode();
+        assert_eq!(spec.id, h.msgid);
+        let again = frame(h.version, (h.seq, h.sysid, h.compid), spec, &payload);
+        if h.version == 2 {
+            assert_eq!(again, bytes);
+        }
+        assert_eq!(read_frame(&again).unwrap().1, m);
+    }
+    let (_, hb) = Message::Heartbeat.encode();
+    assert_eq!(
+        frame(2, (0, 255, 190), &HEARTBEAT, &hb)[..16],
+        V2_HEARTBEAT[..16]
+    );
+}
