@@ -363,6 +363,8 @@ pub struct Datagram {
     pub frames: usize,
     /// A frame was signed.
     pub signed: bool,
+    /// The MAVLink version of its last frame.
+    pub version: u8,
 }
 
 /// Reads a whole MAVLink datagram: every frame must be good, or the
@@ -372,6 +374,7 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
         command: None,
         frames: 0,
         signed: false,
+        version: 0,
     };
     let mut at = 0;
     while at < bytes.len() {
@@ -383,6 +386,7 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
         })?;
         d.frames += 1;
         d.signed |= header.signed;
+        d.version = header.version;
         if message.is_command() {
             d.command = Some((header, message));
         }

@@ -33,6 +33,15 @@ phase(lambda: m.mav.rc_channels_override_send(9, 1, 1111, 1111, 1111, 1111, 1111
 phase(lambda: m.mav.rc_channels_override_send(1, 7, 1111, 1111, 1111, 1111, 1111, 1111, 1111, 1111))
 # C: MANUAL_CONTROL to system 0 (any): pitch 500, roll -1000, thrust 250, yaw 0, button 2.
 phase(lambda: m.mav.manual_control_send(0, 500, -1000, 250, 0, 2))
+# ppm's HEARTBEAT, heard by now (before signing: then pymavlink drops unsigned frames).
+beats = []
+while True:
+    hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5 if beats else 3)
+    if hb is None:
+        break
+    beats.append(hb)
+print(len(beats), sorted(set((b.get_srcSystem(), b.get_srcComponent(), b.type, b.autopilot) for b in beats)))
+print(" ".join(str(b.system_status) for b in beats))
 # D: signed MAVLink 2 (ppm reads it; it does not check signatures yet).
 m.setup_signing(bytes(range(32)), sign_outgoing=True)
 phase(lambda: m.mav.rc_channels_override_send(0, 0, 1010, 1020, 1030, 1040, 1050, 1060, 1070, 1080))
@@ -50,7 +59,20 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
     let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
     let mut ingress = sb.start_ingress(&cfg, &[]);
     let out = python3(&sb.dir, "", &["-c", SENDER, &sb.port.to_string()]);
-    assert_eq!(out.trim(), "2.0", "the sender's wire version");
+    // ppm's HEARTBEATs as pymavlink read them: from system 1, component
+    // 1, type and autopilot GENERIC; the first at once (the line still
+    // silent: STANDBY), then one a second, each with the line's state as
+    // ppmd last reported it (STANDBY, ACTIVE or, between the phases,
+    // CRITICAL for the failsafe).
+    let lines: Vec<&str> = out.lines().collect();
+    assert_eq!(lines.len(), 3, "{out}");
+    let (n, ids) = lines[0].split_once(' ').unwrap();
+    assert!((3..=5).contains(&n.parse::<u32>().unwrap()), "{out}");
+    assert_eq!(ids, "[(1, 1, 0, 0)]", "{out}");
+    let states: Vec<&str> = lines[1].split(' ').collect();
+    assert_eq!(states[0], "3", "{out}");
+    assert!(states.iter().all(|s| ["3", "4", "5"].contains(s)), "{out}");
+    assert_eq!(lines[2], "2.0", "the sender's wire version");
     let s = status(sb.addr());
     stop_all(&mut ppmd, &mut [&mut ingress]);
 
@@ -59,7 +81,13 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
     assert_eq!(d.rejected.count(RejectReason::WrongOutput), 50, "{s:?}");
     assert_eq!(d.rejected.total(), 50, "{s:?}");
     assert_eq!(d.applied + d.superseded + d.stale, 100, "{s:?}");
-    assert_eq!(s.mavlink_heartbeats, 1, "{s:?}");
+    assert_eq!(s.mavlink.heartbeats, 1, "{s:?}");
+    // Heard from since the first datagram, 3 s before this status: a
+    // HEARTBEAT at once, then one a second, none held (loopback lies in
+    // ingress.status_allow).
+    let m = &s.mavlink;
+    assert_eq!((m.peers, m.held), (1, 0), "{s:?}");
+    assert!((3..=5).contains(&m.sent), "{s:?}");
 
     // AETR, eight channels, defaults 1500.
     let a = [1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800];

@@ -26,6 +26,7 @@
 //! Its unit tests are in `src/tests.rs`.
 
 pub mod cli;
+pub mod peers;
 pub mod seqfile;
 pub mod server;
 
@@ -39,7 +40,8 @@ use ppm_shared::protocol::{
     self, Command, Reject, RejectReason, SeqGate, To, STATUS_REPLY_MAX_RATIO,
 };
 use ppm_shared::status::{
-    Datagrams, EdgeError, PpmdStatus, PublishLatency, ReceiverStatus, Rejected, StatusReply,
+    Datagrams, EdgeError, MavlinkStatus, PpmdStatus, PublishLatency, ReceiverStatus, Rejected,
+    StatusReply,
 };
 use serde_json::Value;
 use std::net::{IpAddr, SocketAddr};
@@ -247,6 +249,10 @@ pub struct Intake {
     name: String,
     model: FrameModel,
     mavlink: mavlink::Settings,
+    peers: peers::Peers,
+    /// `ingress.status_allow`: peers there get MAVLink replies without
+    /// earning them.
+    status_allow: Vec<IpNet>,
     key: Option<AuthKey>,
     allow: Vec<IpNet>,
     /// The `seq` of the last command that passed the gate.
@@ -272,6 +278,8 @@ impl Intake {
         Intake {
             name: name.to_owned(),
             mavlink: mavlink::Settings::defaults_for(&model),
+            peers: peers::Peers::new(1, 1),
+            status_allow: Vec::new(),
             model,
             key: None,
             allow: Vec::new(),
@@ -319,7 +327,15 @@ impl Intake {
     /// MAVLink commands are for this system and component, and
     /// MANUAL_CONTROL drives these channels ([`mavlink::Settings`]).
     pub fn with_mavlink(mut self, settings: mavlink::Settings) -> Intake {
+        self.peers = peers::Peers::new(settings.system_id, settings.component_id);
         self.mavlink = settings;
+        self
+    }
+
+    /// MAVLink peers in `nets` (`ingress.status_allow`) get replies without
+    /// earning them ([`peers`]).
+    pub fn with_status_allow(mut self, nets: Vec<IpNet>) -> Intake {
+        self.status_allow = nets;
         self
     }
 
@@ -353,7 +369,7 @@ impl Intake {
                 detail: format!("source {} is not in ingress.allow", from.ip()),
             })
         } else if mavlink::is_mavlink(datagram) {
-            match self.mavlink_command(datagram, now) {
+            match self.mavlink_command(datagram, from, now) {
                 Ok(Some(command)) => Ok(command),
                 Ok(None) => {
                     self.counters.mavlink_heartbeats += 1;
@@ -495,8 +511,25 @@ impl Intake {
     /// "keep" never brings back a command the line has already given up.
     /// With a key set, MAVLink commands are refused as `unsigned`: ppm does
     /// not check MAVLink signatures yet.
-    fn mavlink_command(&self, datagram: &[u8], now: Instant) -> Result<Option<Command>, Reject> {
+    ///
+    /// A datagram read whole makes its source a peer ([`peers`]), unless a
+    /// key is set.
+    fn mavlink_command(
+        &mut self,
+        datagram: &[u8],
+        from: SocketAddr,
+        now: Instant,
+    ) -> Result<Option<Command>, Reject> {
         let d = mavlink::read_datagram(datagram)?;
+        if self.key.is_none() {
+            let ip = from.ip();
+            let exempt = self
+                .status_allow
+                .iter()
+                .any(|n| n.contains(&ip) || n.contains(&ip.to_canonical()));
+            self.peers
+                .heard(from, d.version, datagram.len(), exempt, now);
+        }
         let Some((_, message)) = d.command else {
             return Ok(None);
         };
@@ -516,6 +549,22 @@ impl Intake {
             _ => self.model.defaults(),
         };
         mavlink::command(&message, &self.model, &self.mavlink, &current).map(Some)
+    }
+
+    /// The MAVLink replies due at `now` (appended to `out`: where each goes,
+    /// and the frame), for a line in state `line` ([`peers::Peers::due`]).
+    pub fn mavlink_due(
+        &mut self,
+        now: Instant,
+        line: Option<LineState>,
+        out: &mut Vec<(SocketAddr, Vec<u8>)>,
+    ) {
+        self.peers.due(now, peers::mav_state(line), out);
+    }
+
+    /// A reply [`Intake::mavlink_due`] gave could not be sent.
+    pub fn mavlink_not_sent(&mut self) {
+        self.peers.not_sent();
     }
 
     /// The newest valid command since the last call (to be published).
@@ -587,7 +636,12 @@ impl Intake {
             status_requests: c.status_requests,
             status_dropped: c.status_dropped,
             status_short: c.status_short,
-            mavlink_heartbeats: c.mavlink_heartbeats,
+            mavlink: MavlinkStatus {
+                heartbeats: c.mavlink_heartbeats,
+                peers: self.peers.known() as u64,
+                sent: self.peers.counters().sent,
+                held: self.peers.counters().held,
+            },
             newest_command_age_ms: self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
             newest_seq: self.latest.and_then(|r| r.command.seq),
             publish_latency_us: PublishLatency {

@@ -4,7 +4,9 @@
 //! [`Server::run`].
 
 use crate::seqfile::SeqFile;
-use crate::{pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer};
+use crate::{
+    pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer, PPMD_STALE_AFTER_NS,
+};
 use anyhow::{Context, Result};
 use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
@@ -12,6 +14,7 @@ use mio::{Events, Interest, Poll, Token};
 use ppm_shared::auth::AuthKey;
 use ppm_shared::config::{IngressSection, OutputPlan, Shared};
 use ppm_shared::ipc::{self, CommandSample, IpcError, PublishError, TimingSnapshot};
+use ppm_shared::line::LineState;
 use ppm_shared::logging::Chain;
 use ppm_shared::sched;
 use ppm_shared::time::{now_ns, realtime_ns};
@@ -161,6 +164,8 @@ pub struct Server {
     /// that sends none in 3 s is stale anyway.
     awaiting_ppmd: Option<Instant>,
     reply_budget: ReplyBudget,
+    /// MAVLink replies due, and where they go.
+    mavlink_out: Vec<(SocketAddr, Vec<u8>)>,
     ingress_seq: u64,
     fingerprint: u64,
     publish_errors: u64,
@@ -294,6 +299,7 @@ impl Server {
                 }
             }
         }
+        self.mavlink_replies();
         if let Some(f) = &mut self.seq_file {
             match f.note(self.intake.last_seq(), Instant::now()) {
                 Ok(_) => self.seq_save_failed = false,
@@ -312,6 +318,27 @@ impl Server {
             log::info!("{}", self.intake.counters().summary());
             self.last_report = Instant::now();
             self.reported_received = received;
+        }
+    }
+
+    /// Sends the MAVLink replies due (HEARTBEATs to the groundstations
+    /// heard from), with the line's state from ppmd's newest snapshot.
+    fn mavlink_replies(&mut self) {
+        if let Some(sub) = &self.stats {
+            newest_snapshot(sub, &mut self.ppmd_snapshot);
+        }
+        let now_mono = now_ns();
+        let line = self
+            .ppmd_snapshot
+            .filter(|s| now_mono.saturating_sub(s.mono_ns) <= PPMD_STALE_AFTER_NS)
+            .and_then(|s| LineState::from_code(s.state));
+        self.intake
+            .mavlink_due(Instant::now(), line, &mut self.mavlink_out);
+        for (to, frame) in self.mavlink_out.drain(..) {
+            if let Err(e) = self.socket.send_to(&frame, to) {
+                log::debug!("MAVLink reply to {to}: {e}");
+                self.intake.mavlink_not_sent();
+            }
         }
     }
 
@@ -559,7 +586,8 @@ impl Server {
             Duration::from_millis(cfg.ingress.reject_log_interval_ms),
         )
         .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms))
-        .with_mavlink(cfg.mavlink.clone());
+        .with_mavlink(cfg.mavlink.clone())
+        .with_status_allow(status_allow.clone());
         if let (Some(key), Some(file)) = (key, &seq_file) {
             log::info!(
                 "commands must be signed with the key in {} and name this output (\"to\": \"{}\"); status queries need no signature; {} (the last accepted seq is kept in {})",
@@ -603,6 +631,7 @@ impl Server {
             ppmd_snapshot: None,
             awaiting_ppmd,
             reply_budget: ReplyBudget::new(),
+            mavlink_out: Vec::new(),
             ingress_seq: 0,
             fingerprint,
             publish_errors: 0,
