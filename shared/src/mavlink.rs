@@ -23,6 +23,9 @@
 //!   channels [`Settings::axes`] names (pitch, roll, thrust, yaw onto ele,
 //!   ail, thr, rud by default); `INT16_MAX` keeps the channel's value.
 //! - `HEARTBEAT` (0): a peer's presence; no command.
+//! - `PARAM_REQUEST_LIST` (21): answered with ppm's one parameter (the
+//!   channel count), which is what QGroundControl waits for before it lets
+//!   its joystick be enabled.
 //!
 //! Any other message id is `mavlink_unknown_message`: its CRC cannot be
 //! checked without its CRC_EXTRA, so it is no more trusted than junk.
@@ -94,8 +97,32 @@ pub const RC_CHANNELS_OVERRIDE: Spec = Spec {
     max_len: 38,
 };
 
+/// `PARAM_REQUEST_LIST`: a groundstation asks for the parameters.
+pub const PARAM_REQUEST_LIST: Spec = Spec {
+    id: 21,
+    name: "PARAM_REQUEST_LIST",
+    crc_extra: 159,
+    v1_len: 2,
+    max_len: 2,
+};
+/// `PARAM_VALUE`: ppm's answer, its one parameter.
+pub const PARAM_VALUE: Spec = Spec {
+    id: 22,
+    name: "PARAM_VALUE",
+    crc_extra: 220,
+    v1_len: 25,
+    max_len: 25,
+};
+
 /// Every message ppm reads or writes.
-pub const SPECS: [Spec; 4] = [HEARTBEAT, RC_CHANNELS, MANUAL_CONTROL, RC_CHANNELS_OVERRIDE];
+pub const SPECS: [Spec; 6] = [
+    HEARTBEAT,
+    PARAM_REQUEST_LIST,
+    PARAM_VALUE,
+    RC_CHANNELS,
+    MANUAL_CONTROL,
+    RC_CHANNELS_OVERRIDE,
+];
 
 /// The spec of message `id`, if ppm knows it.
 pub fn spec(id: u32) -> Option<&'static Spec> {
@@ -161,12 +188,14 @@ pub enum Message {
     RcOverride(RcOverride),
     /// Joystick axes.
     ManualControl(ManualControl),
+    /// A request for the parameters, for (target system, target component).
+    ParamRequestList(u8, u8),
 }
 
 impl Message {
     /// True for the messages that carry a command.
     pub fn is_command(&self) -> bool {
-        !matches!(self, Message::Heartbeat)
+        matches!(self, Message::RcOverride(_) | Message::ManualControl(_))
     }
 }
 
@@ -200,6 +229,10 @@ impl Message {
                 p.extend_from_slice(&((m.buttons >> 16) as u16).to_le_bytes());
                 p.resize(MANUAL_CONTROL.max_len as usize, 0);
                 (&MANUAL_CONTROL, p)
+            }
+            Message::ParamRequestList(s, c) => {
+                p.extend_from_slice(&[*s, *c]);
+                (&PARAM_REQUEST_LIST, p)
             }
         }
     }
@@ -281,7 +314,7 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
     let Some(spec) = spec(msgid) else {
         return Err(reject(
             RejectReason::MavlinkUnknownMessage,
-            format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69) and HEARTBEAT (0)"),
+            format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69), HEARTBEAT (0) and PARAM_REQUEST_LIST (21)"),
         ));
     };
     // MAVLink 1 is never trimmed, and pymavlink (like the C library's
@@ -316,6 +349,7 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
     let p = Payload(&bytes[header_len..header_len + len]);
     let message = match msgid {
         0 => Message::Heartbeat,
+        21 => Message::ParamRequestList(p.u8(0), p.u8(1)),
         69 => Message::ManualControl(ManualControl {
             axes: [p.i16(0), p.i16(2), p.i16(4), p.i16(6)],
             buttons: p.u16(8) as u32 | (p.u16(11) as u32) << 16,
@@ -365,6 +399,8 @@ pub struct Datagram {
     pub signed: bool,
     /// The MAVLink version of its last frame.
     pub version: u8,
+    /// The targets (system, component) of its last PARAM_REQUEST_LIST.
+    pub param_request: Option<(u8, u8)>,
 }
 
 /// Reads a whole MAVLink datagram: every frame must be good, or the
@@ -375,6 +411,7 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
         frames: 0,
         signed: false,
         version: 0,
+        param_request: None,
     };
     let mut at = 0;
     while at < bytes.len() {
@@ -389,6 +426,9 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
         d.version = header.version;
         if message.is_command() {
             d.command = Some((header, message));
+        }
+        if let Message::ParamRequestList(s, c) = message {
+            d.param_request = Some((s, c));
         }
         at += len;
     }
@@ -468,8 +508,8 @@ pub fn command(
         }
     };
     match message {
-        Message::Heartbeat => {
-            return Err(reject(RejectReason::BadShape, "a HEARTBEAT is no command"))
+        Message::Heartbeat | Message::ParamRequestList(..) => {
+            return Err(reject(RejectReason::BadShape, "not a command"))
         }
         Message::RcOverride(o) => {
             target(o.target_system)?;

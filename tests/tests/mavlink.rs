@@ -42,6 +42,10 @@ while True:
     beats.append(hb)
 print(len(beats), sorted(set((b.get_srcSystem(), b.get_srcComponent(), b.type, b.autopilot) for b in beats)))
 print(" ".join(str(b.system_status) for b in beats))
+# The parameters, as QGroundControl asks for them.
+m.mav.param_request_list_send(1, 1)
+pv = m.recv_match(type="PARAM_VALUE", blocking=True, timeout=3)
+print(pv.param_id, pv.param_value, pv.param_type, pv.param_count, pv.param_index)
 # D: signed MAVLink 2 (ppm reads it; it does not check signatures yet).
 m.setup_signing(bytes(range(32)), sign_outgoing=True)
 phase(lambda: m.mav.rc_channels_override_send(0, 0, 1010, 1020, 1030, 1040, 1050, 1060, 1070, 1080))
@@ -65,14 +69,15 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
     // ppmd last reported it (STANDBY, ACTIVE or, between the phases,
     // CRITICAL for the failsafe).
     let lines: Vec<&str> = out.lines().collect();
-    assert_eq!(lines.len(), 3, "{out}");
+    assert_eq!(lines.len(), 4, "{out}");
     let (n, ids) = lines[0].split_once(' ').unwrap();
     assert!((3..=5).contains(&n.parse::<u32>().unwrap()), "{out}");
     assert_eq!(ids, "[(1, 1, 0, 0)]", "{out}");
     let states: Vec<&str> = lines[1].split(' ').collect();
     assert_eq!(states[0], "3", "{out}");
     assert!(states.iter().all(|s| ["3", "4", "5"].contains(s)), "{out}");
-    assert_eq!(lines[2], "2.0", "the sender's wire version");
+    assert_eq!(lines[2], "PPM_CHANNELS 8.0 9 1 0", "ppm's one parameter");
+    assert_eq!(lines[3], "2.0", "the sender's wire version");
     let s = status(sb.addr());
     stop_all(&mut ppmd, &mut [&mut ingress]);
 
@@ -81,13 +86,14 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
     assert_eq!(d.rejected.count(RejectReason::WrongOutput), 50, "{s:?}");
     assert_eq!(d.rejected.total(), 50, "{s:?}");
     assert_eq!(d.applied + d.superseded + d.stale, 100, "{s:?}");
-    assert_eq!(s.mavlink.heartbeats, 1, "{s:?}");
+    // The sender's HEARTBEAT and its PARAM_REQUEST_LIST.
+    assert_eq!(s.mavlink.no_command, 2, "{s:?}");
     // Heard from since the first datagram, 3 s before this status: a
-    // HEARTBEAT at once, then one a second, none held (loopback lies in
-    // ingress.status_allow).
+    // HEARTBEAT at once, then one a second, and the PARAM_VALUE; none held
+    // (loopback lies in ingress.status_allow).
     let m = &s.mavlink;
     assert_eq!((m.peers, m.held), (1, 0), "{s:?}");
-    assert!((3..=5).contains(&m.sent), "{s:?}");
+    assert!((4..=6).contains(&m.sent), "{s:?}");
 
     // AETR, eight channels, defaults 1500.
     let a = [1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800];
@@ -121,4 +127,63 @@ fn pymavlink_present() -> bool {
         .args(["-c", "import pymavlink"])
         .status()
         .is_ok_and(|s| s.success())
+}
+
+/// The pymavlink sender of the README's "From a MAVLink groundstation",
+/// run as written (aimed at this test's port): the line carries its
+/// throttle ramp, in order, with the other channels as it sent them.
+#[test]
+fn readme_pymavlink_sender_flies_the_line() {
+    assert!(pymavlink_present(), "pymavlink is needed for this test");
+    let readme = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md"))
+        .expect("the README");
+    let section = readme
+        .split("### From a MAVLink groundstation\n")
+        .nth(1)
+        .expect("the README has the section");
+    let code = section
+        .split("```python\n")
+        .nth(1)
+        .and_then(|s| s.split("```").next())
+        .expect("a python block");
+    let sb = Sandbox::new("mavreadme");
+    let code = code.replace("192.168.1.20:5005", &format!("127.0.0.1:{}", sb.port));
+    assert!(
+        code.contains(&sb.port.to_string()),
+        "the block sends to 192.168.1.20:5005"
+    );
+    let cfg = sb.config("");
+    let trace = sb.dir.join("line.trace");
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    python3(&sb.dir, "", &["-c", &code]);
+    stop_all(&mut ppmd, &mut [&mut ingress]);
+    // Every frame, whole or cut short at a late edge, carries the sent
+    // values; the whole ones the ramp in order.
+    let frames = read_trace(&trace).decode(false);
+    let mut thr = vec![];
+    for f in &frames {
+        let ch = f.channels_us();
+        let want = [
+            1500,
+            1500,
+            ch.get(2).copied().unwrap_or(0),
+            1500,
+            1500,
+            1500,
+            1500,
+            1500,
+        ];
+        assert_eq!(ch[..], want[..ch.len()], "a frame at {}", f.start_ns);
+        if ch.len() == 8 {
+            thr.push(ch[2]);
+        }
+    }
+    assert!(thr.len() >= 20, "{} whole frames", thr.len());
+    assert!(thr.windows(2).all(|w| w[1] >= w[0]), "{thr:?}");
+    assert!(
+        thr.iter().all(|t| (1000..=1498).contains(t) && t % 2 == 0),
+        "{thr:?}"
+    );
+    assert!(thr.last().unwrap() - thr[0] > 250, "{thr:?}");
 }

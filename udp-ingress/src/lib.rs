@@ -86,9 +86,9 @@ pub struct Counters {
     /// Status queries answered with `{"pad_to": N}` instead of the reply:
     /// too short for it from a source outside `ingress.status_allow`.
     pub status_short: u64,
-    /// MAVLink datagrams of HEARTBEATs only (a groundstation's presence,
-    /// not a command): counted here only, never in `received`.
-    pub mavlink_heartbeats: u64,
+    /// MAVLink datagrams without a command (HEARTBEATs, requests for the
+    /// parameters): counted here only, never in `received`.
+    pub mavlink_no_command: u64,
 }
 
 impl Counters {
@@ -143,8 +143,9 @@ pub enum Outcome {
     Rejected(RejectReason, Option<String>),
     /// A status query: answer it with [`Intake::status`] (nothing changed).
     Status,
-    /// MAVLink HEARTBEATs and no command (nothing changed).
-    Heartbeat,
+    /// MAVLink without a command: HEARTBEATs, a request for the
+    /// parameters (nothing changed).
+    NoCommand,
 }
 
 /// A read-only query a datagram may carry instead of a command.
@@ -278,7 +279,7 @@ impl Intake {
         Intake {
             name: name.to_owned(),
             mavlink: mavlink::Settings::defaults_for(&model),
-            peers: peers::Peers::new(1, 1),
+            peers: peers::Peers::new(1, 1, model.channels()),
             status_allow: Vec::new(),
             model,
             key: None,
@@ -327,7 +328,11 @@ impl Intake {
     /// MAVLink commands are for this system and component, and
     /// MANUAL_CONTROL drives these channels ([`mavlink::Settings`]).
     pub fn with_mavlink(mut self, settings: mavlink::Settings) -> Intake {
-        self.peers = peers::Peers::new(settings.system_id, settings.component_id);
+        self.peers = peers::Peers::new(
+            settings.system_id,
+            settings.component_id,
+            self.model.channels(),
+        );
         self.mavlink = settings;
         self
     }
@@ -372,8 +377,8 @@ impl Intake {
             match self.mavlink_command(datagram, from, now) {
                 Ok(Some(command)) => Ok(command),
                 Ok(None) => {
-                    self.counters.mavlink_heartbeats += 1;
-                    return Outcome::Heartbeat;
+                    self.counters.mavlink_no_command += 1;
+                    return Outcome::NoCommand;
                 }
                 Err(r) => Err(r),
             }
@@ -504,7 +509,8 @@ impl Intake {
         }
     }
 
-    /// The command a MAVLink datagram carries (`None`: HEARTBEATs only).
+    /// The command a MAVLink datagram carries (`None`: none, such as
+    /// HEARTBEATs only).
     /// Its "keep" values are those of the last accepted command while that
     /// is fresh (younger than the failsafe's `after_ms`, given as
     /// [`Intake::forget_seq_after`]), the channels' defaults otherwise: a
@@ -529,6 +535,12 @@ impl Intake {
                 .any(|n| n.contains(&ip) || n.contains(&ip.to_canonical()));
             self.peers
                 .heard(from, d.version, datagram.len(), exempt, now);
+            let ours = |t: u8, id: u8| t == 0 || t == id;
+            if let Some((s, c)) = d.param_request {
+                if ours(s, self.mavlink.system_id) && ours(c, self.mavlink.component_id) {
+                    self.peers.request_params(from);
+                }
+            }
         }
         let Some((_, message)) = d.command else {
             return Ok(None);
@@ -637,7 +649,7 @@ impl Intake {
             status_dropped: c.status_dropped,
             status_short: c.status_short,
             mavlink: MavlinkStatus {
-                heartbeats: c.mavlink_heartbeats,
+                no_command: c.mavlink_no_command,
                 peers: self.peers.known() as u64,
                 sent: self.peers.counters().sent,
                 held: self.peers.counters().held,

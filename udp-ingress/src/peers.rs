@@ -1,6 +1,8 @@
 //! The MAVLink groundstations udp-ingress talks back to: after a peer's
 //! first good MAVLink datagram, a HEARTBEAT a second in the peer's MAVLink
-//! version, so that a groundstation sees ppm as a vehicle.
+//! version, so that a groundstation sees ppm as a vehicle; and to a
+//! PARAM_REQUEST_LIST, ppm's one parameter, `PPM_CHANNELS` (the channel
+//! count), which QGroundControl waits for before it offers its joystick.
 //!
 //! No peer gets more than [`REPLY_MAX_RATIO`] times the bytes it sent (a
 //! credit, capped at [`CREDIT_MAX`] bytes), unless it lies in
@@ -11,7 +13,7 @@
 //!
 //! Logic only, without I/O: the server sends what [`Peers::due`] gives.
 
-use ppm_shared::mavlink::{self, HEARTBEAT};
+use ppm_shared::mavlink::{self, HEARTBEAT, PARAM_VALUE};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
@@ -50,6 +52,8 @@ struct Peer {
     last_heard: Instant,
     credit: usize,
     exempt: bool,
+    /// It asked for the parameters.
+    params_due: bool,
 }
 
 /// Counters of the replies.
@@ -68,18 +72,21 @@ pub struct Peers {
     peers: Vec<Peer>,
     system_id: u8,
     component_id: u8,
+    channels: usize,
     next_heartbeat: Option<Instant>,
     seq: u8,
     counters: ReplyCounters,
 }
 
 impl Peers {
-    /// No peers yet; replies come from `system_id` / `component_id`.
-    pub fn new(system_id: u8, component_id: u8) -> Peers {
+    /// No peers yet; replies come from `system_id` / `component_id`, for
+    /// an output of `channels` channels.
+    pub fn new(system_id: u8, component_id: u8, channels: usize) -> Peers {
         Peers {
             peers: Vec::with_capacity(MAX_PEERS),
             system_id,
             component_id,
+            channels,
             next_heartbeat: None,
             seq: 0,
             counters: ReplyCounters::default(),
@@ -109,6 +116,7 @@ impl Peers {
             last_heard: now,
             credit: earned.min(CREDIT_MAX),
             exempt,
+            params_due: false,
         });
         // The first HEARTBEAT goes out at once: a groundstation shows the
         // vehicle without waiting a second.
@@ -123,6 +131,14 @@ impl Peers {
             .iter()
             .filter(|p| now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT)
             .count()
+    }
+
+    /// Peer `addr` (just [`Peers::heard`]) asked for the parameters: the
+    /// next [`Peers::due`] answers.
+    pub fn request_params(&mut self, addr: SocketAddr) {
+        if let Some(p) = self.peers.iter_mut().find(|p| p.addr == addr) {
+            p.params_due = true;
+        }
     }
 
     /// How many peers are kept (those heard from within [`PEER_TIMEOUT`]
@@ -142,6 +158,19 @@ impl Peers {
     pub fn due(&mut self, now: Instant, state: u8, out: &mut Vec<(SocketAddr, Vec<u8>)>) {
         self.peers
             .retain(|p| now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT);
+        // PARAM_VALUE: value (f32), count 1, index 0, id (16 chars), type
+        // REAL32 (9).
+        let mut param = (self.channels as f32).to_le_bytes().to_vec();
+        param.extend_from_slice(&[1, 0, 0, 0]);
+        param.extend_from_slice(b"PPM_CHANNELS\0\0\0\0");
+        param.push(9);
+        for i in 0..self.peers.len() {
+            if !std::mem::take(&mut self.peers[i].params_due) {
+                continue;
+            }
+            let frame = self.frame(self.peers[i].version, &PARAM_VALUE, &param);
+            self.send(i, frame, out);
+        }
         let Some(at) = self.next_heartbeat else {
             return;
         };
@@ -163,25 +192,36 @@ impl Peers {
         // custom_mode 0, type, autopilot, base_mode 0, system_status,
         // mavlink_version 3.
         let payload = [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, state, 3];
+        for i in 0..self.peers.len() {
+            let frame = self.frame(self.peers[i].version, &HEARTBEAT, &payload);
+            self.send(i, frame, out);
+        }
+    }
+
+    /// One frame from ppm, numbered.
+    fn frame(&mut self, version: u8, spec: &mavlink::Spec, payload: &[u8]) -> Vec<u8> {
         let seq = self.seq;
         self.seq = self.seq.wrapping_add(1);
-        for p in &mut self.peers {
-            let frame = mavlink::frame(
-                p.version,
-                (seq, self.system_id, self.component_id),
-                &HEARTBEAT,
-                &payload,
-            );
-            if !p.exempt && p.credit < frame.len() {
-                self.counters.held += 1;
-                continue;
-            }
-            if !p.exempt {
-                p.credit -= frame.len();
-            }
-            self.counters.sent += 1;
-            out.push((p.addr, frame));
+        mavlink::frame(
+            version,
+            (seq, self.system_id, self.component_id),
+            spec,
+            payload,
+        )
+    }
+
+    /// Hands `frame` on for peer `i` if it has earned it.
+    fn send(&mut self, i: usize, frame: Vec<u8>, out: &mut Vec<(SocketAddr, Vec<u8>)>) {
+        let p = &mut self.peers[i];
+        if !p.exempt && p.credit < frame.len() {
+            self.counters.held += 1;
+            return;
         }
+        if !p.exempt {
+            p.credit -= frame.len();
+        }
+        self.counters.sent += 1;
+        out.push((p.addr, frame));
     }
 
     /// A frame [`Peers::due`] gave could not be sent.
@@ -218,7 +258,7 @@ mod tests {
     #[test]
     fn a_peer_gets_a_heartbeat_a_second_in_its_version_while_it_is_heard() {
         let t = Instant::now();
-        let mut p = Peers::new(1, 1);
+        let mut p = Peers::new(1, 1, 8);
         let mut out = vec![];
         p.due(t, 3, &mut out);
         assert!(out.is_empty(), "no peer, no heartbeat");
@@ -252,7 +292,7 @@ mod tests {
     #[test]
     fn a_peer_gets_at_most_three_times_what_it_sent_unless_exempt() {
         let t = Instant::now();
-        let mut p = Peers::new(1, 1);
+        let mut p = Peers::new(1, 1, 8);
         let mut out = vec![];
         // One forged 10-byte datagram earns 30 bytes: one MAVLink 2
         // HEARTBEAT (21 bytes), not two.
@@ -272,6 +312,41 @@ mod tests {
         assert!(sent <= 10 * REPLY_MAX_RATIO);
     }
 
+    /// pymavlink 2.4.50's param_value_send(b"PPM_CHANNELS", 8.0, 9, 1, 0)
+    /// from system 1, component 1, MAVLink 2.
+    const PYMAVLINK_PARAM_VALUE: [u8; 37] = [
+        0xfd, 0x19, 0x00, 0x00, 0x00, 0x01, 0x01, 0x16, 0x00, 0x00, 0x00, 0x00, 0x00, 0x41, 0x01,
+        0x00, 0x00, 0x00, 0x50, 0x50, 0x4d, 0x5f, 0x43, 0x48, 0x41, 0x4e, 0x4e, 0x45, 0x4c, 0x53,
+        0x00, 0x00, 0x00, 0x00, 0x09, 0x34, 0x00,
+    ];
+
+    #[test]
+    fn a_request_for_the_parameters_gets_ppms_one_parameter() {
+        let t = Instant::now();
+        let mut p = Peers::new(1, 1, 8);
+        let mut out = vec![];
+        p.request_params(addr(1));
+        p.due(t, 3, &mut out);
+        assert!(out.is_empty(), "only a peer is answered");
+        p.heard(addr(1), 2, 14, false, t);
+        p.request_params(addr(1));
+        p.due(t, 3, &mut out);
+        // The PARAM_VALUE (numbered 0) first; the HEARTBEAT is held: the
+        // 14-byte request earned 42 bytes, the PARAM_VALUE took 37.
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].1, PYMAVLINK_PARAM_VALUE);
+        assert_eq!(p.counters(), ReplyCounters { sent: 1, held: 1 });
+        // Once per request.
+        out.clear();
+        p.heard(addr(1), 2, 14, false, t + Duration::from_secs(1));
+        p.due(t + Duration::from_secs(1), 3, &mut out);
+        assert_eq!(out.len(), 1);
+        assert_eq!(
+            mavlink::read_frame(&out[0].1).unwrap().1,
+            mavlink::Message::Heartbeat
+        );
+    }
+
     #[test]
     fn the_line_state_is_the_heartbeats_system_status() {
         use ppm_shared::line::LineState;
@@ -284,7 +359,7 @@ mod tests {
     #[test]
     fn the_peer_heard_longest_ago_makes_room() {
         let t = Instant::now();
-        let mut p = Peers::new(1, 1);
+        let mut p = Peers::new(1, 1, 8);
         for i in 0..=MAX_PEERS as u16 {
             p.heard(addr(i), 2, 100, false, t + Duration::from_millis(i as u64));
         }

@@ -45,9 +45,22 @@ const V2_SIGNED: [u8; 43] = [
     0x78, 0x05, 0xdc, 0x05, 0x40, 0x06, 0xa4, 0x06, 0x08, 0x07, 0x01, 0x01, 0xbb, 0x96, 0x03, 0xe8,
     0x03, 0x00, 0x00, 0x00, 0x00, 0xa4, 0x56, 0x32, 0x3e, 0x76, 0x18,
 ];
-/// param_request_list_send(1, 1), MAVLink 2: a message ppm does not take.
+/// param_request_list_send(1, 1), MAVLink 2.
 const V2_PARAM_REQUEST_LIST: [u8; 14] = [
     0xfd, 0x02, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x15, 0x00, 0x00, 0x01, 0x01, 0x88, 0xc0,
+];
+/// request_data_stream_send(1, 1, 0, 4, 1), MAVLink 2: a message ppm does
+/// not take.
+const V2_REQUEST_DATA_STREAM: [u8; 18] = [
+    0xfd, 0x06, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x42, 0x00, 0x00, 0x04, 0x00, 0x01, 0x01, 0x00, 0x01,
+    0x79, 0xd1,
+];
+/// param_value_send(b"PPM_CHANNELS", 8.0, 9 (REAL32), 1, 0) from system 1,
+/// component 1, MAVLink 2: what ppm answers a PARAM_REQUEST_LIST with.
+pub(crate) const V2_PARAM_VALUE: [u8; 37] = [
+    0xfd, 0x19, 0x00, 0x00, 0x00, 0x01, 0x01, 0x16, 0x00, 0x00, 0x00, 0x00, 0x00, 0x41, 0x01, 0x00,
+    0x00, 0x00, 0x50, 0x50, 0x4d, 0x5f, 0x43, 0x48, 0x41, 0x4e, 0x4e, 0x45, 0x4c, 0x53, 0x00, 0x00,
+    0x00, 0x00, 0x09, 0x34, 0x00,
 ];
 
 fn model(extra: &str) -> FrameModel {
@@ -110,6 +123,8 @@ fn pymavlink_frames_read_back_to_their_fields() {
         );
     }
     assert_eq!(read_frame(&V2_HEARTBEAT).unwrap().1, Message::Heartbeat);
+    let d = read_datagram(&V2_PARAM_REQUEST_LIST).unwrap();
+    assert_eq!((d.command, d.param_request), (None, Some((1, 1))));
     // pymavlink's MAVLink 1 with force_mavlink1 packs the extensions too
     // (38 bytes), as the C library's reader takes.
     let mut whole = V1_OVERRIDE[6..24].to_vec();
@@ -190,7 +205,9 @@ fn every_fault_has_its_reason() {
             MavlinkBadLength
         );
     }
-    assert_eq!(reason(&V2_PARAM_REQUEST_LIST), MavlinkUnknownMessage);
+    assert_eq!(reason(&V2_REQUEST_DATA_STREAM), MavlinkUnknownMessage);
+    // PARAM_VALUE is ppm's to send, not to take.
+    assert_eq!(reason(&V2_PARAM_VALUE), MavlinkUnknownMessage);
     // An incompat flag ppm does not know.
     let mut flagged = V2_OVERRIDE;
     flagged[2] = 0x02;
