@@ -75,7 +75,8 @@ struct Cli {
     pin_cpu: Option<String>,
     /// Also draw the latency distributions measured as SVG files in DIR
     /// (created if missing): ingress.svg, flood.svg, e2e.svg and one
-    /// histogram per end-to-end run, e2e-TIMING-HZhz.svg.
+    /// histogram per end-to-end run, e2e-TIMING-HZhz.svg (and
+    /// e2e-follow-MAVLink-HZhz.svg).
     #[arg(long, value_name = "DIR")]
     plot: Option<PathBuf>,
 }
@@ -269,13 +270,13 @@ fn degraded_mark(setup: &Setup, bin: &str) -> &'static str {
     }
 }
 
-/// Latency of one udp-ingress variant under the latency traffic: the row
-/// label and its status reply.
-fn ingress_run(cli: &Cli, v: &Variant) -> Result<(String, StatusReply)> {
+/// Latency of one udp-ingress variant under the latency traffic, written
+/// as `wire` says: the row label and its status reply.
+fn ingress_run(cli: &Cli, v: &Variant, wire: Wire) -> Result<(String, StatusReply)> {
     let setup = Setup::new("lat", &v.ingress)?;
     let ingress = setup.spawn("udp-ingress", &[])?;
     paced(setup.port, cli.latency_count, 1000.0, |i| {
-        format!("[{}, 1500, 1000, 1500]", 1000 + i % 1000).into_bytes()
+        command_bytes(wire, i, &[1000 + i % 1000, 1500, 1000, 1500])
     })?;
     std::thread::sleep(Duration::from_millis(200));
     let st = setup.status()?;
@@ -293,8 +294,11 @@ fn ingress_latency(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result
     );
     let mut ours = Vec::new();
     for v in variants {
-        ours.push(ingress_run(cli, v)?);
+        ours.push(ingress_run(cli, v, Wire::Json)?);
     }
+    // The same commands as MAVLink 2 RC_CHANNELS_OVERRIDE, the default way.
+    let (label, st) = ingress_run(cli, &variants[0], Wire::Mavlink)?;
+    ours.push((format!("{label}, MAVLink"), st));
 
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/seed_receiver.py");
     let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
@@ -389,6 +393,17 @@ fn ingress_latency(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result
             f(&base["max_us"]) / l.max
         );
     }
+    let (j, m) = (
+        &ours[0].1.publish_latency_us,
+        &ours[ours.len() - 1].1.publish_latency_us,
+    );
+    println!(
+        "ratio MAVLink / JSON, {}: p50 {:.2}x, p99 {:.2}x, max {:.2}x",
+        ours[0].0,
+        m.p50 / j.p50,
+        m.p99 / j.p99,
+        m.max / j.max
+    );
     Ok(())
 }
 
@@ -552,10 +567,46 @@ struct E2e {
     hist: Histogram<u64>,
 }
 
-/// Sends `count` commands at `hz` to udp-ingress and a ppmd in `timing`,
-/// and reads the line's trace back.
-fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
-    let setup = Setup::new(&format!("e2e-{timing}-{hz}"), "")?;
+/// How the end-to-end commands are written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Wire {
+    /// JSON, a bare array: `[a, b]`.
+    Json,
+    /// MAVLink 2 RC_CHANNELS_OVERRIDE: chan1 = a, chan2 = b, the others
+    /// released (0) to their defaults, as the JSON array leaves them.
+    Mavlink,
+}
+
+/// Command `values` (the first channels, us) written as `wire` says; `i`
+/// numbers MAVLink frames.
+fn command_bytes(wire: Wire, i: u32, values: &[u32]) -> Vec<u8> {
+    match wire {
+        Wire::Json => {
+            let v: Vec<String> = values.iter().map(|v| v.to_string()).collect();
+            format!("[{}]", v.join(", ")).into_bytes()
+        }
+        Wire::Mavlink => {
+            let mut chan = [0u16; 18];
+            for (c, &v) in chan.iter_mut().zip(values) {
+                *c = v as u16;
+            }
+            let (spec, payload) = ppm_shared::mavlink::Message::RcOverride(
+                ppm_shared::mavlink::RcOverride {
+                    target_system: 1,
+                    target_component: 1,
+                    chan,
+                },
+            )
+            .encode();
+            ppm_shared::mavlink::frame(2, (i as u8, 255, 190), spec, &payload)
+        }
+    }
+}
+
+/// Sends `count` commands at `hz`, written as `wire` says, to udp-ingress
+/// and a ppmd in `timing`, and reads the line's trace back.
+fn e2e_run(timing: &str, wire: Wire, hz: f64, count: u32) -> Result<E2e> {
+    let setup = Setup::new(&format!("e2e-{timing}-{wire:?}-{hz}"), "")?;
     let trace = setup.dir.join("line.trace");
     let ppmd = setup.spawn(
         "ppmd",
@@ -569,8 +620,7 @@ fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
     let ingress = setup.spawn("udp-ingress", &[])?;
     let code = |i: u32| [1000 + i % 1000, 1000 + (i / 1000) % 1000];
     let sent = paced(setup.port, count, hz, |i| {
-        let [a, b] = code(i);
-        format!("[{a}, {b}]").into_bytes()
+        command_bytes(wire, i, &code(i))
     })?;
     std::thread::sleep(Duration::from_millis(100));
     let status = setup.status()?;
@@ -624,13 +674,13 @@ fn e2e_run(timing: &str, hz: f64, count: u32) -> Result<E2e> {
 
 fn e2e(cli: &Cli, plots: &mut Plots) -> Result<()> {
     println!(
-        "== 3. end to end: send to the first edge of the first frame carrying each command, grid and follow timing ({} commands at 50 Hz, {} at 100 Hz)",
+        "== 3. end to end: send to the first edge of the first frame carrying each command, grid and follow timing, JSON and (follow) MAVLink RC_CHANNELS_OVERRIDE ({} commands at 50 Hz, {} at 100 Hz)",
         cli.e2e_count,
         cli.e2e_count * 2
     );
     println!(
-        "{:<8} {:>5} {:>6} {:>8} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8}",
-        "timing",
+        "{:<15} {:>5} {:>6} {:>8} {:>10} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "timing, wire",
         "Hz",
         "sent",
         "on line",
@@ -644,14 +694,22 @@ fn e2e(cli: &Cli, plots: &mut Plots) -> Result<()> {
     for hz in [50.0, 100.0] {
         let count = cli.e2e_count * (hz / 50.0) as u32;
         let mut rows = Vec::new();
-        for timing in ["grid", "follow"] {
-            let r = e2e_run(timing, hz, count)?;
+        for (timing, wire) in [
+            ("grid", Wire::Json),
+            ("follow", Wire::Json),
+            ("follow", Wire::Mavlink),
+        ] {
+            let r = e2e_run(timing, wire, hz, count)?;
+            let label = match wire {
+                Wire::Json => timing.to_string(),
+                Wire::Mavlink => format!("{timing}, MAVLink"),
+            };
             plots
                 .e2e
-                .push((format!("{timing}, {hz} Hz"), r.hist.clone()));
+                .push((format!("{label}, {hz} Hz"), r.hist.clone()));
             let l = &r.latency;
             println!(
-                "{timing:<8} {hz:>5} {:>6} {:>8} {:>10} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8}",
+                "{label:<15} {hz:>5} {:>6} {:>8} {:>10} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8}",
                 r.sent,
                 l.count,
                 format!("{} ({})", r.missed, r.ingress_superseded),
@@ -672,6 +730,13 @@ fn e2e(cli: &Cli, plots: &mut Plots) -> Result<()> {
             g.max / f.max.max(1.0),
             g.count as f64 * 100.0 / rows[0].sent.max(1) as f64,
             f.count as f64 * 100.0 / rows[1].sent.max(1) as f64,
+        );
+        let m = &rows[2].latency;
+        println!(
+            "  at {hz} Hz, follow, MAVLink / JSON: p50 {:.2}x, p99 {:.2}x; on the line {:.1}% (MAVLink)",
+            m.p50 / f.p50.max(1.0),
+            m.p99 / f.p99.max(1.0),
+            m.count as f64 * 100.0 / rows[2].sent.max(1) as f64,
         );
     }
     println!(
