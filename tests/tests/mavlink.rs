@@ -1,8 +1,10 @@
-//! MAVLink from pymavlink (from PyPI, a client nobody here wrote) against
-//! the real udp-ingress and ppmd: RC_CHANNELS_OVERRIDE in MAVLink 1 and 2
-//! at 50 Hz, MANUAL_CONTROL, a signed frame, commands for another system;
-//! the line carries exactly the commanded values, in order, and nothing of
-//! what was refused.
+//! MAVLink from pymavlink and MAVProxy (from PyPI, clients nobody here
+//! wrote) against the real udp-ingress and ppmd: RC_CHANNELS_OVERRIDE in
+//! MAVLink 1 and 2 at 50 Hz, MANUAL_CONTROL, a signed frame, commands for
+//! another system, ppm's HEARTBEAT and parameter as pymavlink reads them,
+//! the README's pymavlink sender, MAVProxy's `rc`; the line carries
+//! exactly the commanded values, in order, and nothing of what was
+//! refused.
 
 use ppm_shared::protocol::RejectReason;
 use ppm_tests::{python3, read_trace, status, stop_all, Sandbox};
@@ -186,4 +188,78 @@ fn readme_pymavlink_sender_flies_the_line() {
         "{thr:?}"
     );
     assert!(thr.last().unwrap() - thr[0] > 250, "{thr:?}");
+}
+
+/// MAVProxy (from PyPI), headless, its `rc` command: RC_CHANNELS_OVERRIDE
+/// at 10 Hz with the channels it was not given at 0 (released). The line
+/// carries exactly what it set, the defaults elsewhere; what else MAVProxy
+/// sends (parameter downloads over FTP, ...) is counted, never applied.
+#[test]
+fn mavproxy_rc_flies_the_line() {
+    let present = std::process::Command::new("python3")
+        .args(["-c", "import MAVProxy.mavproxy"])
+        .status()
+        .is_ok_and(|s| s.success());
+    assert!(
+        present,
+        "MAVProxy is needed for this test: python3 -m pip install --no-deps MAVProxy (and pymavlink, pyserial)"
+    );
+    let sb = Sandbox::new("mavproxy");
+    let cfg = sb.config("");
+    let trace = sb.dir.join("line.trace");
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    let mut mavproxy = std::process::Command::new("python3")
+        .args([
+            "-m",
+            "MAVProxy.mavproxy",
+            &format!("--master=udpout:127.0.0.1:{}", sb.port),
+            "--daemon",
+            "--nowait",
+            "--non-interactive",
+            "--cmd",
+            "rc 3 1200; rc 1 1600",
+        ])
+        .current_dir(&sb.dir)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("starting MAVProxy");
+    std::thread::sleep(std::time::Duration::from_secs(4));
+    let s = status(sb.addr());
+    let _ = mavproxy.kill();
+    let _ = mavproxy.wait();
+    stop_all(&mut ppmd, &mut [&mut ingress]);
+
+    // About 10 overrides a second for the seconds it ran (its start takes
+    // some of them).
+    let d = &s.datagrams;
+    assert!(d.applied + d.superseded >= 10, "{s:?}");
+    assert_eq!(
+        d.rejected.total(),
+        d.rejected.count(RejectReason::MavlinkUnknownMessage),
+        "only messages ppm does not take are refused: {s:?}"
+    );
+    assert_eq!(s.mavlink.peers, 1, "{s:?}");
+    // `rc 3 1200` first, then `rc 1 1600` as well: the line carries the
+    // one, then the other, and nothing else.
+    let steps = [
+        [1500, 1500, 1200, 1500, 1500, 1500, 1500, 1500],
+        [1600, 1500, 1200, 1500, 1500, 1500, 1500, 1500],
+    ];
+    let frames = read_trace(&trace).decode(false);
+    let mut at = 0;
+    let mut whole = 0;
+    for f in &frames {
+        let ch = f.channels_us();
+        let k = (at..steps.len())
+            .find(|&k| steps[k][..ch.len()] == ch[..])
+            .unwrap_or_else(|| panic!("a frame at {} carries {ch:?}", f.start_ns));
+        if ch.len() == 8 {
+            at = k;
+            whole += 1;
+        }
+    }
+    assert!(whole >= 10, "{whole} whole frames");
+    assert_eq!(at, 1, "the last whole frame carries both");
 }

@@ -590,14 +590,13 @@ fn command_bytes(wire: Wire, i: u32, values: &[u32]) -> Vec<u8> {
             for (c, &v) in chan.iter_mut().zip(values) {
                 *c = v as u16;
             }
-            let (spec, payload) = ppm_shared::mavlink::Message::RcOverride(
-                ppm_shared::mavlink::RcOverride {
+            let (spec, payload) =
+                ppm_shared::mavlink::Message::RcOverride(ppm_shared::mavlink::RcOverride {
                     target_system: 1,
                     target_component: 1,
                     chan,
-                },
-            )
-            .encode();
+                })
+                .encode();
             ppm_shared::mavlink::frame(2, (i as u8, 255, 190), spec, &payload)
         }
     }
@@ -619,9 +618,7 @@ fn e2e_run(timing: &str, wire: Wire, hz: f64, count: u32) -> Result<E2e> {
     )?;
     let ingress = setup.spawn("udp-ingress", &[])?;
     let code = |i: u32| [1000 + i % 1000, 1000 + (i / 1000) % 1000];
-    let sent = paced(setup.port, count, hz, |i| {
-        command_bytes(wire, i, &code(i))
-    })?;
+    let sent = paced(setup.port, count, hz, |i| command_bytes(wire, i, &code(i)))?;
     std::thread::sleep(Duration::from_millis(100));
     let status = setup.status()?;
     ingress.terminate();
