@@ -102,6 +102,11 @@ impl AuthKey {
         })
     }
 
+    /// The key's bytes (MAVLink 2 signing takes the key itself).
+    pub(crate) fn bytes(&self) -> &[u8; KEY_LEN] {
+        &self.0
+    }
+
     fn mac(&self) -> HmacSha256 {
         <HmacSha256 as Mac>::new_from_slice(&self.0).expect("HMAC takes any key length")
     }

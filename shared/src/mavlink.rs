@@ -435,6 +435,173 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
     Ok(d)
 }
 
+/// Reads a whole MAVLink datagram like [`read_datagram`], handing each
+/// good frame (its bytes, signature included, and its header) to `check`
+/// first, whose refusal rejects the datagram.
+pub fn read_datagram_with(
+    bytes: &[u8],
+    mut check: impl FnMut(&[u8], &Header) -> Result<(), Reject>,
+) -> Result<Datagram, Reject> {
+    let mut at = 0;
+    let mut frames = 0;
+    while at < bytes.len() {
+        let (header, _, len) = read_frame(&bytes[at..]).map_err(|mut r| {
+            if frames > 0 {
+                r.detail = format!("after {frames} good frame(s): {}", r.detail);
+            }
+            r
+        })?;
+        check(&bytes[at..at + len], &header)?;
+        frames += 1;
+        at += len;
+    }
+    read_datagram(bytes)
+}
+
+/// MAVLink 2 signing's epoch: 2015-01-01T00:00:00Z, in Unix seconds.
+pub const SIGNING_EPOCH_UNIX_S: u64 = 1_420_070_400;
+/// A stream not seen before is taken only with a timestamp at most this far
+/// behind ppm's (60 s, in the signature's 10 us units), as the MAVLink C
+/// library takes it.
+pub const NEW_STREAM_MAX_LAG: u64 = 6_000_000;
+/// Most signing streams (system, component, link) remembered; the one
+/// updated longest ago makes room.
+pub const MAX_STREAMS: usize = 32;
+
+/// A signature timestamp (10 us units since 2015) for a CLOCK_REALTIME time.
+pub fn signing_timestamp(unix_ns: u64) -> u64 {
+    unix_ns.saturating_sub(SIGNING_EPOCH_UNIX_S * 1_000_000_000) / 10_000
+}
+
+/// MAVLink 2 message signing with one key: checks what comes in (the
+/// signature, and a timestamp that grows per stream) and signs what goes
+/// out. Its timestamp is the newest of the clock's and every one accepted.
+#[derive(Debug, Clone)]
+pub struct Signing {
+    key: crate::auth::AuthKey,
+    /// (system, component, link) and its last timestamp, with when it was
+    /// last updated (a counter).
+    streams: Vec<((u8, u8, u8), u64, u64)>,
+    updates: u64,
+    timestamp: u64,
+}
+
+impl Signing {
+    /// Signing with `key` (a key file's 32 bytes, as pymavlink and MAVProxy
+    /// take them).
+    pub fn new(key: crate::auth::AuthKey) -> Signing {
+        Signing {
+            key,
+            streams: Vec::new(),
+            updates: 0,
+            timestamp: 0,
+        }
+    }
+
+    fn signature(&self, signed: &[u8]) -> [u8; 6] {
+        use sha2::{Digest, Sha256};
+        let mut h = Sha256::new();
+        h.update(self.key.bytes());
+        h.update(signed);
+        let d = h.finalize();
+        [d[0], d[1], d[2], d[3], d[4], d[5]]
+    }
+
+    /// Checks one frame (`frame`: its bytes, signature included) received
+    /// when the clock's timestamp was `now` ([`signing_timestamp`]):
+    /// `unsigned` without a signature (and every MAVLink 1 frame), `bad_mac`
+    /// when the signature is not the key's, `replay` when its timestamp is
+    /// not above its stream's last, or (a new stream) more than
+    /// [`NEW_STREAM_MAX_LAG`] behind ppm's.
+    pub fn check(&mut self, frame: &[u8], header: &Header, now: u64) -> Result<(), Reject> {
+        if !header.signed {
+            return Err(reject(
+                RejectReason::Unsigned,
+                format!(
+                    "an unsigned MAVLink {} frame: mavlink.key_file is set, so frames must be signed (MAVLink 2) with its key",
+                    header.version
+                ),
+            ));
+        }
+        let n = frame.len();
+        let sig = &frame[n - SIGNATURE_LEN..];
+        let want = self.signature(&frame[..n - 6]);
+        let diff = want
+            .iter()
+            .zip(&sig[7..])
+            .fold(0u8, |d, (a, b)| d | (a ^ b));
+        if diff != 0 {
+            return Err(reject(
+                RejectReason::BadMac,
+                "the MAVLink signature is not that of mavlink.key_file's key",
+            ));
+        }
+        let link = sig[0];
+        let ts = u64::from_le_bytes([sig[1], sig[2], sig[3], sig[4], sig[5], sig[6], 0, 0]);
+        self.timestamp = self.timestamp.max(now);
+        let id = (header.sysid, header.compid, link);
+        self.updates += 1;
+        match self.streams.iter_mut().find(|s| s.0 == id) {
+            Some(s) if ts <= s.1 => {
+                return Err(reject(
+                    RejectReason::Replay,
+                    format!(
+                        "signed timestamp {ts} of system {}, component {}, link {link} is not above its last, {}",
+                        id.0, id.1, s.1
+                    ),
+                ))
+            }
+            Some(s) => {
+                s.1 = ts;
+                s.2 = self.updates;
+            }
+            None if ts + NEW_STREAM_MAX_LAG < self.timestamp => {
+                return Err(reject(
+                    RejectReason::Replay,
+                    format!(
+                        "a new signing stream (system {}, component {}, link {link}) whose timestamp {ts} is more than a minute behind ppm's {}",
+                        id.0, id.1, self.timestamp
+                    ),
+                ))
+            }
+            None => {
+                if self.streams.len() == MAX_STREAMS {
+                    let oldest = (0..self.streams.len())
+                        .min_by_key(|&i| self.streams[i].2)
+                        .expect("MAX_STREAMS > 0");
+                    self.streams.swap_remove(oldest);
+                }
+                self.streams.push((id, ts, self.updates));
+            }
+        }
+        self.timestamp = self.timestamp.max(ts);
+        Ok(())
+    }
+
+    /// One signed MAVLink 2 frame (link 0) of `spec`'s message with
+    /// `payload`, at a timestamp above every one used or seen and the
+    /// clock's `now`.
+    pub fn frame(
+        &mut self,
+        header: (u8, u8, u8),
+        spec: &Spec,
+        payload: &[u8],
+        now: u64,
+    ) -> Vec<u8> {
+        let mut out = frame(2, header, spec, payload);
+        out[2] |= IFLAG_SIGNED;
+        let n = out.len();
+        let crc = crc_accumulate(crc_accumulate(0xFFFF, &out[1..n - 2]), &[spec.crc_extra]);
+        out[n - 2..].copy_from_slice(&crc.to_le_bytes());
+        self.timestamp = self.timestamp.max(now) + 1;
+        out.push(0);
+        out.extend_from_slice(&self.timestamp.to_le_bytes()[..6]);
+        let sig = self.signature(&out);
+        out.extend_from_slice(&sig);
+        out
+    }
+}
+
 /// How z, MANUAL_CONTROL's thrust axis, maps onto its channel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -463,6 +630,8 @@ pub struct Settings {
     /// The channels buttons 1.. drive (pressed: the channel's maximum,
     /// released: its minimum).
     pub buttons: Vec<usize>,
+    /// The signing key's file (`mavlink.key_file`), if any.
+    pub key_file: Option<std::path::PathBuf>,
 }
 
 impl Settings {
@@ -475,6 +644,7 @@ impl Settings {
             axes: DEFAULT_AXES.map(|n| model.index_of(n)),
             thrust: Thrust::Positive,
             buttons: Vec::new(),
+            key_file: None,
         }
     }
 }

@@ -263,3 +263,82 @@ fn mavproxy_rc_flies_the_line() {
     assert!(whole >= 10, "{whole} whole frames");
     assert_eq!(at, 1, "the last whole frame carries both");
 }
+
+/// MAVLink 2 signing with pymavlink: only frames signed with
+/// `mavlink.key_file`'s key fly; unsigned ones are `unsigned`, another
+/// key's `bad_mac`, a frame sent again `replay`; ppm's replies are signed
+/// so that pymavlink, signing too, takes them.
+#[test]
+fn signed_mavlink_flies_and_nothing_else_does() {
+    use std::os::unix::fs::PermissionsExt;
+    assert!(pymavlink_present(), "pymavlink is needed for this test");
+    let sb = Sandbox::new("mavsign");
+    let key = sb.dir.join("mav.key");
+    // The key MAVProxy's `signing setup ppm-test` makes: SHA-256 of the
+    // passphrase.
+    let hex = "27c0e8df855cbe39ceeff58ef0e792c51d522483501c81d223c87a4abe643881";
+    std::fs::write(&key, hex).unwrap();
+    std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o600)).unwrap();
+    let cfg = sb.config(&format!("[mavlink]\nkey_file = \"{}\"\n", key.display()));
+    let trace = sb.dir.join("line.trace");
+    let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    let script = r#"
+import os, sys, time
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
+port, key = int(sys.argv[1]), bytes.fromhex(sys.argv[2])
+m = mavutil.mavlink_connection("udpout:127.0.0.1:%d" % port, source_system=255, source_component=190)
+def phase(n, *ch):
+    for _ in range(n):
+        m.mav.rc_channels_override_send(1, 1, *ch)
+        time.sleep(0.02)
+phase(10, 1900, 1900, 1900, 1900, 1900, 1900, 1900, 1900)      # unsigned
+m.setup_signing(key, sign_outgoing=True)
+phase(25, 1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800)      # signed
+m.setup_signing(bytes(32), sign_outgoing=True)
+phase(10, 1900, 1900, 1900, 1900, 1900, 1900, 1900, 1900)      # another key
+m.setup_signing(key, sign_outgoing=True)
+phase(25, 1800, 1700, 1600, 1500, 1400, 1300, 1200, 1100)      # signed
+m.write(m.mav.rc_channels_override_encode(1, 1, 1900, 1900, 1900, 1900, 1900, 1900, 1900, 1900).pack(m.mav))
+last = m.mav.rc_channels_override_encode(1, 1, 1800, 1700, 1600, 1500, 1400, 1300, 1200, 1100).pack(m.mav)
+m.write(last)
+m.write(last)                                                   # sent again
+hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=3)
+print(hb is not None and hb.get_signed(), hb is not None and hb.get_srcSystem())
+"#;
+    let out = python3(&sb.dir, "", &["-c", script, &sb.port.to_string(), hex]);
+    let s = status(sb.addr());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
+    assert_eq!(
+        out.trim(),
+        "True 1",
+        "pymavlink took a signed HEARTBEAT from ppm: {out}"
+    );
+    let d = &s.datagrams;
+    assert_eq!(d.rejected.count(RejectReason::Unsigned), 10, "{s:?}");
+    assert_eq!(d.rejected.count(RejectReason::BadMac), 10, "{s:?}");
+    assert_eq!(d.rejected.count(RejectReason::Replay), 1, "{s:?}");
+    assert_eq!(d.rejected.total(), 21, "{s:?}");
+    assert_eq!(d.applied + d.superseded, 52, "{s:?}");
+    let a = [1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800];
+    let c = [1800, 1700, 1600, 1500, 1400, 1300, 1200, 1100];
+    // The hand-packed 1900s were signed with the key: they fly (a frame or
+    // two), then the last command.
+    let d2 = [1900; 8];
+    let frames = read_trace(&trace).decode(false);
+    let mut seen = vec![];
+    for f in &frames {
+        let ch = f.channels_us();
+        let k = [a, c, d2]
+            .iter()
+            .position(|w| w[..ch.len()] == ch[..])
+            .unwrap_or_else(|| panic!("a frame at {} carries {ch:?}", f.start_ns));
+        if ch.len() == 8 && seen.last() != Some(&k) {
+            seen.push(k);
+        }
+    }
+    assert_eq!(seen.first(), Some(&0), "{seen:?}");
+    assert_eq!(seen.get(1), Some(&1), "{seen:?}");
+    assert!(!seen.contains(&2) || seen.ends_with(&[2, 1]), "{seen:?}");
+}

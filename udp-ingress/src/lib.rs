@@ -251,6 +251,8 @@ pub struct Intake {
     model: FrameModel,
     mavlink: mavlink::Settings,
     peers: peers::Peers,
+    /// MAVLink 2 signing (`mavlink.key_file`).
+    signing: Option<mavlink::Signing>,
     /// `ingress.status_allow`: peers there get MAVLink replies without
     /// earning them.
     status_allow: Vec<IpNet>,
@@ -280,6 +282,7 @@ impl Intake {
             name: name.to_owned(),
             mavlink: mavlink::Settings::defaults_for(&model),
             peers: peers::Peers::new(1, 1, model.channels()),
+            signing: None,
             status_allow: Vec::new(),
             model,
             key: None,
@@ -337,6 +340,14 @@ impl Intake {
         self
     }
 
+    /// Takes only MAVLink frames signed with `key` (MAVLink 2 signing,
+    /// `mavlink.key_file`), and signs the replies. MAVLink commands then
+    /// apply whether or not `ingress.auth_key` is set.
+    pub fn with_mavlink_signing(mut self, key: AuthKey) -> Intake {
+        self.signing = Some(mavlink::Signing::new(key));
+        self
+    }
+
     /// MAVLink peers in `nets` (`ingress.status_allow`) get replies without
     /// earning them ([`peers`]).
     pub fn with_status_allow(mut self, nets: Vec<IpNet>) -> Intake {
@@ -374,7 +385,7 @@ impl Intake {
                 detail: format!("source {} is not in ingress.allow", from.ip()),
             })
         } else if mavlink::is_mavlink(datagram) {
-            match self.mavlink_command(datagram, from, now) {
+            match self.mavlink_command(datagram, from, real_ns, now) {
                 Ok(Some(command)) => Ok(command),
                 Ok(None) => {
                     self.counters.mavlink_no_command += 1;
@@ -524,10 +535,16 @@ impl Intake {
         &mut self,
         datagram: &[u8],
         from: SocketAddr,
+        real_ns: u64,
         now: Instant,
     ) -> Result<Option<Command>, Reject> {
-        let d = mavlink::read_datagram(datagram)?;
-        if self.key.is_none() {
+        let ts = mavlink::signing_timestamp(real_ns);
+        let d = match &mut self.signing {
+            Some(s) => mavlink::read_datagram_with(datagram, |f, h| s.check(f, h, ts))?,
+            None => mavlink::read_datagram(datagram)?,
+        };
+        // Trusted: signed with the MAVLink key, or no key at all.
+        if self.signing.is_some() || self.key.is_none() {
             let ip = from.ip();
             let exempt = self
                 .status_allow
@@ -545,10 +562,10 @@ impl Intake {
         let Some((_, message)) = d.command else {
             return Ok(None);
         };
-        if self.key.is_some() {
+        if self.key.is_some() && self.signing.is_none() {
             return Err(Reject {
                 reason: RejectReason::Unsigned,
-                detail: "ingress.auth_key is set, and MAVLink commands are not checked against it: send signed JSON commands".into(),
+                detail: "ingress.auth_key is set and mavlink.key_file is not: MAVLink commands cannot be checked, send signed JSON commands or set mavlink.key_file".into(),
             });
         }
         let fresh = match (self.forget_seq, self.last_accepted) {
@@ -565,13 +582,17 @@ impl Intake {
 
     /// The MAVLink replies due at `now` (appended to `out`: where each goes,
     /// and the frame), for a line in state `line` ([`peers::Peers::due`]).
+    /// `real_ns` is CLOCK_REALTIME now, for the signatures' timestamps.
     pub fn mavlink_due(
         &mut self,
         now: Instant,
+        real_ns: u64,
         line: Option<LineState>,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
     ) {
-        self.peers.due(now, peers::mav_state(line), out);
+        let ts = mavlink::signing_timestamp(real_ns);
+        self.peers
+            .due(now, peers::mav_state(line), self.signing.as_mut(), ts, out);
     }
 
     /// A reply [`Intake::mavlink_due`] gave could not be sent.

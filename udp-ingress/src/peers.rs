@@ -155,7 +155,17 @@ impl Peers {
     /// The frames due at `now` and where they go (appended to `out`): a
     /// HEARTBEAT for each live peer with the credit for it, once per
     /// [`HEARTBEAT_EVERY`]. `state` is the line's MAV_STATE ([`mav_state`]).
-    pub fn due(&mut self, now: Instant, state: u8, out: &mut Vec<(SocketAddr, Vec<u8>)>) {
+    ///
+    /// With `signing` (`mavlink.key_file`), every frame is signed, at the
+    /// clock's signature timestamp `ts` or after.
+    pub fn due(
+        &mut self,
+        now: Instant,
+        state: u8,
+        mut signing: Option<&mut mavlink::Signing>,
+        ts: u64,
+        out: &mut Vec<(SocketAddr, Vec<u8>)>,
+    ) {
         self.peers
             .retain(|p| now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT);
         // PARAM_VALUE: value (f32), count 1, index 0, id (16 chars), type
@@ -168,7 +178,13 @@ impl Peers {
             if !std::mem::take(&mut self.peers[i].params_due) {
                 continue;
             }
-            let frame = self.frame(self.peers[i].version, &PARAM_VALUE, &param);
+            let frame = self.frame(
+                self.peers[i].version,
+                &PARAM_VALUE,
+                &param,
+                signing.as_deref_mut(),
+                ts,
+            );
             self.send(i, frame, out);
         }
         let Some(at) = self.next_heartbeat else {
@@ -193,21 +209,33 @@ impl Peers {
         // mavlink_version 3.
         let payload = [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, state, 3];
         for i in 0..self.peers.len() {
-            let frame = self.frame(self.peers[i].version, &HEARTBEAT, &payload);
+            let frame = self.frame(
+                self.peers[i].version,
+                &HEARTBEAT,
+                &payload,
+                signing.as_deref_mut(),
+                ts,
+            );
             self.send(i, frame, out);
         }
     }
 
-    /// One frame from ppm, numbered.
-    fn frame(&mut self, version: u8, spec: &mavlink::Spec, payload: &[u8]) -> Vec<u8> {
+    /// One frame from ppm, numbered, signed with `signing` if given.
+    fn frame(
+        &mut self,
+        version: u8,
+        spec: &mavlink::Spec,
+        payload: &[u8],
+        signing: Option<&mut mavlink::Signing>,
+        ts: u64,
+    ) -> Vec<u8> {
         let seq = self.seq;
         self.seq = self.seq.wrapping_add(1);
-        mavlink::frame(
-            version,
-            (seq, self.system_id, self.component_id),
-            spec,
-            payload,
-        )
+        let header = (seq, self.system_id, self.component_id);
+        match signing {
+            Some(s) => s.frame(header, spec, payload, ts),
+            None => mavlink::frame(version, header, spec, payload),
+        }
     }
 
     /// Hands `frame` on for peer `i` if it has earned it.
@@ -260,11 +288,11 @@ mod tests {
         let t = Instant::now();
         let mut p = Peers::new(1, 1, 8);
         let mut out = vec![];
-        p.due(t, 3, &mut out);
+        p.due(t, 3, None, 0, &mut out);
         assert!(out.is_empty(), "no peer, no heartbeat");
         p.heard(addr(1), 2, 40, false, t);
         p.heard(addr(2), 1, 40, false, t);
-        p.due(t, 4, &mut out);
+        p.due(t, 4, None, 0, &mut out);
         assert_eq!(heartbeats(&out), [(1, 2), (2, 1)]);
         // From ppm's ids, GENERIC type and autopilot, the line's state.
         let (h, _, _) = mavlink::read_frame(&out[0].1).unwrap();
@@ -272,17 +300,17 @@ mod tests {
         let payload = &out[0].1[10..19];
         assert_eq!(payload, [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, 4, 3]);
         out.clear();
-        p.due(t + Duration::from_millis(999), 4, &mut out);
+        p.due(t + Duration::from_millis(999), 4, None, 0, &mut out);
         assert!(out.is_empty(), "one a second");
         for s in 1..5u64 {
             // Peer 1 keeps talking; peer 2 fell silent at t.
             p.heard(addr(1), 2, 40, false, t + Duration::from_secs(s));
-            p.due(t + Duration::from_secs(s), 4, &mut out);
+            p.due(t + Duration::from_secs(s), 4, None, 0, &mut out);
         }
         let ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         assert_eq!(ports, [1, 2, 1, 2, 1, 2, 1, 2], "{out:?}");
         out.clear();
-        p.due(t + Duration::from_secs(5), 4, &mut out);
+        p.due(t + Duration::from_secs(5), 4, None, 0, &mut out);
         let ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         assert_eq!(ports, [1], "peer 2 silent for PEER_TIMEOUT");
         assert_eq!(p.len(t + Duration::from_secs(5)), 1);
@@ -299,7 +327,7 @@ mod tests {
         p.heard(addr(1), 2, 10, false, t);
         p.heard(addr(2), 2, 10, true, t);
         for s in 0..4u64 {
-            p.due(t + Duration::from_millis(1_000 * s), 3, &mut out);
+            p.due(t + Duration::from_millis(1_000 * s), 3, None, 0, &mut out);
         }
         let ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         assert_eq!(ports, [1, 2, 2, 2, 2]);
@@ -326,11 +354,11 @@ mod tests {
         let mut p = Peers::new(1, 1, 8);
         let mut out = vec![];
         p.request_params(addr(1));
-        p.due(t, 3, &mut out);
+        p.due(t, 3, None, 0, &mut out);
         assert!(out.is_empty(), "only a peer is answered");
         p.heard(addr(1), 2, 14, false, t);
         p.request_params(addr(1));
-        p.due(t, 3, &mut out);
+        p.due(t, 3, None, 0, &mut out);
         // The PARAM_VALUE (numbered 0) first; the HEARTBEAT is held: the
         // 14-byte request earned 42 bytes, the PARAM_VALUE took 37.
         assert_eq!(out.len(), 1);
@@ -339,7 +367,7 @@ mod tests {
         // Once per request.
         out.clear();
         p.heard(addr(1), 2, 14, false, t + Duration::from_secs(1));
-        p.due(t + Duration::from_secs(1), 3, &mut out);
+        p.due(t + Duration::from_secs(1), 3, None, 0, &mut out);
         assert_eq!(out.len(), 1);
         assert_eq!(
             mavlink::read_frame(&out[0].1).unwrap().1,
@@ -364,7 +392,7 @@ mod tests {
             p.heard(addr(i), 2, 100, false, t + Duration::from_millis(i as u64));
         }
         let mut out = vec![];
-        p.due(t + Duration::from_millis(10), 3, &mut out);
+        p.due(t + Duration::from_millis(10), 3, None, 0, &mut out);
         let mut ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         ports.sort();
         assert_eq!(ports, (1..=MAX_PEERS as u16).collect::<Vec<_>>());

@@ -333,7 +333,7 @@ impl Server {
             .filter(|s| now_mono.saturating_sub(s.mono_ns) <= PPMD_STALE_AFTER_NS)
             .and_then(|s| LineState::from_code(s.state));
         self.intake
-            .mavlink_due(Instant::now(), line, &mut self.mavlink_out);
+            .mavlink_due(Instant::now(), realtime_ns(), line, &mut self.mavlink_out);
         for (to, frame) in self.mavlink_out.drain(..) {
             if let Err(e) = self.socket.send_to(&frame, to) {
                 log::debug!("MAVLink reply to {to}: {e}");
@@ -588,6 +588,13 @@ impl Server {
         .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms))
         .with_mavlink(cfg.mavlink.clone())
         .with_status_allow(status_allow.clone());
+        if let Some(path) = &cfg.mavlink.key_file {
+            intake = intake.with_mavlink_signing(AuthKey::load(path)?);
+            log::info!(
+                "MAVLink frames must be signed (MAVLink 2) with the key in {}; replies are signed",
+                path.display()
+            );
+        }
         if let (Some(key), Some(file)) = (key, &seq_file) {
             log::info!(
                 "commands must be signed with the key in {} and name this output (\"to\": \"{}\"); status queries need no signature; {} (the last accepted seq is kept in {})",

@@ -195,6 +195,7 @@ impl Config {
             axes,
             thrust: m.thrust,
             buttons,
+            key_file: m.key_file.clone(),
         })
     }
 

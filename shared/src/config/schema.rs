@@ -314,6 +314,10 @@ pub struct MavlinkSection {
     /// for button 1, ... (up to 32); pressed is the channel's `max_us`,
     /// released its `min_us`. Default none.
     pub buttons: Vec<String>,
+    /// Key file for MAVLink 2 message signing (64 hex characters, mode
+    /// 600, as `ingress.auth_key`). When set, only MAVLink frames signed
+    /// with it are taken, and ppm signs its replies. Default: none.
+    pub key_file: Option<PathBuf>,
 }
 
 impl Default for MavlinkSection {
@@ -324,6 +328,7 @@ impl Default for MavlinkSection {
             axes: None,
             thrust: Thrust::Positive,
             buttons: Vec::new(),
+            key_file: None,
         }
     }
 }

@@ -392,3 +392,76 @@ fn messages_encode_to_what_they_were_read_from() {
         V2_HEARTBEAT[..16]
     );
 }
+
+fn test_signing() -> Signing {
+    // pymavlink's key in V2_SIGNED: the bytes 0, 1, ..., 31.
+    let mut key = [0u8; 32];
+    for (i, k) in key.iter_mut().enumerate() {
+        *k = i as u8;
+    }
+    Signing::new(crate::auth::AuthKey::new(key))
+}
+
+#[test]
+fn pymavlinks_signature_checks_out_once() {
+    let mut s = test_signing();
+    let (h, _, _) = read_frame(&V2_SIGNED).unwrap();
+    // Its timestamp is 1000 (10 ms after 2015 began): a new stream is
+    // taken only within a minute of ppm's clock.
+    let err = s
+        .check(&V2_SIGNED, &h, 1_000 + NEW_STREAM_MAX_LAG + 1)
+        .unwrap_err();
+    assert_eq!(err.reason, RejectReason::Replay, "{err}");
+    let mut s = test_signing();
+    s.check(&V2_SIGNED, &h, 1_000).unwrap();
+    let err = s.check(&V2_SIGNED, &h, 1_000).unwrap_err();
+    assert_eq!(
+        err.reason,
+        RejectReason::Replay,
+        "the same frame again: {err}"
+    );
+    // Another key, a changed byte: bad_mac.
+    let mut other = Signing::new(crate::auth::AuthKey::new([7; 32]));
+    assert_eq!(
+        other.check(&V2_SIGNED, &h, 0).unwrap_err().reason,
+        RejectReason::BadMac
+    );
+    let mut changed = V2_SIGNED;
+    changed[V2_SIGNED.len() - 1] ^= 1;
+    assert_eq!(
+        test_signing().check(&changed, &h, 0).unwrap_err().reason,
+        RejectReason::BadMac
+    );
+    // Unsigned, and MAVLink 1: unsigned.
+    for bytes in [&V2_OVERRIDE[..], &V1_OVERRIDE[..]] {
+        let (h, _, _) = read_frame(bytes).unwrap();
+        assert_eq!(
+            s.check(bytes, &h, 0).unwrap_err().reason,
+            RejectReason::Unsigned
+        );
+    }
+}
+
+#[test]
+fn signed_frames_read_back_and_check_out_with_growing_timestamps() {
+    let mut ours = test_signing();
+    let mut theirs = test_signing();
+    let now = signing_timestamp(1_800_000_000 * 1_000_000_000);
+    let (_, payload) = Message::Heartbeat.encode();
+    let mut last = 0;
+    for i in 0..3u8 {
+        let f = ours.frame((i, 1, 1), &HEARTBEAT, &payload, now);
+        let (h, m, len) = read_frame(&f).unwrap();
+        assert_eq!((h.signed, m, len), (true, Message::Heartbeat, f.len()));
+        theirs.check(&f, &h, now).unwrap();
+        let ts = u64::from_le_bytes([f[22], f[23], f[24], f[25], f[26], f[27], 0, 0]);
+        assert!(ts > now && ts > last, "{ts}");
+        last = ts;
+    }
+    // Through read_datagram_with: the check refuses the datagram.
+    let f = ours.frame((9, 1, 1), &HEARTBEAT, &payload, now);
+    let mut replayed = f.clone();
+    replayed.extend_from_slice(&f);
+    let err = read_datagram_with(&replayed, |b, h| theirs.check(b, h, now)).unwrap_err();
+    assert_eq!(err.reason, RejectReason::Replay, "{err}");
+}
