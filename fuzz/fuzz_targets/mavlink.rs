@@ -99,10 +99,7 @@ fn fix_crcs(data: &[u8]) -> Vec<u8> {
             break;
         }
         if let Some(spec) = mavlink::spec(id) {
-            let crc = mavlink::crc_accumulate(
-                mavlink::crc_accumulate(0xFFFF, &out[at + 1..end]),
-                &[spec.crc_extra],
-            );
+            let crc = mavlink::frame_crc(spec, &out[at + 1..end]);
             out[end..end + 2].copy_from_slice(&crc.to_le_bytes());
         }
         at = end + 2 + if signed { mavlink::SIGNATURE_LEN } else { 0 };

@@ -31,7 +31,7 @@
 //! checked without its CRC_EXTRA, so it is no more trusted than junk.
 
 use crate::frame::{Channels, FrameModel, MAX_CHANNELS};
-use crate::protocol::{Command, Reject, RejectReason, VALUE_MAX_US, VALUE_MIN_US};
+use crate::protocol::{reject, Command, Reject, RejectReason, VALUE_MAX_US, VALUE_MIN_US};
 
 /// MAVLink 1's start byte.
 pub const STX_V1: u8 = 0xFE;
@@ -140,6 +140,12 @@ pub fn crc_accumulate(mut crc: u16, bytes: &[u8]) -> u16 {
     crc
 }
 
+/// A frame's CRC: over `body` (the frame from its length byte to the end
+/// of its payload) and the message's CRC_EXTRA.
+pub fn frame_crc(spec: &Spec, body: &[u8]) -> u16 {
+    crc_accumulate(crc_accumulate(0xFFFF, body), &[spec.crc_extra])
+}
+
 /// A frame's header.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Header {
@@ -197,9 +203,7 @@ impl Message {
     pub fn is_command(&self) -> bool {
         matches!(self, Message::RcOverride(_) | Message::ManualControl(_))
     }
-}
 
-impl Message {
     /// The message's spec and its whole payload (extensions included; [`frame`]
     /// trims it for MAVLink 2). A HEARTBEAT is a groundstation's: type GCS
     /// (6), autopilot INVALID (8).
@@ -235,13 +239,6 @@ impl Message {
                 (&PARAM_REQUEST_LIST, p)
             }
         }
-    }
-}
-
-fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
-    Reject {
-        reason,
-        detail: detail.into(),
     }
 }
 
@@ -334,8 +331,7 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
             ),
         ));
     }
-    let body = &bytes[1..header_len + len];
-    let crc = crc_accumulate(crc_accumulate(0xFFFF, body), &[spec.crc_extra]);
+    let crc = frame_crc(spec, &bytes[1..header_len + len]);
     let got = u16::from_le_bytes([bytes[header_len + len], bytes[header_len + len + 1]]);
     if crc != got {
         return Err(reject(
@@ -395,8 +391,6 @@ pub struct Datagram {
     pub command: Option<(Header, Message)>,
     /// Its frames.
     pub frames: usize,
-    /// A frame was signed.
-    pub signed: bool,
     /// The MAVLink version of its last frame.
     pub version: u8,
     /// The targets (system, component) of its last PARAM_REQUEST_LIST.
@@ -406,10 +400,19 @@ pub struct Datagram {
 /// Reads a whole MAVLink datagram: every frame must be good, or the
 /// datagram is rejected with the first fault.
 pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
+    read_datagram_with(bytes, |_, _| Ok(()))
+}
+
+/// Reads a whole MAVLink datagram like [`read_datagram`], handing each
+/// good frame (its bytes, signature included, and its header) to `check`
+/// as well, whose refusal rejects the datagram.
+pub fn read_datagram_with(
+    bytes: &[u8],
+    mut check: impl FnMut(&[u8], &Header) -> Result<(), Reject>,
+) -> Result<Datagram, Reject> {
     let mut d = Datagram {
         command: None,
         frames: 0,
-        signed: false,
         version: 0,
         param_request: None,
     };
@@ -421,8 +424,8 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
             }
             r
         })?;
+        check(&bytes[at..at + len], &header)?;
         d.frames += 1;
-        d.signed |= header.signed;
         d.version = header.version;
         if message.is_command() {
             d.command = Some((header, message));
@@ -433,29 +436,6 @@ pub fn read_datagram(bytes: &[u8]) -> Result<Datagram, Reject> {
         at += len;
     }
     Ok(d)
-}
-
-/// Reads a whole MAVLink datagram like [`read_datagram`], handing each
-/// good frame (its bytes, signature included, and its header) to `check`
-/// first, whose refusal rejects the datagram.
-pub fn read_datagram_with(
-    bytes: &[u8],
-    mut check: impl FnMut(&[u8], &Header) -> Result<(), Reject>,
-) -> Result<Datagram, Reject> {
-    let mut at = 0;
-    let mut frames = 0;
-    while at < bytes.len() {
-        let (header, _, len) = read_frame(&bytes[at..]).map_err(|mut r| {
-            if frames > 0 {
-                r.detail = format!("after {frames} good frame(s): {}", r.detail);
-            }
-            r
-        })?;
-        check(&bytes[at..at + len], &header)?;
-        frames += 1;
-        at += len;
-    }
-    read_datagram(bytes)
 }
 
 /// MAVLink 2 signing's epoch: 2015-01-01T00:00:00Z, in Unix seconds.
@@ -473,15 +453,23 @@ pub fn signing_timestamp(unix_ns: u64) -> u64 {
     unix_ns.saturating_sub(SIGNING_EPOCH_UNIX_S * 1_000_000_000) / 10_000
 }
 
+/// One signing stream: a (system, component, link) and its last
+/// timestamp.
+#[derive(Debug, Clone, Copy)]
+struct Stream {
+    id: (u8, u8, u8),
+    last: u64,
+    /// When it was last updated (a count of accepted frames).
+    touched: u64,
+}
+
 /// MAVLink 2 message signing with one key: checks what comes in (the
 /// signature, and a timestamp that grows per stream) and signs what goes
 /// out. Its timestamp is the newest of the clock's and every one accepted.
 #[derive(Debug, Clone)]
 pub struct Signing {
     key: crate::auth::AuthKey,
-    /// (system, component, link) and its last timestamp, with when it was
-    /// last updated (a counter).
-    streams: Vec<((u8, u8, u8), u64, u64)>,
+    streams: Vec<Stream>,
     updates: u64,
     timestamp: u64,
 }
@@ -541,19 +529,19 @@ impl Signing {
         self.timestamp = self.timestamp.max(now);
         let id = (header.sysid, header.compid, link);
         self.updates += 1;
-        match self.streams.iter_mut().find(|s| s.0 == id) {
-            Some(s) if ts <= s.1 => {
+        match self.streams.iter_mut().find(|s| s.id == id) {
+            Some(s) if ts <= s.last => {
                 return Err(reject(
                     RejectReason::Replay,
                     format!(
                         "signed timestamp {ts} of system {}, component {}, link {link} is not above its last, {}",
-                        id.0, id.1, s.1
+                        id.0, id.1, s.last
                     ),
                 ))
             }
             Some(s) => {
-                s.1 = ts;
-                s.2 = self.updates;
+                s.last = ts;
+                s.touched = self.updates;
             }
             None if ts + NEW_STREAM_MAX_LAG < self.timestamp => {
                 return Err(reject(
@@ -567,11 +555,15 @@ impl Signing {
             None => {
                 if self.streams.len() == MAX_STREAMS {
                     let oldest = (0..self.streams.len())
-                        .min_by_key(|&i| self.streams[i].2)
+                        .min_by_key(|&i| self.streams[i].touched)
                         .expect("MAX_STREAMS > 0");
                     self.streams.swap_remove(oldest);
                 }
-                self.streams.push((id, ts, self.updates));
+                self.streams.push(Stream {
+                    id,
+                    last: ts,
+                    touched: self.updates,
+                });
             }
         }
         self.timestamp = self.timestamp.max(ts);
@@ -588,11 +580,7 @@ impl Signing {
         payload: &[u8],
         now: u64,
     ) -> Vec<u8> {
-        let mut out = frame(2, header, spec, payload);
-        out[2] |= IFLAG_SIGNED;
-        let n = out.len();
-        let crc = crc_accumulate(crc_accumulate(0xFFFF, &out[1..n - 2]), &[spec.crc_extra]);
-        out[n - 2..].copy_from_slice(&crc.to_le_bytes());
+        let mut out = build_frame(2, IFLAG_SIGNED, header, spec, payload);
         self.timestamp = self.timestamp.max(now) + 1;
         out.push(0);
         out.extend_from_slice(&self.timestamp.to_le_bytes()[..6]);
@@ -649,6 +637,12 @@ impl Settings {
     }
 }
 
+/// True when a message's `target` (system or component) addresses ppm's
+/// `id`: it is that id, or 0 (any).
+pub fn addressed(target: u8, id: u8) -> bool {
+    target == 0 || target == id
+}
+
 /// The channels MANUAL_CONTROL's x, y, z and r drive by default.
 pub const DEFAULT_AXES: [&str; 4] = ["ele", "ail", "thr", "rud"];
 
@@ -665,7 +659,7 @@ pub fn command(
     ns[..n].copy_from_slice(current.as_ns());
     let mut clamped = 0;
     let target = |system: u8| -> Result<(), Reject> {
-        if system == 0 || system == settings.system_id {
+        if addressed(system, settings.system_id) {
             Ok(())
         } else {
             Err(reject(
@@ -684,7 +678,7 @@ pub fn command(
         Message::RcOverride(o) => {
             target(o.target_system)?;
             let c = o.target_component;
-            if c != 0 && c != settings.component_id {
+            if !addressed(c, settings.component_id) {
                 return Err(reject(
                     RejectReason::WrongOutput,
                     format!(
@@ -765,8 +759,20 @@ pub fn command(
 /// One frame of `spec`'s message with `payload` (MAVLink 2 trims its
 /// trailing zeros), unsigned: what ppm sends, and what its tests send.
 pub fn frame(version: u8, header: (u8, u8, u8), spec: &Spec, payload: &[u8]) -> Vec<u8> {
+    build_frame(version, 0, header, spec, payload)
+}
+
+/// [`frame`] with MAVLink 2 incompat flags `incompat` (a signature, when
+/// flagged, is the caller's to append).
+fn build_frame(
+    version: u8,
+    incompat: u8,
+    header: (u8, u8, u8),
+    spec: &Spec,
+    payload: &[u8],
+) -> Vec<u8> {
     let (seq, sysid, compid) = header;
-    let mut out = Vec::with_capacity(payload.len() + 12);
+    let mut out = Vec::with_capacity(payload.len() + 12 + SIGNATURE_LEN);
     if version == 1 {
         out.extend_from_slice(&[
             STX_V1,
@@ -784,11 +790,11 @@ pub fn frame(version: u8, header: (u8, u8, u8), spec: &Spec, payload: &[u8]) -> 
         }
         let id = spec.id.to_le_bytes();
         out.extend_from_slice(&[
-            STX_V2, len as u8, 0, 0, seq, sysid, compid, id[0], id[1], id[2],
+            STX_V2, len as u8, incompat, 0, seq, sysid, compid, id[0], id[1], id[2],
         ]);
         out.extend_from_slice(&payload[..len]);
     }
-    let crc = crc_accumulate(crc_accumulate(0xFFFF, &out[1..]), &[spec.crc_extra]);
+    let crc = frame_crc(spec, &out[1..]);
     out.extend_from_slice(&crc.to_le_bytes());
     out
 }

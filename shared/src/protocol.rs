@@ -158,7 +158,7 @@ pub struct Reject {
     pub detail: String,
 }
 
-fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
+pub(crate) fn reject(reason: RejectReason, detail: impl Into<String>) -> Reject {
     Reject {
         reason,
         detail: detail.into(),

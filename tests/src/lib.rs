@@ -425,6 +425,35 @@ pub fn at_50hz(n: u64, mut send: impl FnMut(u64)) {
     }
 }
 
+/// The first ```python block of the section a heading line (`## Quick
+/// start`, `### From a MAVLink groundstation`) opens in `file` (relative
+/// to the repository), up to the next heading of its level or above.
+pub fn python_block(file: &str, heading: &str) -> String {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(file);
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{file}: {e}"));
+    let level = heading.chars().take_while(|&c| c == '#').count();
+    let mut lines = text
+        .lines()
+        .skip_while(|l| *l != heading)
+        .skip(1)
+        .take_while(|l| {
+            let h = l.chars().take_while(|&c| c == '#').count();
+            !(h > 0 && h <= level && l[h..].starts_with(' '))
+        });
+    let mut code = String::new();
+    if lines.any(|l| l == "```python") {
+        for l in lines.take_while(|l| *l != "```") {
+            code.push_str(l);
+            code.push('\n');
+        }
+    }
+    assert!(
+        !code.is_empty(),
+        "{file}: no python block under \"{heading}\""
+    );
+    code
+}
+
 /// The Python groundstation package in the source tree (`import ppm`).
 pub const PYTHON_PACKAGE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/python");
 

@@ -100,12 +100,7 @@ fn readme_python_sender_flies_the_line() {
     use ppm_tests::{python3, read_trace, Sandbox, PYTHON_PACKAGE};
     use std::time::Duration;
 
-    let quick_start = section("README.md", "Quick start");
-    let code = quick_start
-        .split("```python\n")
-        .nth(1)
-        .and_then(|s| s.split("```").next())
-        .expect("the README's quick start has a python block");
+    let code = ppm_tests::python_block("README.md", "## Quick start");
     let sb = Sandbox::new("python");
     let code = code.replace("5005", &sb.port.to_string());
     let cfg = sb.config("");

@@ -137,17 +137,7 @@ fn pymavlink_present() -> bool {
 #[test]
 fn readme_pymavlink_sender_flies_the_line() {
     assert!(pymavlink_present(), "pymavlink is needed for this test");
-    let readme = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md"))
-        .expect("the README");
-    let section = readme
-        .split("### From a MAVLink groundstation\n")
-        .nth(1)
-        .expect("the README has the section");
-    let code = section
-        .split("```python\n")
-        .nth(1)
-        .and_then(|s| s.split("```").next())
-        .expect("a python block");
+    let code = ppm_tests::python_block("README.md", "### From a MAVLink groundstation");
     let sb = Sandbox::new("mavreadme");
     let code = code.replace("192.168.1.20:5005", &format!("127.0.0.1:{}", sb.port));
     assert!(

@@ -217,8 +217,7 @@ pub fn status_answer(
     from: IpAddr,
     status_allow: &[IpNet],
 ) -> StatusAnswer {
-    let in_block = |ip: IpAddr| status_allow.iter().any(|n| n.contains(&ip));
-    if in_block(from) || in_block(from.to_canonical()) {
+    if in_blocks(status_allow, from) {
         return StatusAnswer::Full;
     }
     let cap = query_len.saturating_mul(STATUS_REPLY_MAX_RATIO);
@@ -237,11 +236,15 @@ pub fn status_answer(
 /// An IPv4 sender seen on a dual-stack socket (`::ffff:10.0.0.5`) matches
 /// IPv4 blocks.
 pub fn allowed(nets: &[IpNet], ip: IpAddr) -> bool {
+    nets.is_empty() || in_blocks(nets, ip)
+}
+
+/// True when `ip` lies in one of `nets` (none when `nets` is empty); an
+/// IPv4 sender seen on a dual-stack socket matches IPv4 blocks.
+fn in_blocks(nets: &[IpNet], ip: IpAddr) -> bool {
     let canonical = ip.to_canonical();
-    nets.is_empty()
-        || nets
-            .iter()
-            .any(|n| n.contains(&ip) || n.contains(&canonical))
+    nets.iter()
+        .any(|n| n.contains(&ip) || n.contains(&canonical))
 }
 
 /// Parse, check and keep the newest command; count everything.
@@ -453,18 +456,23 @@ impl Intake {
     /// `seq`) when there is no key and no command was accepted for the
     /// forget interval.
     fn forget(&mut self, seq: Option<u64>, now: Instant) -> bool {
-        let quiet = match (self.forget_seq, self.last_accepted) {
-            (Some(after), Some(t)) => now.saturating_duration_since(t) >= after,
-            (Some(_), None) => true,
-            (None, _) => false,
-        };
-        if self.key.is_some() || !quiet {
+        if self.key.is_some() || !self.quiet(now) {
             return false;
         }
         self.gate = SeqGate::default();
         self.gate.admit(seq);
         self.counters.seq_resets += 1;
         true
+    }
+
+    /// True when no command was accepted for the forget interval (the
+    /// failsafe's `after_ms`), or none ever was; never without the interval.
+    fn quiet(&self, now: Instant) -> bool {
+        match (self.forget_seq, self.last_accepted) {
+            (Some(after), Some(t)) => now.saturating_duration_since(t) >= after,
+            (Some(_), None) => true,
+            (None, _) => false,
+        }
     }
 
     /// Counts a rejected datagram and, when the rate limit allows, gives a log line.
@@ -526,11 +534,12 @@ impl Intake {
     /// is fresh (younger than the failsafe's `after_ms`, given as
     /// [`Intake::forget_seq_after`]), the channels' defaults otherwise: a
     /// "keep" never brings back a command the line has already given up.
-    /// With a key set, MAVLink commands are refused as `unsigned`: ppm does
-    /// not check MAVLink signatures yet.
+    /// With `ingress.auth_key` set and no MAVLink signing
+    /// ([`Intake::with_mavlink_signing`]), MAVLink commands are refused as
+    /// `unsigned`.
     ///
-    /// A datagram read whole makes its source a peer ([`peers`]), unless a
-    /// key is set.
+    /// A datagram read whole (and signed, with signing) makes its source a
+    /// peer ([`peers`]), unless it could not be checked against a key.
     fn mavlink_command(
         &mut self,
         datagram: &[u8],
@@ -545,16 +554,12 @@ impl Intake {
         };
         // Trusted: signed with the MAVLink key, or no key at all.
         if self.signing.is_some() || self.key.is_none() {
-            let ip = from.ip();
-            let exempt = self
-                .status_allow
-                .iter()
-                .any(|n| n.contains(&ip) || n.contains(&ip.to_canonical()));
+            let exempt = in_blocks(&self.status_allow, from.ip());
             self.peers
                 .heard(from, d.version, datagram.len(), exempt, now);
-            let ours = |t: u8, id: u8| t == 0 || t == id;
             if let Some((s, c)) = d.param_request {
-                if ours(s, self.mavlink.system_id) && ours(c, self.mavlink.component_id) {
+                let m = &self.mavlink;
+                if mavlink::addressed(s, m.system_id) && mavlink::addressed(c, m.component_id) {
                     self.peers.request_params(from);
                 }
             }
@@ -568,28 +573,25 @@ impl Intake {
                 detail: "ingress.auth_key is set and mavlink.key_file is not: MAVLink commands cannot be checked, send signed JSON commands or set mavlink.key_file".into(),
             });
         }
-        let fresh = match (self.forget_seq, self.last_accepted) {
-            (_, None) => false,
-            (None, Some(_)) => true,
-            (Some(after), Some(t)) => now.saturating_duration_since(t) < after,
-        };
         let current = match self.latest {
-            Some(r) if fresh => r.command.channels,
+            Some(r) if !self.quiet(now) => r.command.channels,
             _ => self.model.defaults(),
         };
         mavlink::command(&message, &self.model, &self.mavlink, &current).map(Some)
     }
 
     /// The MAVLink replies due at `now` (appended to `out`: where each goes,
-    /// and the frame), for a line in state `line` ([`peers::Peers::due`]).
-    /// `real_ns` is CLOCK_REALTIME now, for the signatures' timestamps.
+    /// and the frame), with the line's state from `ppmd`, ppmd's newest
+    /// snapshot, unless it is stale at CLOCK_MONOTONIC `now_mono_ns`
+    /// ([`peers::Peers::due`]). `real_ns` is CLOCK_REALTIME now, for the
+    /// signatures' timestamps.
     pub fn mavlink_due(
         &mut self,
-        now: Instant,
-        real_ns: u64,
-        line: Option<LineState>,
+        (now, now_mono_ns, real_ns): (Instant, u64, u64),
+        ppmd: Option<&TimingSnapshot>,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
     ) {
+        let line = fresh_snapshot(ppmd, now_mono_ns).and_then(|s| LineState::from_code(s.state));
         let ts = mavlink::signing_timestamp(real_ns);
         self.peers
             .due(now, peers::mav_state(line), self.signing.as_mut(), ts, out);
@@ -651,7 +653,7 @@ impl Intake {
     ) -> StatusReply {
         let c = &self.counters;
         let age_ns = |t: u64| now_mono_ns.saturating_sub(t);
-        let fresh = ppmd.filter(|s| age_ns(s.mono_ns) <= PPMD_STALE_AFTER_NS);
+        let fresh = fresh_snapshot(ppmd, now_mono_ns);
         StatusReply {
             name: self.name.clone(),
             uptime_s: round3(uptime.as_secs_f64()),
@@ -687,6 +689,12 @@ impl Intake {
             ppmd_stale: ppmd.is_some() && fresh.is_none(),
         }
     }
+}
+
+/// `ppmd` unless it is older than [`PPMD_STALE_AFTER_NS`] at CLOCK_MONOTONIC
+/// `now_mono_ns`.
+fn fresh_snapshot(ppmd: Option<&TimingSnapshot>, now_mono_ns: u64) -> Option<&TimingSnapshot> {
+    ppmd.filter(|s| now_mono_ns.saturating_sub(s.mono_ns) <= PPMD_STALE_AFTER_NS)
 }
 
 /// How the receive thread runs, as obtained at start: the `receiver` member

@@ -72,7 +72,8 @@ pub struct Peers {
     peers: Vec<Peer>,
     system_id: u8,
     component_id: u8,
-    channels: usize,
+    /// The PARAM_VALUE payload of `PPM_CHANNELS`.
+    param_value: [u8; 25],
     next_heartbeat: Option<Instant>,
     seq: u8,
     counters: ReplyCounters,
@@ -82,11 +83,18 @@ impl Peers {
     /// No peers yet; replies come from `system_id` / `component_id`, for
     /// an output of `channels` channels.
     pub fn new(system_id: u8, component_id: u8, channels: usize) -> Peers {
+        // PARAM_VALUE: value (f32), count 1, index 0, id (16 chars), type
+        // REAL32 (9).
+        let mut param_value = [0u8; 25];
+        param_value[..4].copy_from_slice(&(channels as f32).to_le_bytes());
+        param_value[4] = 1;
+        param_value[8..20].copy_from_slice(b"PPM_CHANNELS");
+        param_value[24] = 9;
         Peers {
             peers: Vec::with_capacity(MAX_PEERS),
             system_id,
             component_id,
-            channels,
+            param_value,
             next_heartbeat: None,
             seq: 0,
             counters: ReplyCounters::default(),
@@ -125,12 +133,10 @@ impl Peers {
         }
     }
 
-    /// How many peers get replies now.
-    pub fn len(&self, now: Instant) -> usize {
-        self.peers
-            .iter()
-            .filter(|p| now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT)
-            .count()
+    /// How many peers are kept (those heard from within [`PEER_TIMEOUT`]
+    /// at the last [`Peers::due`]).
+    pub fn known(&self) -> usize {
+        self.peers.len()
     }
 
     /// Peer `addr` (just [`Peers::heard`]) asked for the parameters: the
@@ -139,17 +145,6 @@ impl Peers {
         if let Some(p) = self.peers.iter_mut().find(|p| p.addr == addr) {
             p.params_due = true;
         }
-    }
-
-    /// How many peers are kept (those heard from within [`PEER_TIMEOUT`]
-    /// at the last [`Peers::due`]).
-    pub fn known(&self) -> usize {
-        self.peers.len()
-    }
-
-    /// True when no peer gets replies now.
-    pub fn is_empty(&self, now: Instant) -> bool {
-        self.len(now) == 0
     }
 
     /// The frames due at `now` and where they go (appended to `out`): a
@@ -168,24 +163,11 @@ impl Peers {
     ) {
         self.peers
             .retain(|p| now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT);
-        // PARAM_VALUE: value (f32), count 1, index 0, id (16 chars), type
-        // REAL32 (9).
-        let mut param = (self.channels as f32).to_le_bytes().to_vec();
-        param.extend_from_slice(&[1, 0, 0, 0]);
-        param.extend_from_slice(b"PPM_CHANNELS\0\0\0\0");
-        param.push(9);
+        let param = self.param_value;
         for i in 0..self.peers.len() {
-            if !std::mem::take(&mut self.peers[i].params_due) {
-                continue;
+            if std::mem::take(&mut self.peers[i].params_due) {
+                self.reply(i, &PARAM_VALUE, &param, signing.as_deref_mut(), ts, out);
             }
-            let frame = self.frame(
-                self.peers[i].version,
-                &PARAM_VALUE,
-                &param,
-                signing.as_deref_mut(),
-                ts,
-            );
-            self.send(i, frame, out);
         }
         let Some(at) = self.next_heartbeat else {
             return;
@@ -209,37 +191,28 @@ impl Peers {
         // mavlink_version 3.
         let payload = [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, state, 3];
         for i in 0..self.peers.len() {
-            let frame = self.frame(
-                self.peers[i].version,
-                &HEARTBEAT,
-                &payload,
-                signing.as_deref_mut(),
-                ts,
-            );
-            self.send(i, frame, out);
+            self.reply(i, &HEARTBEAT, &payload, signing.as_deref_mut(), ts, out);
         }
     }
 
-    /// One frame from ppm, numbered, signed with `signing` if given.
-    fn frame(
+    /// One frame from ppm to peer `i`, numbered, in its version or signed
+    /// with `signing` if given, handed on (to `out`) if the peer earned it.
+    fn reply(
         &mut self,
-        version: u8,
+        i: usize,
         spec: &mavlink::Spec,
         payload: &[u8],
         signing: Option<&mut mavlink::Signing>,
         ts: u64,
-    ) -> Vec<u8> {
+        out: &mut Vec<(SocketAddr, Vec<u8>)>,
+    ) {
         let seq = self.seq;
         self.seq = self.seq.wrapping_add(1);
         let header = (seq, self.system_id, self.component_id);
-        match signing {
+        let frame = match signing {
             Some(s) => s.frame(header, spec, payload, ts),
-            None => mavlink::frame(version, header, spec, payload),
-        }
-    }
-
-    /// Hands `frame` on for peer `i` if it has earned it.
-    fn send(&mut self, i: usize, frame: Vec<u8>, out: &mut Vec<(SocketAddr, Vec<u8>)>) {
+            None => mavlink::frame(self.peers[i].version, header, spec, payload),
+        };
         let p = &mut self.peers[i];
         if !p.exempt && p.credit < frame.len() {
             self.counters.held += 1;
@@ -313,7 +286,7 @@ mod tests {
         p.due(t + Duration::from_secs(5), 4, None, 0, &mut out);
         let ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         assert_eq!(ports, [1], "peer 2 silent for PEER_TIMEOUT");
-        assert_eq!(p.len(t + Duration::from_secs(5)), 1);
+        assert_eq!(p.known(), 1);
         assert_eq!(p.counters(), ReplyCounters { sent: 11, held: 0 });
     }
 

@@ -4,9 +4,7 @@
 //! [`Server::run`].
 
 use crate::seqfile::SeqFile;
-use crate::{
-    pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer, PPMD_STALE_AFTER_NS,
-};
+use crate::{pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer};
 use anyhow::{Context, Result};
 use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
@@ -14,7 +12,6 @@ use mio::{Events, Interest, Poll, Token};
 use ppm_shared::auth::AuthKey;
 use ppm_shared::config::{IngressSection, OutputPlan, Shared};
 use ppm_shared::ipc::{self, CommandSample, IpcError, PublishError, TimingSnapshot};
-use ppm_shared::line::LineState;
 use ppm_shared::logging::Chain;
 use ppm_shared::sched;
 use ppm_shared::time::{now_ns, realtime_ns};
@@ -321,19 +318,17 @@ impl Server {
         }
     }
 
-    /// Sends the MAVLink replies due (HEARTBEATs to the groundstations
-    /// heard from), with the line's state from ppmd's newest snapshot.
+    /// Sends the MAVLink replies due (HEARTBEATs and parameters to the
+    /// groundstations heard from), with ppmd's newest snapshot.
     fn mavlink_replies(&mut self) {
         if let Some(sub) = &self.stats {
             newest_snapshot(sub, &mut self.ppmd_snapshot);
         }
-        let now_mono = now_ns();
-        let line = self
-            .ppmd_snapshot
-            .filter(|s| now_mono.saturating_sub(s.mono_ns) <= PPMD_STALE_AFTER_NS)
-            .and_then(|s| LineState::from_code(s.state));
-        self.intake
-            .mavlink_due(Instant::now(), realtime_ns(), line, &mut self.mavlink_out);
+        self.intake.mavlink_due(
+            (Instant::now(), now_ns(), realtime_ns()),
+            self.ppmd_snapshot.as_ref(),
+            &mut self.mavlink_out,
+        );
         for (to, frame) in self.mavlink_out.drain(..) {
             if let Err(e) = self.socket.send_to(&frame, to) {
                 log::debug!("MAVLink reply to {to}: {e}");
