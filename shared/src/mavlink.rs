@@ -114,15 +114,54 @@ pub const PARAM_VALUE: Spec = Spec {
     max_len: 25,
 };
 
+/// `REQUEST_DATA_STREAM`: a groundstation asks for a stream of messages
+/// at a rate (the older way, MAVProxy's and pymavlink's).
+pub const REQUEST_DATA_STREAM: Spec = Spec {
+    id: 66,
+    name: "REQUEST_DATA_STREAM",
+    crc_extra: 148,
+    v1_len: 6,
+    max_len: 6,
+};
+/// `COMMAND_LONG`: a command, such as MAV_CMD_SET_MESSAGE_INTERVAL.
+pub const COMMAND_LONG: Spec = Spec {
+    id: 76,
+    name: "COMMAND_LONG",
+    crc_extra: 152,
+    v1_len: 33,
+    max_len: 33,
+};
+/// `COMMAND_ACK`: ppm's answer to a COMMAND_LONG.
+pub const COMMAND_ACK: Spec = Spec {
+    id: 77,
+    name: "COMMAND_ACK",
+    crc_extra: 143,
+    v1_len: 3,
+    max_len: 10,
+};
+
 /// Every message ppm reads or writes.
-pub const SPECS: [Spec; 6] = [
+pub const SPECS: [Spec; 9] = [
     HEARTBEAT,
     PARAM_REQUEST_LIST,
     PARAM_VALUE,
     RC_CHANNELS,
+    REQUEST_DATA_STREAM,
     MANUAL_CONTROL,
     RC_CHANNELS_OVERRIDE,
+    COMMAND_LONG,
+    COMMAND_ACK,
 ];
+
+/// MAV_CMD_SET_MESSAGE_INTERVAL: param1 a message id, param2 its interval
+/// in us (-1: stop, 0: the default).
+pub const MAV_CMD_SET_MESSAGE_INTERVAL: u16 = 511;
+/// MAV_CMD_REQUEST_MESSAGE: param1 a message id, sent once.
+pub const MAV_CMD_REQUEST_MESSAGE: u16 = 512;
+/// MAV_DATA_STREAM_ALL, in REQUEST_DATA_STREAM.
+pub const MAV_DATA_STREAM_ALL: u8 = 0;
+/// MAV_DATA_STREAM_RC_CHANNELS, in REQUEST_DATA_STREAM.
+pub const MAV_DATA_STREAM_RC_CHANNELS: u8 = 3;
 
 /// The spec of message `id`, if ppm knows it.
 pub fn spec(id: u32) -> Option<&'static Spec> {
@@ -185,8 +224,38 @@ pub struct ManualControl {
     pub buttons: u32,
 }
 
-/// A message ppm takes.
+/// `COMMAND_LONG`'s fields.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CommandLong {
+    /// The system it is for (0: any).
+    pub target_system: u8,
+    /// The component it is for (0: any).
+    pub target_component: u8,
+    /// The MAV_CMD.
+    pub command: u16,
+    /// Sent again without an answer: 0, 1, ...
+    pub confirmation: u8,
+    /// param1..param7.
+    pub params: [f32; 7],
+}
+
+/// `REQUEST_DATA_STREAM`'s fields.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RequestDataStream {
+    /// The system it is for (0: any).
+    pub target_system: u8,
+    /// The component it is for (0: any).
+    pub target_component: u8,
+    /// The MAV_DATA_STREAM.
+    pub stream: u8,
+    /// Messages a second.
+    pub rate_hz: u16,
+    /// 1 to start, 0 to stop.
+    pub start: bool,
+}
+
+/// A message ppm takes.
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Message {
     /// A peer's heartbeat.
     Heartbeat,
@@ -196,6 +265,10 @@ pub enum Message {
     ManualControl(ManualControl),
     /// A request for the parameters, for (target system, target component).
     ParamRequestList(u8, u8),
+    /// A request for a stream of messages.
+    RequestDataStream(RequestDataStream),
+    /// A command.
+    CommandLong(CommandLong),
 }
 
 impl Message {
@@ -238,6 +311,20 @@ impl Message {
                 p.extend_from_slice(&[*s, *c]);
                 (&PARAM_REQUEST_LIST, p)
             }
+            Message::RequestDataStream(r) => {
+                p.extend_from_slice(&r.rate_hz.to_le_bytes());
+                p.extend_from_slice(&[r.target_system, r.target_component, r.stream]);
+                p.push(r.start as u8);
+                (&REQUEST_DATA_STREAM, p)
+            }
+            Message::CommandLong(c) => {
+                for v in c.params {
+                    p.extend_from_slice(&v.to_le_bytes());
+                }
+                p.extend_from_slice(&c.command.to_le_bytes());
+                p.extend_from_slice(&[c.target_system, c.target_component, c.confirmation]);
+                (&COMMAND_LONG, p)
+            }
         }
     }
 }
@@ -255,6 +342,14 @@ impl Payload<'_> {
     }
     fn i16(&self, at: usize) -> i16 {
         self.u16(at) as i16
+    }
+    fn f32(&self, at: usize) -> f32 {
+        f32::from_le_bytes([
+            self.u8(at),
+            self.u8(at + 1),
+            self.u8(at + 2),
+            self.u8(at + 3),
+        ])
     }
 }
 
@@ -311,7 +406,7 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
     let Some(spec) = spec(msgid) else {
         return Err(reject(
             RejectReason::MavlinkUnknownMessage,
-            format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69), HEARTBEAT (0) and PARAM_REQUEST_LIST (21)"),
+            format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69), HEARTBEAT (0), PARAM_REQUEST_LIST (21), REQUEST_DATA_STREAM (66) and COMMAND_LONG (76)"),
         ));
     };
     // MAVLink 1 is never trimmed, and pymavlink (like the C library's
@@ -346,6 +441,20 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
     let message = match msgid {
         0 => Message::Heartbeat,
         21 => Message::ParamRequestList(p.u8(0), p.u8(1)),
+        66 => Message::RequestDataStream(RequestDataStream {
+            rate_hz: p.u16(0),
+            target_system: p.u8(2),
+            target_component: p.u8(3),
+            stream: p.u8(4),
+            start: p.u8(5) != 0,
+        }),
+        76 => Message::CommandLong(CommandLong {
+            params: std::array::from_fn(|i| p.f32(4 * i)),
+            command: p.u16(28),
+            target_system: p.u8(30),
+            target_component: p.u8(31),
+            confirmation: p.u8(32),
+        }),
         69 => Message::ManualControl(ManualControl {
             axes: [p.i16(0), p.i16(2), p.i16(4), p.i16(6)],
             buttons: p.u16(8) as u32 | (p.u16(11) as u32) << 16,
@@ -384,7 +493,7 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
 }
 
 /// What a MAVLink datagram holds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Datagram {
     /// Its last command message, if any (an earlier one in the same
     /// datagram is superseded by it).
@@ -393,8 +502,9 @@ pub struct Datagram {
     pub frames: usize,
     /// The MAVLink version of its last frame.
     pub version: u8,
-    /// The targets (system, component) of its last PARAM_REQUEST_LIST.
-    pub param_request: Option<(u8, u8)>,
+    /// Its requests (PARAM_REQUEST_LIST, REQUEST_DATA_STREAM,
+    /// COMMAND_LONG), in order.
+    pub requests: Vec<(Header, Message)>,
 }
 
 /// Reads a whole MAVLink datagram: every frame must be good, or the
@@ -414,7 +524,7 @@ pub fn read_datagram_with(
         command: None,
         frames: 0,
         version: 0,
-        param_request: None,
+        requests: Vec::new(),
     };
     let mut at = 0;
     while at < bytes.len() {
@@ -429,9 +539,8 @@ pub fn read_datagram_with(
         d.version = header.version;
         if message.is_command() {
             d.command = Some((header, message));
-        }
-        if let Message::ParamRequestList(s, c) = message {
-            d.param_request = Some((s, c));
+        } else if message != Message::Heartbeat {
+            d.requests.push((header, message));
         }
         at += len;
     }
@@ -672,9 +781,10 @@ pub fn command(
         }
     };
     match message {
-        Message::Heartbeat | Message::ParamRequestList(..) => {
-            return Err(reject(RejectReason::BadShape, "not a command"))
-        }
+        Message::Heartbeat
+        | Message::ParamRequestList(..)
+        | Message::RequestDataStream(_)
+        | Message::CommandLong(_) => return Err(reject(RejectReason::BadShape, "not a command")),
         Message::RcOverride(o) => {
             target(o.target_system)?;
             let c = o.target_component;
@@ -754,6 +864,28 @@ pub fn command(
         channels: Channels::from_ns(&ns[..n]),
         clamped,
     })
+}
+
+/// RC_CHANNELS' payload: `values_us` (at most 18 channels; those past them
+/// UINT16_MAX, "unused"), the count, RSSI 255 (unknown), at `time_boot_ms`.
+/// No values, a count of 0: no channels are on the line.
+pub fn rc_channels_payload(time_boot_ms: u32, values_us: &[u16]) -> [u8; 42] {
+    let mut p = [0u8; 42];
+    p[..4].copy_from_slice(&time_boot_ms.to_le_bytes());
+    for i in 0..18 {
+        let v = values_us.get(i).copied().unwrap_or(u16::MAX);
+        p[4 + 2 * i..6 + 2 * i].copy_from_slice(&v.to_le_bytes());
+    }
+    p[40] = values_us.len().min(18) as u8;
+    p[41] = u8::MAX;
+    p
+}
+
+/// COMMAND_ACK's payload: `command`'s `result` (a MAV_RESULT), for the
+/// sender (system, component) `to`.
+pub fn command_ack_payload(command: u16, result: u8, to: (u8, u8)) -> [u8; 10] {
+    let c = command.to_le_bytes();
+    [c[0], c[1], result, 0, 0, 0, 0, 0, to.0, to.1]
 }
 
 /// One frame of `spec`'s message with `payload` (MAVLink 2 trims its

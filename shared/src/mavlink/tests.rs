@@ -49,8 +49,7 @@ const V2_SIGNED: [u8; 43] = [
 const V2_PARAM_REQUEST_LIST: [u8; 14] = [
     0xfd, 0x02, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x15, 0x00, 0x00, 0x01, 0x01, 0x88, 0xc0,
 ];
-/// request_data_stream_send(1, 1, 0, 4, 1), MAVLink 2: a message ppm does
-/// not take.
+/// request_data_stream_send(1, 1, 0, 4, 1), MAVLink 2.
 const V2_REQUEST_DATA_STREAM: [u8; 18] = [
     0xfd, 0x06, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x42, 0x00, 0x00, 0x04, 0x00, 0x01, 0x01, 0x00, 0x01,
     0x79, 0xd1,
@@ -124,7 +123,9 @@ fn pymavlink_frames_read_back_to_their_fields() {
     }
     assert_eq!(read_frame(&V2_HEARTBEAT).unwrap().1, Message::Heartbeat);
     let d = read_datagram(&V2_PARAM_REQUEST_LIST).unwrap();
-    assert_eq!((d.command, d.param_request), (None, Some((1, 1))));
+    assert_eq!(d.command, None);
+    assert_eq!(d.requests.len(), 1);
+    assert_eq!(d.requests[0].1, Message::ParamRequestList(1, 1));
     // pymavlink's MAVLink 1 with force_mavlink1 packs the extensions too
     // (38 bytes), as the C library's reader takes.
     let mut whole = V1_OVERRIDE[6..24].to_vec();
@@ -205,7 +206,10 @@ fn every_fault_has_its_reason() {
             MavlinkBadLength
         );
     }
-    assert_eq!(reason(&V2_REQUEST_DATA_STREAM), MavlinkUnknownMessage);
+    // FILE_TRANSFER_PROTOCOL (110), which MAVProxy sends.
+    let mut ftp = V2_REQUEST_DATA_STREAM;
+    ftp[7] = 110;
+    assert_eq!(reason(&ftp), MavlinkUnknownMessage);
     // PARAM_VALUE is ppm's to send, not to take.
     assert_eq!(reason(&V2_PARAM_VALUE), MavlinkUnknownMessage);
     // An incompat flag ppm does not know.
@@ -464,4 +468,83 @@ fn signed_frames_read_back_and_check_out_with_growing_timestamps() {
     replayed.extend_from_slice(&f);
     let err = read_datagram_with(&replayed, |b, h| theirs.check(b, h, now)).unwrap_err();
     assert_eq!(err.reason, RejectReason::Replay, "{err}");
+}
+
+/// pymavlink 2.4.50's command_long_send(1, 1, 511, 0, 65, 250000, 0, ...)
+/// from 255/190, MAVLink 2 (trimmed to 32 bytes: confirmation is 0).
+const V2_SET_MESSAGE_INTERVAL: [u8; 44] = [
+    0xfd, 0x20, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x4c, 0x00, 0x00, 0x00, 0x00, 0x82, 0x42, 0x00, 0x24,
+    0x74, 0x48, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+    0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0xff, 0x01, 0x01, 0x01, 0x8c, 0x26,
+];
+/// pymavlink's rc_channels_send(1234, 2, 1100, 1900, 65535 x 16, 255)
+/// from 1/1.
+const V2_RC_CHANNELS: [u8; 54] = [
+    0xfd, 0x2a, 0x00, 0x00, 0x00, 0x01, 0x01, 0x41, 0x00, 0x00, 0xd2, 0x04, 0x00, 0x00, 0x4c, 0x04,
+    0x6c, 0x07, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff,
+    0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff,
+    0xff, 0xff, 0x02, 0xff, 0x41, 0xe0,
+];
+/// pymavlink's command_ack_send(511, 0, 0, 0, 255, 190) from 1/1.
+const V2_COMMAND_ACK: [u8; 22] = [
+    0xfd, 0x0a, 0x00, 0x00, 0x00, 0x01, 0x01, 0x4d, 0x00, 0x00, 0xff, 0x01, 0x00, 0x00, 0x00, 0x00,
+    0x00, 0x00, 0xff, 0xbe, 0xa9, 0x60,
+];
+
+#[test]
+fn requests_read_as_pymavlink_wrote_them_and_replies_are_byte_identical() {
+    let d = read_datagram(&V2_SET_MESSAGE_INTERVAL).unwrap();
+    let (h, m) = d.requests[0];
+    assert_eq!((h.sysid, h.compid, d.command), (255, 190, None));
+    assert_eq!(
+        m,
+        Message::CommandLong(CommandLong {
+            target_system: 1,
+            target_component: 1,
+            command: MAV_CMD_SET_MESSAGE_INTERVAL,
+            confirmation: 0,
+            params: [65.0, 250_000.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        })
+    );
+    let (spec, payload) = m.encode();
+    assert_eq!(frame(2, (0, 255, 190), spec, &payload), V2_SET_MESSAGE_INTERVAL);
+    let d = read_datagram(&V2_REQUEST_DATA_STREAM).unwrap();
+    let m = d.requests[0].1;
+    assert_eq!(
+        m,
+        Message::RequestDataStream(RequestDataStream {
+            target_system: 1,
+            target_component: 1,
+            stream: MAV_DATA_STREAM_ALL,
+            rate_hz: 4,
+            start: true,
+        })
+    );
+    let (spec, payload) = m.encode();
+    assert_eq!(frame(2, (0, 255, 190), spec, &payload), V2_REQUEST_DATA_STREAM);
+    // Both in one datagram, with a command between: every request, in
+    // order, and the command.
+    let (spec, payload) = Message::Heartbeat.encode();
+    let mut two = V2_SET_MESSAGE_INTERVAL.to_vec();
+    two.extend_from_slice(&frame(2, (1, 255, 190), spec, &payload));
+    two.extend_from_slice(&V2_OVERRIDE);
+    two.extend_from_slice(&V2_REQUEST_DATA_STREAM);
+    let d = read_datagram(&two).unwrap();
+    assert_eq!(d.frames, 4);
+    let ids: Vec<u32> = d.requests.iter().map(|(h, _)| h.msgid).collect();
+    assert_eq!(ids, [76, 66]);
+    assert!(d.command.is_some());
+
+    // What ppm writes is what pymavlink writes.
+    let rc = rc_channels_payload(1234, &[1100, 1900]);
+    assert_eq!(frame(2, (0, 1, 1), &RC_CHANNELS, &rc), V2_RC_CHANNELS);
+    let ack = command_ack_payload(MAV_CMD_SET_MESSAGE_INTERVAL, 0, (255, 190));
+    assert_eq!(frame(2, (0, 1, 1), &COMMAND_ACK, &ack), V2_COMMAND_ACK);
+    // No channels on the line: a count of 0, every channel unused.
+    let none = rc_channels_payload(7, &[]);
+    assert_eq!((none[40], none[41]), (0, 255));
+    assert!(none[4..40].iter().all(|&b| b == 0xff));
+    // RC_CHANNELS and COMMAND_ACK are ppm's to send, not to take.
+    let e = read_frame(&V2_RC_CHANNELS).unwrap_err();
+    assert_eq!(e.reason, RejectReason::MavlinkUnknownMessage);
 }
