@@ -9,7 +9,7 @@ use crate::meter::{self, Interval, MeterReader};
 use anyhow::{Context, Result};
 use ppm_shared::config::Timing;
 use ppm_shared::frame::FrameModel;
-use ppm_shared::ipc::{self, IpcError, PublishError, Summary, TimingSnapshot};
+use ppm_shared::ipc::{self, IpcError, LineSample, PublishError, Summary, TimingSnapshot};
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
@@ -321,11 +321,15 @@ impl Monitor {
     }
 }
 
-/// The publisher of one output's timing snapshots, with the node and
-/// service it lives in.
+/// The publisher of one output's timing snapshots and line samples, with
+/// the node and services they live in.
 pub struct SnapshotPublisher {
     publisher: ipc::Publisher<TimingSnapshot>,
+    line: ipc::Publisher<LineSample>,
+    /// The number of the last frame published on `line`.
+    line_frame: u64,
     _service: ipc::StatsService,
+    _line_service: ipc::LineService,
     _node: ipc::Node,
 }
 
@@ -341,11 +345,28 @@ impl SnapshotPublisher {
                 e,
             )
         })?;
+        let line_service = ipc::open_line_service(&node, name)?;
+        let line = line_service.publisher_builder().create().map_err(|e| {
+            IpcError::new(format!("creating the line sample publisher of `{name}`"), e)
+        })?;
         Ok(SnapshotPublisher {
             publisher,
+            line,
+            line_frame: 0,
             _service: service,
+            _line_service: line_service,
             _node: node,
         })
+    }
+
+    /// Publishes `sample`, the newest frame the line carried, unless it
+    /// was published already.
+    pub fn publish_line(&mut self, sample: LineSample) -> Result<(), PublishError> {
+        if sample.frame == self.line_frame {
+            return Ok(());
+        }
+        self.line_frame = sample.frame;
+        ipc::publish(&self.line, sample).map(|_| ())
     }
 
     /// Publishes `snapshot` to whoever subscribed (udp-ingress, `jitter

@@ -142,8 +142,14 @@ impl Output {
 
 impl Watched {
     /// Reads the loop's measurements; publishes a snapshot when one is due,
-    /// else offers the last one to new subscribers.
+    /// else offers the last one to new subscribers; and publishes the
+    /// newest frame the line carried, when a new one went out.
     pub fn tick(&mut self, hdr: Option<&mut HdrLog>) {
+        if let Some(sample) = self.stats.last_frame.load() {
+            if let Err(e) = self.publisher.publish_line(sample) {
+                log::debug!("publishing the line sample: {}", Chain(&e));
+            }
+        }
         match self.view.tick(hdr, self.log_writer.as_ref()) {
             Some(snapshot) => {
                 if let Err(e) = self.publisher.publish(snapshot) {

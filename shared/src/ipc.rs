@@ -122,6 +122,45 @@ pub fn stats_service_name(name: &str) -> String {
     format!("ppm/{name}/stats")
 }
 
+/// The iceoryx2 service carrying the newest frame output `name`'s line
+/// carried whole.
+pub fn line_service_name(name: &str) -> String {
+    format!("ppm/{name}/line")
+}
+
+/// The newest frame ppmd's line carried whole (or glitched, as carried),
+/// published by ppmd's monitor when a new one went out, at most every
+/// tenth of a second, on [`line_service_name`]: what udp-ingress reports
+/// to MAVLink groundstations as RC_CHANNELS. Aborted frames are not
+/// published: receivers keep what they had.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[type_name("ppm::LineSample")]
+#[repr(C)]
+pub struct LineSample {
+    /// Its number among ppmd's frames (1, 2, ...; restarts with ppmd).
+    pub frame: u64,
+    /// CLOCK_MONOTONIC time of its first edge, ns.
+    pub start_mono_ns: u64,
+    /// Number of valid entries in `values_ns`.
+    pub channels: u32,
+    /// The line state it went out in: 1 active, 2 failsafe.
+    pub state: u32,
+    /// The values the line carried, ns, transmitter order.
+    pub values_ns: [u32; MAX_CHANNELS],
+}
+
+/// The line sample service.
+pub type LineService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+    iceoryx2::service::ipc::Service,
+    LineSample,
+    (),
+>;
+
+/// Opens (or creates) the newest-only line sample service of output `name`.
+pub fn open_line_service(node: &Node, name: &str) -> Result<LineService, IpcError> {
+    open_newest_only(node, &line_service_name(name))
+}
+
 /// Buckets of [`TimingSnapshot::hist_us`]: edge error 0..1000 us in 1 us steps.
 pub const HIST_BUCKETS: usize = 1_000;
 
@@ -305,7 +344,7 @@ pub enum PublishError {
 }
 
 /// A publisher on one of the newest-only services ([`open_command_service`],
-/// [`open_stats_service`]).
+/// [`open_stats_service`], [`open_line_service`]).
 pub type Publisher<T> =
     iceoryx2::port::publisher::Publisher<iceoryx2::service::ipc::Service, T, ()>;
 

@@ -3,13 +3,16 @@
 //! without allocating, logging or taking a lock: counters are atomics, the
 //! histograms and the frame log are handed over through lock-free rings.
 
-use super::emit::Frame;
 use super::{Progress, LATE_EDGE_NS};
 use crate::framelog::{self, FrameStatus, Record};
 use crate::meter::Meter;
 use ppm_shared::frame::{FrameModel, MAX_CHANNELS};
+use ppm_shared::ipc::LineSample;
 use ppm_shared::line::LineState;
-use std::sync::atomic::{AtomicU64, AtomicU8, Ordering::Relaxed};
+use std::sync::atomic::{
+    fence, AtomicU32, AtomicU64, AtomicU8,
+    Ordering::{Acquire, Relaxed, Release},
+};
 
 /// Counters the loop updates and other threads read.
 #[derive(Debug, Default)]
@@ -62,6 +65,73 @@ pub struct Stats {
     pub spin_ns: AtomicU64,
     /// The current [`LineState`].
     pub(super) state: AtomicU8,
+    /// The newest frame the line carried whole (or glitched).
+    pub last_frame: LastFrame,
+}
+
+/// The newest frame the line carried whole, which the loop writes and other
+/// threads read without ever making it wait: a sequence count, odd while
+/// the loop writes, tells a reader to read again.
+#[derive(Debug, Default)]
+pub struct LastFrame {
+    version: AtomicU64,
+    frame: AtomicU64,
+    start_mono_ns: AtomicU64,
+    channels: AtomicU32,
+    state: AtomicU32,
+    values_ns: [AtomicU32; MAX_CHANNELS],
+}
+
+impl LastFrame {
+    /// The loop (its only writer) stores frame `frame`, started at
+    /// `start_mono_ns` in `state`, which carried `values_ns`.
+    pub(super) fn store(
+        &self,
+        frame: u64,
+        start_mono_ns: u64,
+        state: LineState,
+        values_ns: &[u32],
+    ) {
+        let v = self.version.load(Relaxed);
+        self.version.store(v.wrapping_add(1), Relaxed);
+        fence(Release);
+        self.frame.store(frame, Relaxed);
+        self.start_mono_ns.store(start_mono_ns, Relaxed);
+        self.channels.store(values_ns.len() as u32, Relaxed);
+        self.state.store(state as u32, Relaxed);
+        for (a, &v) in self.values_ns.iter().zip(values_ns) {
+            a.store(v, Relaxed);
+        }
+        self.version.store(v.wrapping_add(2), Release);
+    }
+
+    /// The newest frame stored, if any (`None` too when the loop kept
+    /// writing through every try, which a reader every tenth of a second
+    /// does not meet).
+    pub fn load(&self) -> Option<LineSample> {
+        for _ in 0..64 {
+            let v1 = self.version.load(Acquire);
+            if v1 & 1 == 1 {
+                std::hint::spin_loop();
+                continue;
+            }
+            let mut s = LineSample {
+                frame: self.frame.load(Relaxed),
+                start_mono_ns: self.start_mono_ns.load(Relaxed),
+                channels: self.channels.load(Relaxed),
+                state: self.state.load(Relaxed),
+                values_ns: [0; MAX_CHANNELS],
+            };
+            for (v, a) in s.values_ns.iter_mut().zip(&self.values_ns) {
+                *v = a.load(Relaxed);
+            }
+            fence(Acquire);
+            if self.version.load(Relaxed) == v1 {
+                return (s.frame != 0).then_some(s);
+            }
+        }
+        None
+    }
 }
 
 impl Stats {
@@ -155,8 +225,27 @@ impl Recording<'_> {
         };
         stats.margin_ns.store(margin_ns, Relaxed);
         p.frame_no += 1;
+        let mut values_ns = [0; MAX_CHANNELS];
+        let carried = f
+            .wire
+            .carried(model, &f.channels, f.aborted, &mut values_ns);
+        if !f.aborted {
+            stats
+                .last_frame
+                .store(p.frame_no, f.start, f.state, &values_ns[..carried]);
+        }
         if let Some(log) = self.log.as_deref_mut() {
-            log.push(frame_row(model, &f, p.frame_no, status));
+            log.push(Record::Frame {
+                frame: p.frame_no,
+                start_mono_ns: f.start,
+                start_real_ns: f.start_real_ns,
+                state: f.state,
+                timing: model.timing(),
+                command: f.command,
+                status,
+                channels: carried as u8,
+                values_ns,
+            });
         }
         if f.aborted {
             let last = f.wire.pulse_of(model, p.timed_ns);
@@ -165,22 +254,40 @@ impl Recording<'_> {
     }
 }
 
-/// Frame `f`'s row in the frame log, numbered `frame_no`: the values the
-/// line carried whole, as its wire form measures them.
-fn frame_row(model: &FrameModel, f: &Frame, frame_no: u64, status: FrameStatus) -> Record {
-    let mut values_ns = [0; MAX_CHANNELS];
-    let carried = f
-        .wire
-        .carried(model, &f.channels, f.aborted, &mut values_ns);
-    Record::Frame {
-        frame: frame_no,
-        start_mono_ns: f.start,
-        start_real_ns: f.start_real_ns,
-        state: f.state,
-        timing: model.timing(),
-        command: f.command,
-        status,
-        channels: carried as u8,
-        values_ns,
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_last_frame_reads_whole_while_the_loop_writes_it() {
+        let last = std::sync::Arc::new(LastFrame::default());
+        assert_eq!(last.load(), None, "no frame yet");
+        let writer = {
+            let last = last.clone();
+            std::thread::spawn(move || {
+                for k in 1..=20_000u64 {
+                    let v = [k as u32; 8];
+                    last.store(k, 2 * k, LineState::Active, &v[..(k % 8 + 1) as usize]);
+                }
+            })
+        };
+        // Every read, however it meets the writer, is one frame's whole:
+        // its start, count and values all of one store.
+        let mut seen = 0;
+        while !writer.is_finished() {
+            if let Some(s) = last.load() {
+                let k = s.frame;
+                assert_eq!(s.start_mono_ns, 2 * k);
+                assert_eq!(s.channels as u64, k % 8 + 1);
+                assert!(s.values_ns[..s.channels as usize]
+                    .iter()
+                    .all(|&v| v as u64 == k));
+                assert_eq!(s.state, LineState::Active as u32);
+                seen += 1;
+            }
+        }
+        writer.join().unwrap();
+        assert_eq!(last.load().unwrap().frame, 20_000);
+        assert!(seen > 0);
     }
 }

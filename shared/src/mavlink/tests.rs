@@ -507,7 +507,10 @@ fn requests_read_as_pymavlink_wrote_them_and_replies_are_byte_identical() {
         })
     );
     let (spec, payload) = m.encode();
-    assert_eq!(frame(2, (0, 255, 190), spec, &payload), V2_SET_MESSAGE_INTERVAL);
+    assert_eq!(
+        frame(2, (0, 255, 190), spec, &payload),
+        V2_SET_MESSAGE_INTERVAL
+    );
     let d = read_datagram(&V2_REQUEST_DATA_STREAM).unwrap();
     let m = d.requests[0].1;
     assert_eq!(
@@ -521,7 +524,10 @@ fn requests_read_as_pymavlink_wrote_them_and_replies_are_byte_identical() {
         })
     );
     let (spec, payload) = m.encode();
-    assert_eq!(frame(2, (0, 255, 190), spec, &payload), V2_REQUEST_DATA_STREAM);
+    assert_eq!(
+        frame(2, (0, 255, 190), spec, &payload),
+        V2_REQUEST_DATA_STREAM
+    );
     // Both in one datagram, with a command between: every request, in
     // order, and the command.
     let (spec, payload) = Message::Heartbeat.encode();

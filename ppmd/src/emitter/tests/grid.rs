@@ -83,6 +83,17 @@ fn a_timed_edge_found_late_is_not_written_and_its_frame_ends_there() {
     assert!(edges.iter().all(|e| e.actual_ns - e.scheduled_ns < 1_000));
     assert_eq!(stats.frames.load(Relaxed), (clean.len() as u64 - 2) / 18);
     read_cut_after_its_first_channel(&edges, clean[frame2].scheduled_ns);
+    // The newest frame on the line is the last one, whole: its number,
+    // start and values.
+    let last = stats.last_frame.load().expect("a frame went out whole");
+    assert_eq!(last.frame, stats.frames.load(Relaxed));
+    assert_eq!(last.start_mono_ns, edges[edges.len() - 18].scheduled_ns);
+    let us: Vec<u64> = last.values_ns[..last.channels as usize]
+        .iter()
+        .map(|&v| v as u64 / 1_000)
+        .collect();
+    assert_eq!(us, CMD_US);
+    assert_eq!(last.state, LineState::Active as u32);
 }
 
 /// Idle high: the rising edge receivers time ends each pulse. Held up
@@ -441,6 +452,8 @@ fn the_automatic_margin_covers_the_wake_up_lateness() {
     let frames = stats.frames.load(Relaxed);
     assert!(frames > 0);
     assert_eq!(stats.aborted_frames.load(Relaxed), frames, "{stats:?}");
+    // No frame went out whole: none is reported as on the line.
+    assert_eq!(stats.last_frame.load(), None);
 }
 
 /// The frame log gets one row per frame sent, numbered from 1, with
