@@ -729,7 +729,16 @@ pub struct Settings {
     pub buttons: Vec<usize>,
     /// The signing key's file (`mavlink.key_file`), if any.
     pub key_file: Option<std::path::PathBuf>,
+    /// RC_CHANNELS per second to each peer, unless it asks otherwise
+    /// (`mavlink.rc_channels_hz`, 0..=[`RC_CHANNELS_MAX_HZ`]).
+    pub rc_channels_hz: u8,
 }
+
+/// RC_CHANNELS a second to each groundstation by default.
+pub const RC_CHANNELS_HZ: u8 = 4;
+/// The most RC_CHANNELS a second: ppmd publishes its line every tenth of a
+/// second, so more would repeat the same frame.
+pub const RC_CHANNELS_MAX_HZ: u8 = 10;
 
 impl Settings {
     /// Ids 1 and 1, and the axes onto ele, ail, thr and rud, those of them
@@ -742,6 +751,7 @@ impl Settings {
             thrust: Thrust::Positive,
             buttons: Vec::new(),
             key_file: None,
+            rc_channels_hz: RC_CHANNELS_HZ,
         }
     }
 }

@@ -32,8 +32,8 @@ pub mod server;
 
 use ipnet::IpNet;
 use ppm_shared::auth::{self, AuthKey};
-use ppm_shared::frame::FrameModel;
-use ppm_shared::ipc::TimingSnapshot;
+use ppm_shared::frame::{FrameModel, MAX_CHANNELS};
+use ppm_shared::ipc::{LineSample, TimingSnapshot};
 use ppm_shared::line::LineState;
 use ppm_shared::mavlink;
 use ppm_shared::protocol::{
@@ -46,6 +46,11 @@ use ppm_shared::status::{
 use serde_json::Value;
 use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
+
+/// A line sample whose frame started longer ago than this says no frame
+/// goes out now (ppmd publishes the newest every tenth of a second while
+/// frames go out).
+pub const LINE_STALE_AFTER_NS: u64 = 300_000_000;
 
 /// A ppmd timing snapshot older than this is not reported as ppmd's state
 /// (ppmd publishes one a second; older means it stopped or hangs).
@@ -284,7 +289,7 @@ impl Intake {
         Intake {
             name: name.to_owned(),
             mavlink: mavlink::Settings::defaults_for(&model),
-            peers: peers::Peers::new(1, 1, model.channels()),
+            peers: peers::Peers::new(1, 1, model.channels(), mavlink::RC_CHANNELS_HZ),
             signing: None,
             status_allow: Vec::new(),
             model,
@@ -338,6 +343,7 @@ impl Intake {
             settings.system_id,
             settings.component_id,
             self.model.channels(),
+            settings.rc_channels_hz,
         );
         self.mavlink = settings;
         self
@@ -557,11 +563,8 @@ impl Intake {
             let exempt = in_blocks(&self.status_allow, from.ip());
             self.peers
                 .heard(from, d.version, datagram.len(), exempt, now);
-            if let Some((s, c)) = d.param_request {
-                let m = &self.mavlink;
-                if mavlink::addressed(s, m.system_id) && mavlink::addressed(c, m.component_id) {
-                    self.peers.request_params(from);
-                }
+            for (h, m) in &d.requests {
+                self.peers.request(from, h, m);
             }
         }
         let Some((_, message)) = d.command else {
@@ -582,19 +585,36 @@ impl Intake {
 
     /// The MAVLink replies due at `now` (appended to `out`: where each goes,
     /// and the frame), with the line's state from `ppmd`, ppmd's newest
-    /// snapshot, unless it is stale at CLOCK_MONOTONIC `now_mono_ns`
+    /// snapshot, unless it is stale at CLOCK_MONOTONIC `now_mono_ns`, and
+    /// its values from `line`, the newest frame ppmd's line carried, unless
+    /// it started more than [`LINE_STALE_AFTER_NS`] ago
     /// ([`peers::Peers::due`]). `real_ns` is CLOCK_REALTIME now, for the
     /// signatures' timestamps.
     pub fn mavlink_due(
         &mut self,
         (now, now_mono_ns, real_ns): (Instant, u64, u64),
-        ppmd: Option<&TimingSnapshot>,
+        (ppmd, line): (Option<&TimingSnapshot>, Option<&LineSample>),
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
     ) {
-        let line = fresh_snapshot(ppmd, now_mono_ns).and_then(|s| LineState::from_code(s.state));
+        let state = fresh_snapshot(ppmd, now_mono_ns).and_then(|s| LineState::from_code(s.state));
         let ts = mavlink::signing_timestamp(real_ns);
+        let line =
+            line.filter(|l| now_mono_ns.saturating_sub(l.start_mono_ns) <= LINE_STALE_AFTER_NS);
+        let mut values_us = [0u16; MAX_CHANNELS];
+        let n = line.map_or(0, |l| (l.channels as usize).min(MAX_CHANNELS));
+        if let Some(l) = line {
+            for (us, &ns) in values_us.iter_mut().zip(&l.values_ns[..n]) {
+                *us = ((ns + 500) / 1_000).min(u16::MAX as u32) as u16;
+            }
+        }
+        let at_ns = line.map_or(now_mono_ns, |l| l.start_mono_ns);
+        let now_line = peers::LineNow {
+            state: peers::mav_state(state),
+            values_us: &values_us[..n],
+            boot_ms: (at_ns / 1_000_000) as u32,
+        };
         self.peers
-            .due(now, peers::mav_state(line), self.signing.as_mut(), ts, out);
+            .due(now, now_line, self.signing.as_mut(), ts, out);
     }
 
     /// A reply [`Intake::mavlink_due`] gave could not be sent.

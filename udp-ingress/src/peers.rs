@@ -1,8 +1,11 @@
 //! The MAVLink groundstations udp-ingress talks back to: after a peer's
 //! first good MAVLink datagram, a HEARTBEAT a second in the peer's MAVLink
-//! version, so that a groundstation sees ppm as a vehicle; and to a
-//! PARAM_REQUEST_LIST, ppm's one parameter, `PPM_CHANNELS` (the channel
-//! count), which QGroundControl waits for before it offers its joystick.
+//! version, so that a groundstation sees ppm as a vehicle; RC_CHANNELS,
+//! the values on the line, at `mavlink.rc_channels_hz` or the rate the peer
+//! asks for (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM); a
+//! COMMAND_ACK to each COMMAND_LONG; and to a PARAM_REQUEST_LIST, ppm's one
+//! parameter, `PPM_CHANNELS` (the channel count), which QGroundControl
+//! waits for before it offers its joystick.
 //!
 //! No peer gets more than [`REPLY_MAX_RATIO`] times the bytes it sent (a
 //! credit, capped at [`CREDIT_MAX`] bytes), unless it lies in
@@ -13,7 +16,9 @@
 //!
 //! Logic only, without I/O: the server sends what [`Peers::due`] gives.
 
-use ppm_shared::mavlink::{self, HEARTBEAT, PARAM_VALUE};
+use ppm_shared::mavlink::{
+    self, CommandLong, Header, Message, COMMAND_ACK, HEARTBEAT, PARAM_VALUE, RC_CHANNELS,
+};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
@@ -27,6 +32,18 @@ pub const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
 pub const REPLY_MAX_RATIO: usize = 3;
 /// Most reply bytes a peer can have earned and not used.
 pub const CREDIT_MAX: usize = 4_096;
+
+/// The shortest RC_CHANNELS interval a peer can ask for (ppmd publishes its
+/// line every tenth of a second).
+pub const RC_CHANNELS_MIN_EVERY: Duration =
+    Duration::from_millis(1_000 / mavlink::RC_CHANNELS_MAX_HZ as u64);
+/// MAV_RESULT_ACCEPTED.
+pub const MAV_RESULT_ACCEPTED: u8 = 0;
+/// MAV_RESULT_DENIED: a command ppm knows, with a parameter it cannot
+/// take (a message it does not send).
+pub const MAV_RESULT_DENIED: u8 = 2;
+/// MAV_RESULT_UNSUPPORTED: a command ppm does not know.
+pub const MAV_RESULT_UNSUPPORTED: u8 = 3;
 
 /// ppm's HEARTBEAT type: MAV_TYPE_GENERIC (0), a vehicle of no particular
 /// kind (an RC vehicle flown through its transmitter).
@@ -54,6 +71,14 @@ struct Peer {
     exempt: bool,
     /// It asked for the parameters.
     params_due: bool,
+    /// COMMAND_ACKs due: command, result, and the sender (system,
+    /// component).
+    acks: Vec<(u16, u8, (u8, u8))>,
+    /// Its RC_CHANNELS interval (`None`: none), and when the next is due.
+    rc_every: Option<Duration>,
+    next_rc: Instant,
+    /// It asked for one RC_CHANNELS now (MAV_CMD_REQUEST_MESSAGE).
+    rc_now: bool,
 }
 
 /// Counters of the replies.
@@ -75,14 +100,35 @@ pub struct Peers {
     /// The PARAM_VALUE payload of `PPM_CHANNELS`.
     param_value: [u8; 25],
     next_heartbeat: Option<Instant>,
+    /// The RC_CHANNELS interval of a peer that did not ask for one.
+    rc_default: Option<Duration>,
     seq: u8,
     counters: ReplyCounters,
 }
 
+/// What the line carries now, for the replies.
+#[derive(Debug, Clone, Copy)]
+pub struct LineNow<'a> {
+    /// The line's MAV_STATE ([`mav_state`]).
+    pub state: u8,
+    /// The values on the line, us (empty: no frame goes out).
+    pub values_us: &'a [u16],
+    /// Milliseconds since this ingress started (RC_CHANNELS'
+    /// `time_boot_ms`).
+    pub boot_ms: u32,
+}
+
+/// The interval of `hz` messages a second (`None` for 0), no shorter than
+/// [`RC_CHANNELS_MIN_EVERY`].
+fn every_of_hz(hz: f64) -> Option<Duration> {
+    (hz > 0.0).then(|| Duration::from_secs_f64(1.0 / hz).max(RC_CHANNELS_MIN_EVERY))
+}
+
 impl Peers {
     /// No peers yet; replies come from `system_id` / `component_id`, for
-    /// an output of `channels` channels.
-    pub fn new(system_id: u8, component_id: u8, channels: usize) -> Peers {
+    /// an output of `channels` channels, with RC_CHANNELS `rc_hz` times a
+    /// second to a peer that asks for no other rate.
+    pub fn new(system_id: u8, component_id: u8, channels: usize, rc_hz: u8) -> Peers {
         // PARAM_VALUE: value (f32), count 1, index 0, id (16 chars), type
         // REAL32 (9).
         let mut param_value = [0u8; 25];
@@ -96,6 +142,7 @@ impl Peers {
             component_id,
             param_value,
             next_heartbeat: None,
+            rc_default: every_of_hz(rc_hz as f64),
             seq: 0,
             counters: ReplyCounters::default(),
         }
@@ -125,6 +172,10 @@ impl Peers {
             credit: earned.min(CREDIT_MAX),
             exempt,
             params_due: false,
+            acks: Vec::new(),
+            rc_every: self.rc_default,
+            next_rc: now,
+            rc_now: false,
         });
         // The first HEARTBEAT goes out at once: a groundstation shows the
         // vehicle without waiting a second.
@@ -139,24 +190,52 @@ impl Peers {
         self.peers.len()
     }
 
-    /// Peer `addr` (just [`Peers::heard`]) asked for the parameters: the
-    /// next [`Peers::due`] answers.
-    pub fn request_params(&mut self, addr: SocketAddr) {
-        if let Some(p) = self.peers.iter_mut().find(|p| p.addr == addr) {
-            p.params_due = true;
+    /// Peer `addr` (just [`Peers::heard`]) sent request `message` (header
+    /// `h`): the next [`Peers::due`] answers it. Requests for another
+    /// system or component are not answered.
+    pub fn request(&mut self, addr: SocketAddr, h: &Header, message: &Message) {
+        let ours = |s: u8, c: u8| {
+            mavlink::addressed(s, self.system_id) && mavlink::addressed(c, self.component_id)
+        };
+        let rc_default = self.rc_default;
+        let Some(p) = self.peers.iter_mut().find(|p| p.addr == addr) else {
+            return;
+        };
+        match *message {
+            Message::ParamRequestList(s, c) if ours(s, c) => p.params_due = true,
+            Message::RequestDataStream(r)
+                if ours(r.target_system, r.target_component)
+                    && (r.stream == mavlink::MAV_DATA_STREAM_ALL
+                        || r.stream == mavlink::MAV_DATA_STREAM_RC_CHANNELS) =>
+            {
+                p.rc_every = if r.start {
+                    every_of_hz(r.rate_hz as f64)
+                } else {
+                    None
+                };
+            }
+            Message::CommandLong(c) if ours(c.target_system, c.target_component) => {
+                let result = command_result(&c, p, rc_default);
+                if p.acks.len() < 8 {
+                    p.acks.push((c.command, result, (h.sysid, h.compid)));
+                }
+            }
+            _ => {}
         }
     }
 
-    /// The frames due at `now` and where they go (appended to `out`): a
-    /// HEARTBEAT for each live peer with the credit for it, once per
-    /// [`HEARTBEAT_EVERY`]. `state` is the line's MAV_STATE ([`mav_state`]).
+    /// The frames due at `now` and where they go (appended to `out`), to
+    /// each live peer with the credit for it: answers to its requests
+    /// (PARAM_VALUE, COMMAND_ACK, an RC_CHANNELS asked for), its
+    /// RC_CHANNELS when due, and a HEARTBEAT once per [`HEARTBEAT_EVERY`].
+    /// `line` is what the line carries.
     ///
     /// With `signing` (`mavlink.key_file`), every frame is signed, at the
     /// clock's signature timestamp `ts` or after.
     pub fn due(
         &mut self,
         now: Instant,
-        state: u8,
+        line: LineNow<'_>,
         mut signing: Option<&mut mavlink::Signing>,
         ts: u64,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
@@ -164,11 +243,36 @@ impl Peers {
         self.peers
             .retain(|p| now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT);
         let param = self.param_value;
+        let rc = mavlink::rc_channels_payload(line.boot_ms, line.values_us);
         for i in 0..self.peers.len() {
             if std::mem::take(&mut self.peers[i].params_due) {
                 self.reply(i, &PARAM_VALUE, &param, signing.as_deref_mut(), ts, out);
             }
+            for (command, result, to) in std::mem::take(&mut self.peers[i].acks) {
+                let ack = mavlink::command_ack_payload(command, result, to);
+                self.reply(i, &COMMAND_ACK, &ack, signing.as_deref_mut(), ts, out);
+            }
+            let p = &mut self.peers[i];
+            let scheduled = p.rc_every.filter(|_| now >= p.next_rc);
+            if let Some(every) = scheduled {
+                p.next_rc = later(p.next_rc, every, now);
+            }
+            if std::mem::take(&mut p.rc_now) || scheduled.is_some() {
+                self.reply(i, &RC_CHANNELS, &rc, signing.as_deref_mut(), ts, out);
+            }
         }
+        self.heartbeats(now, line.state, signing, ts, out);
+    }
+
+    /// A HEARTBEAT to each peer, if one is due at `now`.
+    fn heartbeats(
+        &mut self,
+        now: Instant,
+        state: u8,
+        mut signing: Option<&mut mavlink::Signing>,
+        ts: u64,
+        out: &mut Vec<(SocketAddr, Vec<u8>)>,
+    ) {
         let Some(at) = self.next_heartbeat else {
             return;
         };
@@ -179,14 +283,7 @@ impl Peers {
             self.next_heartbeat = None;
             return;
         }
-        // The next one a whole interval after this one was due, or after
-        // now when the loop fell behind by more than an interval.
-        let next = at + HEARTBEAT_EVERY;
-        self.next_heartbeat = Some(if next > now {
-            next
-        } else {
-            now + HEARTBEAT_EVERY
-        });
+        self.next_heartbeat = Some(later(at, HEARTBEAT_EVERY, now));
         // custom_mode 0, type, autopilot, base_mode 0, system_status,
         // mavlink_version 3.
         let payload = [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, state, 3];
@@ -211,7 +308,11 @@ impl Peers {
         let header = (seq, self.system_id, self.component_id);
         let frame = match signing {
             Some(s) => s.frame(header, spec, payload, ts),
-            None => mavlink::frame(self.peers[i].version, header, spec, payload),
+            // MAVLink 1 carries no extension fields.
+            None if self.peers[i].version == 1 => {
+                mavlink::frame(1, header, spec, &payload[..spec.v1_len as usize])
+            }
+            None => mavlink::frame(2, header, spec, payload),
         };
         let p = &mut self.peers[i];
         if !p.exempt && p.credit < frame.len() {
@@ -237,9 +338,115 @@ impl Peers {
     }
 }
 
+/// The next time of something every `every`, last due `at`: a whole
+/// interval after `at`, or after `now` when the loop fell behind by more
+/// than an interval.
+fn later(at: Instant, every: Duration, now: Instant) -> Instant {
+    let next = at + every;
+    if next > now {
+        next
+    } else {
+        now + every
+    }
+}
+
+/// The MAV_RESULT of COMMAND_LONG `c` from peer `p`, which it changes:
+/// MAV_CMD_SET_MESSAGE_INTERVAL of RC_CHANNELS sets the peer's interval
+/// (-1: none, 0: `rc_default`, else at least [`RC_CHANNELS_MIN_EVERY`]);
+/// MAV_CMD_REQUEST_MESSAGE of RC_CHANNELS sends one now. Both are denied
+/// for another message; every other command is unsupported.
+fn command_result(c: &CommandLong, p: &mut Peer, rc_default: Option<Duration>) -> u8 {
+    let [message, param2, ..] = c.params;
+    let rc = message == RC_CHANNELS.id as f32;
+    match c.command {
+        mavlink::MAV_CMD_SET_MESSAGE_INTERVAL if rc => {
+            p.rc_every = match param2 {
+                v if v < 0.0 => None,
+                0.0 => rc_default,
+                v => every_of_hz(1e6 / v as f64),
+            };
+            MAV_RESULT_ACCEPTED
+        }
+        mavlink::MAV_CMD_REQUEST_MESSAGE if rc => {
+            p.rc_now = true;
+            MAV_RESULT_ACCEPTED
+        }
+        mavlink::MAV_CMD_SET_MESSAGE_INTERVAL | mavlink::MAV_CMD_REQUEST_MESSAGE => {
+            MAV_RESULT_DENIED
+        }
+        _ => MAV_RESULT_UNSUPPORTED,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A line in MAV_STATE `s` carrying no frame.
+    fn state(s: u8) -> LineNow<'static> {
+        LineNow {
+            state: s,
+            values_us: &[],
+            boot_ms: 0,
+        }
+    }
+
+    /// A groundstation's header: system 255, component 190.
+    const GCS: Header = Header {
+        version: 2,
+        seq: 0,
+        sysid: 255,
+        compid: 190,
+        msgid: 76,
+        signed: false,
+    };
+
+    fn command_long(target: u8, command: u16, p1: f32, p2: f32) -> Message {
+        Message::CommandLong(CommandLong {
+            target_system: target,
+            target_component: 0,
+            command,
+            confirmation: 0,
+            params: [p1, p2, 0.0, 0.0, 0.0, 0.0, 0.0],
+        })
+    }
+
+    /// The message id and payload of frame `f` (MAVLink 1 or 2, unsigned).
+    fn id_and_payload(f: &[u8]) -> (u8, &[u8]) {
+        match f[0] {
+            mavlink::STX_V1 => (f[5], &f[6..f.len() - 2]),
+            _ => (f[7], &f[10..f.len() - 2]),
+        }
+    }
+
+    /// The RC_CHANNELS in `out`: (port, time_boot_ms, chancount, chan1..).
+    fn rc_channels(out: &[(SocketAddr, Vec<u8>)]) -> Vec<(u16, u32, u8, Vec<u16>)> {
+        out.iter()
+            .filter(|(_, f)| id_and_payload(f).0 == RC_CHANNELS.id as u8)
+            .map(|(a, f)| {
+                let mut whole = id_and_payload(f).1.to_vec();
+                whole.resize(42, 0);
+                let chan = (0..whole[40] as usize)
+                    .map(|i| u16::from_le_bytes([whole[4 + 2 * i], whole[5 + 2 * i]]))
+                    .collect();
+                let ms = u32::from_le_bytes([whole[0], whole[1], whole[2], whole[3]]);
+                (a.port(), ms, whole[40], chan)
+            })
+            .collect()
+    }
+
+    /// The COMMAND_ACKs in `out`: (port, command, result, target system,
+    /// target component).
+    fn acks(out: &[(SocketAddr, Vec<u8>)]) -> Vec<(u16, u16, u8, u8, u8)> {
+        out.iter()
+            .filter(|(_, f)| id_and_payload(f).0 == COMMAND_ACK.id as u8)
+            .map(|(a, f)| {
+                let mut p = id_and_payload(f).1.to_vec();
+                p.resize(10, 0);
+                (a.port(), u16::from_le_bytes([p[0], p[1]]), p[2], p[8], p[9])
+            })
+            .collect()
+    }
 
     fn addr(port: u16) -> SocketAddr {
         SocketAddr::from(([192, 0, 2, 1], port))
@@ -259,13 +466,13 @@ mod tests {
     #[test]
     fn a_peer_gets_a_heartbeat_a_second_in_its_version_while_it_is_heard() {
         let t = Instant::now();
-        let mut p = Peers::new(1, 1, 8);
+        let mut p = Peers::new(1, 1, 8, 0);
         let mut out = vec![];
-        p.due(t, 3, None, 0, &mut out);
+        p.due(t, state(3), None, 0, &mut out);
         assert!(out.is_empty(), "no peer, no heartbeat");
         p.heard(addr(1), 2, 40, false, t);
         p.heard(addr(2), 1, 40, false, t);
-        p.due(t, 4, None, 0, &mut out);
+        p.due(t, state(4), None, 0, &mut out);
         assert_eq!(heartbeats(&out), [(1, 2), (2, 1)]);
         // From ppm's ids, GENERIC type and autopilot, the line's state.
         let (h, _, _) = mavlink::read_frame(&out[0].1).unwrap();
@@ -273,17 +480,17 @@ mod tests {
         let payload = &out[0].1[10..19];
         assert_eq!(payload, [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, 4, 3]);
         out.clear();
-        p.due(t + Duration::from_millis(999), 4, None, 0, &mut out);
+        p.due(t + Duration::from_millis(999), state(4), None, 0, &mut out);
         assert!(out.is_empty(), "one a second");
         for s in 1..5u64 {
             // Peer 1 keeps talking; peer 2 fell silent at t.
             p.heard(addr(1), 2, 40, false, t + Duration::from_secs(s));
-            p.due(t + Duration::from_secs(s), 4, None, 0, &mut out);
+            p.due(t + Duration::from_secs(s), state(4), None, 0, &mut out);
         }
         let ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         assert_eq!(ports, [1, 2, 1, 2, 1, 2, 1, 2], "{out:?}");
         out.clear();
-        p.due(t + Duration::from_secs(5), 4, None, 0, &mut out);
+        p.due(t + Duration::from_secs(5), state(4), None, 0, &mut out);
         let ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         assert_eq!(ports, [1], "peer 2 silent for PEER_TIMEOUT");
         assert_eq!(p.known(), 1);
@@ -293,14 +500,20 @@ mod tests {
     #[test]
     fn a_peer_gets_at_most_three_times_what_it_sent_unless_exempt() {
         let t = Instant::now();
-        let mut p = Peers::new(1, 1, 8);
+        let mut p = Peers::new(1, 1, 8, 0);
         let mut out = vec![];
         // One forged 10-byte datagram earns 30 bytes: one MAVLink 2
         // HEARTBEAT (21 bytes), not two.
         p.heard(addr(1), 2, 10, false, t);
         p.heard(addr(2), 2, 10, true, t);
         for s in 0..4u64 {
-            p.due(t + Duration::from_millis(1_000 * s), 3, None, 0, &mut out);
+            p.due(
+                t + Duration::from_millis(1_000 * s),
+                state(3),
+                None,
+                0,
+                &mut out,
+            );
         }
         let ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         assert_eq!(ports, [1, 2, 2, 2, 2]);
@@ -324,14 +537,14 @@ mod tests {
     #[test]
     fn a_request_for_the_parameters_gets_ppms_one_parameter() {
         let t = Instant::now();
-        let mut p = Peers::new(1, 1, 8);
+        let mut p = Peers::new(1, 1, 8, 0);
         let mut out = vec![];
-        p.request_params(addr(1));
-        p.due(t, 3, None, 0, &mut out);
+        p.request(addr(1), &GCS, &Message::ParamRequestList(1, 1));
+        p.due(t, state(3), None, 0, &mut out);
         assert!(out.is_empty(), "only a peer is answered");
         p.heard(addr(1), 2, 14, false, t);
-        p.request_params(addr(1));
-        p.due(t, 3, None, 0, &mut out);
+        p.request(addr(1), &GCS, &Message::ParamRequestList(1, 1));
+        p.due(t, state(3), None, 0, &mut out);
         // The PARAM_VALUE (numbered 0) first; the HEARTBEAT is held: the
         // 14-byte request earned 42 bytes, the PARAM_VALUE took 37.
         assert_eq!(out.len(), 1);
@@ -340,7 +553,7 @@ mod tests {
         // Once per request.
         out.clear();
         p.heard(addr(1), 2, 14, false, t + Duration::from_secs(1));
-        p.due(t + Duration::from_secs(1), 3, None, 0, &mut out);
+        p.due(t + Duration::from_secs(1), state(3), None, 0, &mut out);
         assert_eq!(out.len(), 1);
         assert_eq!(
             mavlink::read_frame(&out[0].1).unwrap().1,
@@ -360,14 +573,150 @@ mod tests {
     #[test]
     fn the_peer_heard_longest_ago_makes_room() {
         let t = Instant::now();
-        let mut p = Peers::new(1, 1, 8);
+        let mut p = Peers::new(1, 1, 8, 0);
         for i in 0..=MAX_PEERS as u16 {
             p.heard(addr(i), 2, 100, false, t + Duration::from_millis(i as u64));
         }
         let mut out = vec![];
-        p.due(t + Duration::from_millis(10), 3, None, 0, &mut out);
+        p.due(t + Duration::from_millis(10), state(3), None, 0, &mut out);
         let mut ports: Vec<u16> = out.iter().map(|(a, _)| a.port()).collect();
         ports.sort();
         assert_eq!(ports, (1..=MAX_PEERS as u16).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn rc_channels_carry_the_line_at_the_default_rate_or_the_one_asked_for() {
+        let t = Instant::now();
+        let ms = Duration::from_millis;
+        let mut p = Peers::new(1, 1, 8, 4);
+        let values = [1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800];
+        let line = LineNow {
+            state: 4,
+            values_us: &values,
+            boot_ms: 12_345,
+        };
+        p.heard(addr(1), 2, 4_000, false, t);
+        p.heard(addr(2), 2, 4_000, false, t);
+        let mut out = vec![];
+        // Every 10 ms for a second: 4 each at the default 4 Hz (at once,
+        // then every 250 ms), exact values, count 8.
+        for k in 0..100 {
+            p.due(t + ms(10 * k), line, None, 0, &mut out);
+        }
+        let rc = rc_channels(&out);
+        assert_eq!(rc.len(), 8, "{rc:?}");
+        assert!(rc
+            .iter()
+            .all(|(_, ms, n, c)| (*ms, *n, &c[..]) == (12_345, 8, &values[..])));
+        // Peer 1 asks for 10 Hz (100000 us); peer 2 for none (-1).
+        p.request(addr(1), &GCS, &command_long(1, 511, 65.0, 100_000.0));
+        p.request(addr(2), &GCS, &command_long(0, 511, 65.0, -1.0));
+        out.clear();
+        let t1 = t + ms(1_000);
+        for s in [1, 2] {
+            p.heard(addr(s), 2, 4_000, false, t1);
+        }
+        for k in 0..100 {
+            p.due(t1 + ms(10 * k), line, None, 0, &mut out);
+        }
+        let ports: Vec<u16> = rc_channels(&out).iter().map(|r| r.0).collect();
+        assert_eq!(ports, [1; 10], "10 Hz to peer 1, none to peer 2");
+        assert_eq!(
+            acks(&out),
+            [
+                (1, 511, MAV_RESULT_ACCEPTED, 255, 190),
+                (2, 511, 0, 255, 190)
+            ]
+        );
+        // 50 Hz is more than ppmd reports: 10 Hz. 0 is the default again;
+        // REQUEST_DATA_STREAM (all streams) at 2 Hz, then stopped.
+        let rate = |p: &mut Peers, m: &Message, t: Instant| -> usize {
+            p.heard(addr(1), 2, 4_000, false, t);
+            p.request(addr(1), &GCS, m);
+            let mut out = vec![];
+            for k in 0..100 {
+                p.due(t + ms(10 * k), line, None, 0, &mut out);
+            }
+            rc_channels(&out).len()
+        };
+        let stream = |start, rate_hz| {
+            Message::RequestDataStream(mavlink::RequestDataStream {
+                target_system: 1,
+                target_component: 1,
+                stream: mavlink::MAV_DATA_STREAM_ALL,
+                rate_hz,
+                start,
+            })
+        };
+        let s = |n: u64| t + Duration::from_secs(n);
+        assert_eq!(
+            rate(&mut p, &command_long(1, 511, 65.0, 20_000.0), s(2)),
+            10
+        );
+        assert_eq!(rate(&mut p, &command_long(1, 511, 65.0, 0.0), s(3)), 4);
+        assert_eq!(rate(&mut p, &stream(true, 2), s(4)), 2);
+        assert_eq!(rate(&mut p, &stream(false, 2), s(5)), 0);
+        // Another stream (MAV_DATA_STREAM_POSITION, 6) changes nothing.
+        let position = Message::RequestDataStream(mavlink::RequestDataStream {
+            stream: 6,
+            ..match stream(true, 10) {
+                Message::RequestDataStream(r) => r,
+                _ => unreachable!(),
+            }
+        });
+        assert_eq!(rate(&mut p, &position, s(6)), 0);
+        // One now, on request, whatever the rate.
+        assert_eq!(rate(&mut p, &command_long(1, 512, 65.0, 0.0), s(7)), 1);
+    }
+
+    #[test]
+    fn no_frame_on_the_line_is_a_count_of_zero() {
+        let t = Instant::now();
+        let mut p = Peers::new(1, 1, 8, 10);
+        p.heard(addr(1), 2, 1_000, false, t);
+        let mut out = vec![];
+        p.due(t, state(3), None, 0, &mut out);
+        let rc = rc_channels(&out);
+        assert_eq!(rc, [(1, 0, 0, vec![])]);
+        // Every channel UINT16_MAX (unused), RSSI 255 (unknown): the
+        // MAVLink 2 frame keeps them all.
+        let f = &out.iter().find(|(_, f)| f[7] == 65).unwrap().1;
+        assert_eq!(f[1], 42);
+        assert!(f[14..50].iter().all(|&b| b == 0xff));
+        assert_eq!((f[50], f[51]), (0, 255));
+    }
+
+    #[test]
+    fn commands_are_acknowledged_for_this_system_only() {
+        let t = Instant::now();
+        let mut p = Peers::new(7, 1, 8, 0);
+        p.heard(addr(1), 1, 4_000, false, t);
+        // MAV_CMD_REQUEST_MESSAGE of AUTOPILOT_VERSION (148): not sent by
+        // ppm, denied; MAV_CMD_COMPONENT_ARM_DISARM (400): unsupported;
+        // one for system 8: not answered.
+        p.request(addr(1), &GCS, &command_long(7, 512, 148.0, 0.0));
+        p.request(addr(1), &GCS, &command_long(0, 400, 1.0, 0.0));
+        p.request(addr(1), &GCS, &command_long(8, 400, 1.0, 0.0));
+        p.request(addr(1), &GCS, &command_long(7, 511, 0.0, 1e6));
+        let mut out = vec![];
+        p.due(t, state(3), None, 0, &mut out);
+        // In MAVLink 1, without the extension fields (the target).
+        assert_eq!(
+            acks(&out),
+            [
+                (1, 512, MAV_RESULT_DENIED, 0, 0),
+                (1, 400, MAV_RESULT_UNSUPPORTED, 0, 0),
+                (1, 511, MAV_RESULT_DENIED, 0, 0),
+            ]
+        );
+        // 3 bytes.
+        let (_, f) = out.iter().find(|(_, f)| f[5] == 77).unwrap();
+        assert_eq!((f[0], f[1]), (mavlink::STX_V1, 3));
+        assert!(mavlink::read_frame(f).is_err(), "ppm's to send, not take");
+        // A request from a source that is not a peer is not answered.
+        p.request(addr(9), &GCS, &command_long(7, 400, 1.0, 0.0));
+        out.clear();
+        p.due(t, state(3), None, 0, &mut out);
+        assert!(acks(&out).is_empty());
     }
 }

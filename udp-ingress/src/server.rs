@@ -11,7 +11,7 @@ use mio::net::UdpSocket;
 use mio::{Events, Interest, Poll, Token};
 use ppm_shared::auth::AuthKey;
 use ppm_shared::config::{IngressSection, OutputPlan, Shared};
-use ppm_shared::ipc::{self, CommandSample, IpcError, PublishError, TimingSnapshot};
+use ppm_shared::ipc::{self, CommandSample, IpcError, LineSample, PublishError, TimingSnapshot};
 use ppm_shared::logging::Chain;
 use ppm_shared::sched;
 use ppm_shared::time::{now_ns, realtime_ns};
@@ -70,8 +70,8 @@ impl ReplyBudget {
 
 type Publisher = ipc::Publisher<CommandSample>;
 type Notifier = iceoryx2::port::notifier::Notifier<iceoryx2::service::ipc::Service>;
-type StatsSubscriber =
-    iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, TimingSnapshot, ()>;
+type Subscriber<T> = iceoryx2::port::subscriber::Subscriber<iceoryx2::service::ipc::Service, T, ()>;
+type StatsSubscriber = Subscriber<TimingSnapshot>;
 
 /// Pins the calling thread (the receive thread) and gives it SCHED_FIFO as
 /// `[ingress]` asks. A setting that cannot be had stops the program, unless
@@ -152,6 +152,9 @@ pub struct Server {
     /// `ingress.status_allow`.
     status_allow: Vec<ipnet::IpNet>,
     ppmd_snapshot: Option<TimingSnapshot>,
+    /// ppmd's newest line samples (RC_CHANNELS), and the newest.
+    line: Option<Subscriber<LineSample>>,
+    line_sample: Option<LineSample>,
     /// Set while ppmd runs (it had published the snapshot service when this
     /// ingress started) but no snapshot of it has come yet: until then, at
     /// most until this time, status queries wait, so that a restarted
@@ -324,9 +327,12 @@ impl Server {
         if let Some(sub) = &self.stats {
             newest_snapshot(sub, &mut self.ppmd_snapshot);
         }
+        if let Some(sub) = &self.line {
+            newest(sub, &mut self.line_sample, "line sample");
+        }
         self.intake.mavlink_due(
             (Instant::now(), now_ns(), realtime_ns()),
-            self.ppmd_snapshot.as_ref(),
+            (self.ppmd_snapshot.as_ref(), self.line_sample.as_ref()),
             &mut self.mavlink_out,
         );
         for (to, frame) in self.mavlink_out.drain(..) {
@@ -378,14 +384,45 @@ fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<(StatsSubscriber, boo
     }
 }
 
+/// Subscribes to ppmd's line samples for RC_CHANNELS. Not worth stopping
+/// for: on failure, RC_CHANNELS says no channels are on the line.
+fn subscribe_line(node: &ipc::Node, name: &str) -> Option<Subscriber<LineSample>> {
+    let subscribed = ipc::open_line_service(node, name).and_then(|service| {
+        service
+            .subscriber_builder()
+            .buffer_size(1)
+            .create()
+            .map_err(|e| IpcError::new("creating the subscriber", e))
+    });
+    subscribed
+        .map_err(|e| {
+            log::warn!(
+                "RC_CHANNELS will carry no channels: subscribing to `{}` failed: {}",
+                ipc::line_service_name(name),
+                Chain(&e)
+            )
+        })
+        .ok()
+}
+
 /// Replaces `newest` with the newest snapshot ppmd published since, if any.
-fn newest_snapshot(sub: &StatsSubscriber, newest: &mut Option<TimingSnapshot>) {
+fn newest_snapshot(sub: &StatsSubscriber, newest_so_far: &mut Option<TimingSnapshot>) {
+    newest(sub, newest_so_far, "timing snapshot")
+}
+
+/// Replaces `newest_so_far` with the newest `what` ppmd published since, if
+/// any.
+fn newest<T: std::fmt::Debug + Copy + iceoryx2::prelude::ZeroCopySend>(
+    sub: &Subscriber<T>,
+    newest_so_far: &mut Option<T>,
+    what: &str,
+) {
     loop {
         match sub.receive() {
-            Ok(Some(sample)) => *newest = Some(*sample.payload()),
+            Ok(Some(sample)) => *newest_so_far = Some(*sample.payload()),
             Ok(None) => break,
             Err(e) => {
-                log::debug!("receiving ppmd's timing snapshot: {e}");
+                log::debug!("receiving ppmd's {what}: {e}");
                 break;
             }
         }
@@ -549,6 +586,7 @@ impl Server {
         let awaiting_ppmd = matches!(stats, Some((_, true)))
             .then(|| Instant::now() + Duration::from_nanos(crate::PPMD_STALE_AFTER_NS));
         let stats = stats.map(|(sub, _)| sub);
+        let line = subscribe_line(&node, &cfg.name);
 
         // The busy-polling loop never waits: it needs no poll.
         let poll = if cfg.ingress.busy_poll {
@@ -631,6 +669,8 @@ impl Server {
             status_to: Vec::with_capacity(MAX_STATUS_PER_WAKE),
             status_allow,
             ppmd_snapshot: None,
+            line,
+            line_sample: None,
             awaiting_ppmd,
             reply_budget: ReplyBudget::new(),
             mavlink_out: Vec::new(),

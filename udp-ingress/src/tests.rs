@@ -918,3 +918,53 @@ fn with_a_key_mavlink_commands_are_unsigned() {
     ));
     assert_eq!(i.take(), None);
 }
+
+#[test]
+fn rc_channels_report_the_newest_frame_on_the_line_while_it_is_fresh() {
+    use ppm_shared::ipc::LineSample;
+    let mut i = intake();
+    let t = Instant::now();
+    let hb = mavlink::frame(
+        2,
+        (0, 255, 190),
+        &mavlink::HEARTBEAT,
+        &[0, 0, 0, 0, 6, 8, 0, 4, 3],
+    );
+    assert_eq!(i.offer(&hb, from(), 1, 1, t), Outcome::NoCommand);
+    let mut values_ns = [0; ppm_shared::frame::MAX_CHANNELS];
+    values_ns[..3].copy_from_slice(&[1_100_400, 1_200_600, 1_499_500]);
+    let line = LineSample {
+        frame: 9,
+        start_mono_ns: 5_000_000_000,
+        channels: 3,
+        state: 1,
+        values_ns,
+    };
+    // The RC_CHANNELS' time_boot_ms, chancount and first channels, of the
+    // replies due at CLOCK_MONOTONIC `mono`.
+    let rc = |i: &mut Intake, mono: u64, at: Instant| -> (u32, u8, [u16; 4]) {
+        let mut out = vec![];
+        i.mavlink_due((at, mono, 0), (None, Some(&line)), &mut out);
+        let f = &out
+            .iter()
+            .find(|(_, f)| f[7] == 65)
+            .expect("an RC_CHANNELS")
+            .1;
+        let mut p = f[10..f.len() - 2].to_vec();
+        p.resize(42, 0);
+        let u = |k: usize| u16::from_le_bytes([p[4 + 2 * k], p[5 + 2 * k]]);
+        let ms = u32::from_le_bytes([p[0], p[1], p[2], p[3]]);
+        (ms, p[40], [u(0), u(1), u(2), u(3)])
+    };
+    // To the microsecond, at the frame's start; UINT16_MAX past its
+    // channels.
+    assert_eq!(
+        rc(&mut i, 5_300_000_000, t),
+        (5_000, 3, [1100, 1201, 1500, u16::MAX])
+    );
+    // A frame that started more than 300 ms ago: no channels now (the
+    // peer's next HEARTBEAT earned the reply).
+    let later = t + Duration::from_millis(250);
+    assert_eq!(i.offer(&hb, from(), 2, 2, later), Outcome::NoCommand);
+    assert_eq!(rc(&mut i, 5_300_000_001, later), (5_300, 0, [u16::MAX; 4]));
+}

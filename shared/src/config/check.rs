@@ -189,6 +189,16 @@ impl Config {
             .iter()
             .map(|name| channel("mavlink.buttons", name))
             .collect::<Result<Vec<_>, _>>()?;
+        if m.rc_channels_hz > mavlink::RC_CHANNELS_MAX_HZ {
+            return Err(ConfigError::invalid(
+                "mavlink.rc_channels_hz",
+                format!(
+                    "{} is above {}: ppmd reports its line ten times a second",
+                    m.rc_channels_hz,
+                    mavlink::RC_CHANNELS_MAX_HZ
+                ),
+            ));
+        }
         Ok(mavlink::Settings {
             system_id: m.system_id,
             component_id: m.component_id,
@@ -196,6 +206,7 @@ impl Config {
             thrust: m.thrust,
             buttons,
             key_file: m.key_file.clone(),
+            rc_channels_hz: m.rc_channels_hz,
         })
     }
 

@@ -318,6 +318,10 @@ pub struct MavlinkSection {
     /// 600, as `ingress.auth_key`). When set, only MAVLink frames signed
     /// with it are taken, and ppm signs its replies. Default: none.
     pub key_file: Option<PathBuf>,
+    /// RC_CHANNELS (the values on the line) sent to each groundstation
+    /// heard from, per second, 0..=10 (0: none until a groundstation asks
+    /// with MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM). Default 4.
+    pub rc_channels_hz: u8,
 }
 
 impl Default for MavlinkSection {
@@ -329,6 +333,7 @@ impl Default for MavlinkSection {
             thrust: Thrust::Positive,
             buttons: Vec::new(),
             key_file: None,
+            rc_channels_hz: crate::mavlink::RC_CHANNELS_HZ,
         }
     }
 }

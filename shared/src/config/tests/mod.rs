@@ -575,6 +575,19 @@ fn mavlink_keys_resolve_against_the_channels_or_name_the_key() {
     };
     let s = plan("").unwrap();
     assert_eq!((s.system_id, s.component_id), (1, 1));
+    assert_eq!(s.rc_channels_hz, 4);
+    assert_eq!(
+        plan("[mavlink]\nrc_channels_hz = 0")
+            .unwrap()
+            .rc_channels_hz,
+        0
+    );
+    assert_eq!(
+        plan("[mavlink]\nrc_channels_hz = 10")
+            .unwrap()
+            .rc_channels_hz,
+        10
+    );
     // AETR: x (pitch) ele, y (roll) ail, z thr, r rud.
     assert_eq!(s.axes, [Some(1), Some(0), Some(2), Some(3)]);
     let s = plan("[ppm]\norder = 'TAER'\n[mavlink]\nsystem_id = 42\naxes = ['none', 'ail', 'aux1', 'rud']\nbuttons = ['aux2', 'aux1']\nthrust = 'signed'").unwrap();
@@ -597,6 +610,8 @@ fn mavlink_keys_resolve_against_the_channels_or_name_the_key() {
         ("[mavlink]\nbuttons = ['aux9']", "mavlink.buttons"),
         ("[mavlink]\nthrust = 'unsigned'", "thrust"),
         ("[mavlink]\nsysid = 3", "sysid"),
+        ("[mavlink]\nrc_channels_hz = 11", "mavlink.rc_channels_hz"),
+        ("[mavlink]\nrc_channels_hz = -1", "rc_channels_hz"),
     ] {
         let e = plan(text).unwrap_err();
         assert!(e.contains(key), "{text}: {e}");
