@@ -105,7 +105,7 @@ fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
         ),
     ] {
         let got = frames(&sb.dir.join(trace));
-        assert!(got.len() >= 70, "{trace}: {} frames\n{log}", got.len());
+        assert!(got.len() >= 50, "{trace}: {} frames\n{log}", got.len());
         for (start, ch) in &got {
             assert_eq!(ch[..], want[..ch.len()], "{trace}: frame at {start}");
         }
@@ -138,7 +138,7 @@ fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
     }
     // The frame log belongs to output a alone.
     let rows = std::fs::read_to_string(sb.dir.join("a.jsonl")).unwrap();
-    assert!(rows.lines().filter(|l| l.contains("\"frame\"")).count() >= 70);
+    assert!(rows.lines().filter(|l| l.contains("\"frame\"")).count() >= 50);
     assert!(!sb.dir.join("b.jsonl").exists());
 }
 

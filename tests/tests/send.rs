@@ -126,9 +126,10 @@ fn one_command_fans_out_to_both_lines() {
     }
     std::thread::sleep(Duration::from_millis(100));
     for (name, v) in [("a", &mut a), ("b", &mut b)] {
-        // About 60 frames, whole or cut short at a late edge.
+        // About 60 frames, whole or cut short at a late edge (at least
+        // half of them, however loaded the machine).
         let (frames, all) = v.frames();
-        assert!(all >= 50, "{name}: {all} frames");
+        assert!(all >= 30, "{name}: {all} frames");
         for f in &frames {
             assert_eq!(
                 f,
@@ -154,9 +155,10 @@ fn a_swept_channel_follows_a_triangle_and_the_others_their_defaults() {
         None,
     );
     std::thread::sleep(Duration::from_millis(50));
-    // About 110 frames, whole or cut short at a late edge.
+    // About 110 frames, whole or cut short at a late edge (at least half
+    // of them, however loaded the machine).
     let (frames, all) = v.timed_frames();
-    assert!(all >= 90, "{all} frames");
+    assert!(all >= 55, "{all} frames");
     let thr: Vec<u64> = frames.iter().map(|(_, f)| f[2]).collect();
     for (_, f) in &frames {
         assert_eq!([f[0], f[1], f[3]], [1500, 1500, 1500], "{f:?}");
