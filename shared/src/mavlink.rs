@@ -581,6 +581,11 @@ pub struct Signing {
     streams: Vec<Stream>,
     updates: u64,
     timestamp: u64,
+    /// A stream not seen since the start needs a timestamp above this: the
+    /// newest accepted before a restart ([`Signing::with_floor`]).
+    floor: u64,
+    /// The newest timestamp accepted, if any.
+    newest: Option<u64>,
 }
 
 impl Signing {
@@ -592,7 +597,24 @@ impl Signing {
             streams: Vec::new(),
             updates: 0,
             timestamp: 0,
+            floor: 0,
+            newest: None,
         }
+    }
+
+    /// After a restart: every frame needs a timestamp above `floor`, the
+    /// newest accepted before ([`Signing::newest`], kept in a file), so
+    /// that no frame accepted, or signed, before the restart is taken
+    /// again.
+    pub fn with_floor(mut self, floor: u64) -> Signing {
+        self.floor = floor;
+        self.timestamp = self.timestamp.max(floor);
+        self
+    }
+
+    /// The newest timestamp accepted since the start (or the floor).
+    pub fn newest(&self) -> Option<u64> {
+        self.newest.or((self.floor > 0).then_some(self.floor))
     }
 
     fn signature(&self, signed: &[u8]) -> [u8; 6] {
@@ -652,6 +674,15 @@ impl Signing {
                 s.last = ts;
                 s.touched = self.updates;
             }
+            None if ts <= self.floor => {
+                return Err(reject(
+                    RejectReason::Replay,
+                    format!(
+                        "signed timestamp {ts} of system {}, component {}, link {link} is not above {}, the newest accepted before udp-ingress started",
+                        id.0, id.1, self.floor
+                    ),
+                ))
+            }
             None if ts + NEW_STREAM_MAX_LAG < self.timestamp => {
                 return Err(reject(
                     RejectReason::Replay,
@@ -676,6 +707,7 @@ impl Signing {
             }
         }
         self.timestamp = self.timestamp.max(ts);
+        self.newest = Some(self.newest.map_or(ts, |n| n.max(ts)));
         Ok(())
     }
 
@@ -729,6 +761,9 @@ pub struct Settings {
     pub buttons: Vec<usize>,
     /// The signing key's file (`mavlink.key_file`), if any.
     pub key_file: Option<std::path::PathBuf>,
+    /// Where the newest signing timestamp accepted is kept
+    /// (`mavlink.timestamp_file`, resolved), used with `key_file`.
+    pub timestamp_file: Option<std::path::PathBuf>,
     /// RC_CHANNELS per second to each peer, unless it asks otherwise
     /// (`mavlink.rc_channels_hz`, 0..=[`RC_CHANNELS_MAX_HZ`]).
     pub rc_channels_hz: u8,
@@ -751,6 +786,7 @@ impl Settings {
             thrust: Thrust::Positive,
             buttons: Vec::new(),
             key_file: None,
+            timestamp_file: None,
             rc_channels_hz: RC_CHANNELS_HZ,
         }
     }

@@ -350,11 +350,23 @@ impl Intake {
     }
 
     /// Takes only MAVLink frames signed with `key` (MAVLink 2 signing,
-    /// `mavlink.key_file`), and signs the replies. MAVLink commands then
-    /// apply whether or not `ingress.auth_key` is set.
-    pub fn with_mavlink_signing(mut self, key: AuthKey) -> Intake {
-        self.signing = Some(mavlink::Signing::new(key));
+    /// `mavlink.key_file`) at timestamps above `floor` (the newest accepted
+    /// before a restart, from `mavlink.timestamp_file`), and signs the
+    /// replies. MAVLink commands then apply whether or not
+    /// `ingress.auth_key` is set.
+    pub fn with_mavlink_signing(mut self, key: AuthKey, floor: Option<u64>) -> Intake {
+        let signing = mavlink::Signing::new(key);
+        self.signing = Some(match floor {
+            Some(f) => signing.with_floor(f),
+            None => signing,
+        });
         self
+    }
+
+    /// With MAVLink signing, the newest signing timestamp accepted (or the
+    /// floor it started with): what a restarted ingress must refuse up to.
+    pub fn mavlink_newest_ts(&self) -> Option<u64> {
+        self.signing.as_ref().and_then(|s| s.newest())
     }
 
     /// MAVLink peers in `nets` (`ingress.status_allow`) get replies without

@@ -1,4 +1,5 @@
-//! The last accepted signed `seq`, kept in a small file so that a restarted
+//! The last accepted signed `seq` (and, with MAVLink signing, the newest
+//! signing timestamp accepted), kept in a small file so that a restarted
 //! udp-ingress still refuses replays of commands accepted before.
 //!
 //! The file holds one decimal number and a newline. It is rewritten in place
@@ -19,9 +20,35 @@ use std::time::{Duration, Instant};
 /// in-place rewrite never leaves a tail of an older, longer one.
 const WIDTH: usize = 20;
 
+/// What a state file keeps, for its messages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Kind {
+    /// Its name ("seq file").
+    pub what: &'static str,
+    /// The key that sets it.
+    pub key: &'static str,
+    /// The number it holds.
+    pub number: &'static str,
+}
+
+/// The last accepted signed `seq` (`ingress.seq_file`).
+pub const SEQ: Kind = Kind {
+    what: "seq file",
+    key: "ingress.seq_file",
+    number: "the last accepted seq",
+};
+
+/// The newest MAVLink signing timestamp accepted (`mavlink.timestamp_file`).
+pub const MAVLINK_TIMESTAMP: Kind = Kind {
+    what: "MAVLink timestamp file",
+    key: "mavlink.timestamp_file",
+    number: "the newest signing timestamp accepted",
+};
+
 /// The state file, open for the life of the ingress.
 #[derive(Debug)]
 pub struct SeqFile {
+    kind: Kind,
     path: PathBuf,
     file: File,
     every: Duration,
@@ -31,14 +58,21 @@ pub struct SeqFile {
 }
 
 impl SeqFile {
-    /// Opens (or creates, mode 600, with its directory) the file; returns it
-    /// with the `seq` it holds (`None` when new or empty). A file holding
-    /// anything but a number is refused: a wrong floor would let replays in.
+    /// Opens (or creates, mode 600, with its directory) the seq file;
+    /// returns it with the `seq` it holds (`None` when new or empty). A file
+    /// holding anything but a number is refused: a wrong floor would let
+    /// replays in.
     pub fn open(path: &Path, every: Duration) -> Result<(SeqFile, Option<u64>)> {
+        SeqFile::open_as(SEQ, path, every)
+    }
+
+    /// [`SeqFile::open`] for a file of `kind`.
+    pub fn open_as(kind: Kind, path: &Path, every: Duration) -> Result<(SeqFile, Option<u64>)> {
+        let what = kind.what;
         use std::os::unix::fs::OpenOptionsExt;
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir)
-                .with_context(|| format!("creating {} for the seq file", dir.display()))?;
+                .with_context(|| format!("creating {} for the {what}", dir.display()))?;
         }
         let max = ppm_shared::files::SEQ_MAX_BYTES;
         let file = ppm_shared::files::open_regular(
@@ -53,12 +87,13 @@ impl SeqFile {
         )
         .with_context(|| {
             format!(
-                "opening the seq file {} (ingress.seq_file) for reading and writing",
-                path.display()
+                "opening the {what} {} ({}) for reading and writing",
+                path.display(),
+                kind.key
             )
         })?;
         let text = ppm_shared::files::read_bounded(&file, max)
-            .with_context(|| format!("reading the seq file {}", path.display()))?;
+            .with_context(|| format!("reading the {what} {}", path.display()))?;
         let t = text.trim();
         let floor = if t.is_empty() {
             None
@@ -66,15 +101,17 @@ impl SeqFile {
             match t.parse::<u64>() {
                 Ok(n) => Some(n),
                 Err(_) => bail!(
-                    "the seq file {} holds `{}`, not the last accepted seq: fix it, or delete it if no signed datagram recorded so far can be replayed",
+                    "the {what} {} holds `{}`, not {}: fix it, or delete it if no signed datagram recorded so far can be replayed",
                     path.display(),
-                    t.chars().take(40).collect::<String>()
+                    t.chars().take(40).collect::<String>(),
+                    kind.number
                 ),
             }
         };
         let sized = text.len() == WIDTH + 1;
         Ok((
             SeqFile {
+                kind,
                 path: path.to_owned(),
                 file,
                 every,
@@ -89,6 +126,11 @@ impl SeqFile {
     /// Its path.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// What it keeps.
+    pub fn kind(&self) -> Kind {
+        self.kind
     }
 
     /// Writes `seq` if it changed and the last write is at least the

@@ -3,7 +3,7 @@
 //! The binary parses its options and calls [`Server::open`] and
 //! [`Server::run`].
 
-use crate::seqfile::SeqFile;
+use crate::seqfile::{self, SeqFile};
 use crate::{pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer};
 use anyhow::{Context, Result};
 use iceoryx2::port::update_connections::UpdateConnections;
@@ -141,8 +141,12 @@ pub struct Server {
     _wake: ipc::WakeService,
     stats: Option<StatsSubscriber>,
     intake: Intake,
-    seq_file: Option<SeqFile>,
-    seq_save_failed: bool,
+    /// The seq file (`ingress.seq_file`, with `ingress.auth_key`), and
+    /// whether its last write failed.
+    seq_file: Option<(SeqFile, bool)>,
+    /// The MAVLink timestamp file (`mavlink.timestamp_file`, with
+    /// `mavlink.key_file`), and whether its last write failed.
+    mavlink_ts_file: Option<(SeqFile, bool)>,
     started: Instant,
     thread: ReceiveThread,
     buf: Vec<u8>,
@@ -300,19 +304,13 @@ impl Server {
             }
         }
         self.mavlink_replies();
-        if let Some(f) = &mut self.seq_file {
-            match f.note(self.intake.last_seq(), Instant::now()) {
-                Ok(_) => self.seq_save_failed = false,
-                Err(e) if !self.seq_save_failed => {
-                    self.seq_save_failed = true;
-                    log::warn!(
-                        "cannot write the seq file {}: {e}; after a restart, replays of commands accepted since could be accepted",
-                        f.path().display()
-                    );
-                }
-                Err(_) => {}
-            }
-        }
+        let now = Instant::now();
+        save(&mut self.seq_file, self.intake.last_seq(), now);
+        save(
+            &mut self.mavlink_ts_file,
+            self.intake.mavlink_newest_ts(),
+            now,
+        );
         let received = self.intake.counters().received;
         if self.last_report.elapsed() >= REPORT_EVERY && received != self.reported_received {
             log::info!("{}", self.intake.counters().summary());
@@ -343,11 +341,22 @@ impl Server {
         }
     }
 
-    /// At the end: saves the seq and logs the counters.
+    /// At the end: saves the seq and the MAVLink timestamp, and logs the
+    /// counters.
     fn finish(mut self) {
-        if let Some(f) = &mut self.seq_file {
-            if let Err(e) = f.flush(self.intake.last_seq()) {
-                log::warn!("cannot write the seq file {}: {e}", f.path().display());
+        let last = [self.intake.last_seq(), self.intake.mavlink_newest_ts()];
+        for (f, n) in [&mut self.seq_file, &mut self.mavlink_ts_file]
+            .into_iter()
+            .zip(last)
+        {
+            if let Some((f, _)) = f {
+                if let Err(e) = f.flush(n) {
+                    log::warn!(
+                        "cannot write the {} {}: {e}",
+                        f.kind().what,
+                        f.path().display()
+                    );
+                }
             }
         }
         log::info!(
@@ -381,6 +390,25 @@ fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<(StatsSubscriber, boo
             );
             None
         }
+    }
+}
+
+/// Writes `n` to the state file `file` when due ([`SeqFile::note`]); says
+/// once when writing starts to fail (the flag beside the file), and again
+/// after it worked.
+fn save(file: &mut Option<(SeqFile, bool)>, n: Option<u64>, now: Instant) {
+    let Some((f, failed)) = file else { return };
+    match f.note(n, now) {
+        Ok(_) => *failed = false,
+        Err(e) if !*failed => {
+            *failed = true;
+            log::warn!(
+                "cannot write the {} {}: {e}; after a restart, replays of commands accepted since could be accepted",
+                f.kind().what,
+                f.path().display()
+            );
+        }
+        Err(_) => {}
     }
 }
 
@@ -621,12 +649,27 @@ impl Server {
         .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms))
         .with_mavlink(cfg.mavlink.clone())
         .with_status_allow(status_allow.clone());
+        let mut mavlink_ts_file = None;
         if let Some(path) = &cfg.mavlink.key_file {
-            intake = intake.with_mavlink_signing(AuthKey::load(path)?);
+            let key = AuthKey::load(path)?;
+            let ts_path = cfg
+                .mavlink
+                .timestamp_file
+                .clone()
+                .context("mavlink.timestamp_file is not resolved")?;
+            let (file, floor) =
+                SeqFile::open_as(seqfile::MAVLINK_TIMESTAMP, &ts_path, SEQ_SAVE_EVERY)?;
+            intake = intake.with_mavlink_signing(key, floor);
             log::info!(
-                "MAVLink frames must be signed (MAVLink 2) with the key in {}; replies are signed",
-                path.display()
+                "MAVLink frames must be signed (MAVLink 2) with the key in {}; replies are signed; {} (the newest is kept in {})",
+                path.display(),
+                match floor {
+                    Some(f) => format!("signing timestamps {f} and below refused as replays"),
+                    None => "no signed frame accepted before".into(),
+                },
+                ts_path.display()
             );
+            mavlink_ts_file = Some(file);
         }
         if let (Some(key), Some(file)) = (key, &seq_file) {
             log::info!(
@@ -660,8 +703,8 @@ impl Server {
             _wake: wake,
             stats,
             intake,
-            seq_file,
-            seq_save_failed: false,
+            seq_file: seq_file.map(|f| (f, false)),
+            mavlink_ts_file: mavlink_ts_file.map(|f| (f, false)),
             started: Instant::now(),
             thread,
             buf: vec![0u8; MAX_DATAGRAM],

@@ -206,6 +206,7 @@ impl Config {
             thrust: m.thrust,
             buttons,
             key_file: m.key_file.clone(),
+            timestamp_file: Some(self.mavlink_timestamp_file()),
             rc_channels_hz: m.rc_channels_hz,
         })
     }
@@ -298,6 +299,17 @@ impl Config {
             .seq_file
             .clone()
             .unwrap_or_else(|| self.ipc.root.join(format!("{}.last_seq", self.name)))
+    }
+
+    /// The file udp-ingress keeps the newest MAVLink signing timestamp in:
+    /// `mavlink.timestamp_file`, by default
+    /// `<ipc.root>/<name>.mavlink_timestamp`.
+    pub fn mavlink_timestamp_file(&self) -> PathBuf {
+        self.mavlink.timestamp_file.clone().unwrap_or_else(|| {
+            self.ipc
+                .root
+                .join(format!("{}.mavlink_timestamp", self.name))
+        })
     }
 
     /// The output named by `ppmd.output`.

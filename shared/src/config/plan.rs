@@ -164,6 +164,13 @@ fn clash(entry: &OutputEntry, other: &OutputEntry, j: usize) -> Result<(), Confi
             format!("{} is the same seq file", c.seq_file().display()),
         );
     }
+    let ts = c.mavlink_timestamp_file();
+    if ts == o.mavlink_timestamp_file() {
+        return clash(
+            "mavlink.timestamp_file",
+            format!("{} is the same timestamp file", ts.display()),
+        );
+    }
     Ok(())
 }
 

@@ -318,6 +318,10 @@ pub struct MavlinkSection {
     /// 600, as `ingress.auth_key`). When set, only MAVLink frames signed
     /// with it are taken, and ppm signs its replies. Default: none.
     pub key_file: Option<PathBuf>,
+    /// With `key_file`: the file the newest signing timestamp accepted is
+    /// kept in, so that a restarted udp-ingress takes no frame it took
+    /// before. Default `<ipc.root>/<name>.mavlink_timestamp`.
+    pub timestamp_file: Option<PathBuf>,
     /// RC_CHANNELS (the values on the line) sent to each groundstation
     /// heard from, per second, 0..=10 (0: none until a groundstation asks
     /// with MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM). Default 4.
@@ -333,6 +337,7 @@ impl Default for MavlinkSection {
             thrust: Thrust::Positive,
             buttons: Vec::new(),
             key_file: None,
+            timestamp_file: None,
             rc_channels_hz: crate::mavlink::RC_CHANNELS_HZ,
         }
     }

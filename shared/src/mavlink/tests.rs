@@ -470,6 +470,51 @@ fn signed_frames_read_back_and_check_out_with_growing_timestamps() {
     assert_eq!(err.reason, RejectReason::Replay, "{err}");
 }
 
+#[test]
+fn after_a_restart_with_the_newest_timestamp_nothing_taken_before_is_taken_again() {
+    let mut gcs = test_signing();
+    let mut before = test_signing();
+    let now = signing_timestamp(1_800_000_000 * 1_000_000_000);
+    let (_, payload) = Message::Heartbeat.encode();
+    let frames: Vec<Vec<u8>> = (0..4u8)
+        .map(|i| gcs.frame((i, 255, 190), &HEARTBEAT, &payload, now))
+        .collect();
+    assert_eq!(before.newest(), None);
+    // The first three were taken before the restart; the fourth was
+    // signed then, but not delivered.
+    for f in &frames[..3] {
+        before.check(f, &read_frame(f).unwrap().0, now).unwrap();
+    }
+    let floor = before.newest().expect("a timestamp accepted");
+    let ts = |f: &[u8]| u64::from_le_bytes([f[22], f[23], f[24], f[25], f[26], f[27], 0, 0]);
+    assert_eq!(floor, ts(&frames[2]));
+    // Without the floor, a restarted check takes each of them once more.
+    let mut forgetful = test_signing();
+    assert!(forgetful
+        .check(&frames[1], &read_frame(&frames[1]).unwrap().0, now)
+        .is_ok());
+    // With it, none of them; the undelivered one, newer than any taken,
+    // is taken (as a late datagram would be), and after it a frame
+    // signed after the restart.
+    let mut after = test_signing().with_floor(floor);
+    assert_eq!(after.newest(), Some(floor));
+    for f in &frames[..3] {
+        let e = after.check(f, &read_frame(f).unwrap().0, now).unwrap_err();
+        assert_eq!(e.reason, RejectReason::Replay, "{e}");
+    }
+    after
+        .check(&frames[3], &read_frame(&frames[3]).unwrap().0, now)
+        .unwrap();
+    let next = gcs.frame((4, 255, 190), &HEARTBEAT, &payload, now);
+    after
+        .check(&next, &read_frame(&next).unwrap().0, now)
+        .unwrap();
+    assert_eq!(after.newest(), Some(ts(&next)));
+    // ppm's own replies go out above the floor.
+    let reply = after.frame((0, 1, 1), &HEARTBEAT, &payload, 0);
+    assert!(ts(&reply) > floor);
+}
+
 /// pymavlink 2.4.50's command_long_send(1, 1, 511, 0, 65, 250000, 0, ...)
 /// from 255/190, MAVLink 2 (trimmed to 32 bytes: confirmation is 0).
 const V2_SET_MESSAGE_INTERVAL: [u8; 44] = [

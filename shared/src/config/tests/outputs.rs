@@ -74,6 +74,11 @@ fn output_entries_are_checked_and_named() {
     ));
     assert_eq!(e.key(), Some("ppm.frame_us"), "{e}");
     assert!(e.to_string().contains("output `plane`"), "{e}");
+    // Two outputs keeping their MAVLink timestamps in one file (inherited:
+    // the top-level key).
+    let e = refusal(&with("[mavlink]\ntimestamp_file = \"/var/lib/ppm/ts\"\n"));
+    assert_eq!(e.key(), Some("mavlink.timestamp_file"), "{e}");
+    assert!(e.to_string().contains("output `plane`"), "{e}");
     let e = refusal(&with("[rt]\npriority = 100\n"));
     assert_eq!(e.key(), Some("rt.priority"), "{e}");
     let e = refusal(&format!("name = \"x\"\n{TWO_OUTPUTS}"));
