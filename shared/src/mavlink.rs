@@ -153,6 +153,37 @@ pub const SPECS: [Spec; 9] = [
     COMMAND_ACK,
 ];
 
+/// Messages a groundstation sends any vehicle that ppm reads, checks (its
+/// length and CRC) and ignores: they are well-formed, not a fault, and
+/// counted apart (`mavlink.ignored`) instead of rejected. Lengths from the
+/// common dialect, extensions included.
+pub const IGNORED: [Spec; 14] = [
+    ignored(2, "SYSTEM_TIME", 137, 12, 12),
+    ignored(4, "PING", 237, 14, 14),
+    ignored(11, "SET_MODE", 89, 6, 6),
+    ignored(20, "PARAM_REQUEST_READ", 214, 20, 20),
+    ignored(23, "PARAM_SET", 168, 23, 23),
+    ignored(40, "MISSION_REQUEST", 230, 4, 5),
+    ignored(43, "MISSION_REQUEST_LIST", 132, 2, 3),
+    ignored(47, "MISSION_ACK", 153, 3, 8),
+    ignored(51, "MISSION_REQUEST_INT", 196, 4, 5),
+    ignored(75, "COMMAND_INT", 158, 35, 35),
+    ignored(110, "FILE_TRANSFER_PROTOCOL", 84, 254, 254),
+    ignored(111, "TIMESYNC", 34, 16, 18),
+    ignored(117, "LOG_REQUEST_LIST", 128, 6, 6),
+    ignored(256, "SETUP_SIGNING", 71, 42, 42),
+];
+
+const fn ignored(id: u32, name: &'static str, crc_extra: u8, v1_len: u8, max_len: u8) -> Spec {
+    Spec {
+        id,
+        name,
+        crc_extra,
+        v1_len,
+        max_len,
+    }
+}
+
 /// MAV_CMD_SET_MESSAGE_INTERVAL: param1 a message id, param2 its interval
 /// in us (-1: stop, 0: the default).
 pub const MAV_CMD_SET_MESSAGE_INTERVAL: u16 = 511;
@@ -163,9 +194,9 @@ pub const MAV_DATA_STREAM_ALL: u8 = 0;
 /// MAV_DATA_STREAM_RC_CHANNELS, in REQUEST_DATA_STREAM.
 pub const MAV_DATA_STREAM_RC_CHANNELS: u8 = 3;
 
-/// The spec of message `id`, if ppm knows it.
+/// The spec of message `id`, if ppm knows it ([`SPECS`], [`IGNORED`]).
 pub fn spec(id: u32) -> Option<&'static Spec> {
-    SPECS.iter().find(|s| s.id == id)
+    SPECS.iter().chain(&IGNORED).find(|s| s.id == id)
 }
 
 /// MAVLink's CRC (CRC-16/MCRF4XX, the X.25 polynomial) of `bytes`,
@@ -269,6 +300,8 @@ pub enum Message {
     RequestDataStream(RequestDataStream),
     /// A command.
     CommandLong(CommandLong),
+    /// A well-formed message of [`IGNORED`], by id.
+    Ignored(u32),
 }
 
 impl Message {
@@ -324,6 +357,15 @@ impl Message {
                 p.extend_from_slice(&c.command.to_le_bytes());
                 p.extend_from_slice(&[c.target_system, c.target_component, c.confirmation]);
                 (&COMMAND_LONG, p)
+            }
+            // ppm keeps none of its fields: zeros.
+            Message::Ignored(id) => {
+                let spec = IGNORED
+                    .iter()
+                    .find(|s| s.id == *id)
+                    .expect("an ignored message's id");
+                p.resize(spec.v1_len as usize, 0);
+                (spec, p)
             }
         }
     }
@@ -406,7 +448,7 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
     let Some(spec) = spec(msgid) else {
         return Err(reject(
             RejectReason::MavlinkUnknownMessage,
-            format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69), HEARTBEAT (0), PARAM_REQUEST_LIST (21), REQUEST_DATA_STREAM (66) and COMMAND_LONG (76)"),
+            format!("message id {msgid}: ppm takes RC_CHANNELS_OVERRIDE (70), MANUAL_CONTROL (69), HEARTBEAT (0), PARAM_REQUEST_LIST (21), REQUEST_DATA_STREAM (66) and COMMAND_LONG (76), and ignores a few more a groundstation sends"),
         ));
     };
     // MAVLink 1 is never trimmed, and pymavlink (like the C library's
@@ -474,6 +516,7 @@ pub fn read_frame(bytes: &[u8]) -> Result<(Header, Message, usize), Reject> {
                 chan,
             })
         }
+        id if IGNORED.iter().any(|s| s.id == id) => Message::Ignored(id),
         _ => {
             return Err(reject(
                 RejectReason::MavlinkUnknownMessage,
@@ -503,7 +546,7 @@ pub struct Datagram {
     /// The MAVLink version of its last frame.
     pub version: u8,
     /// Its requests (PARAM_REQUEST_LIST, REQUEST_DATA_STREAM,
-    /// COMMAND_LONG), in order.
+    /// COMMAND_LONG) and ignored messages, in order.
     pub requests: Vec<(Header, Message)>,
 }
 
@@ -830,7 +873,8 @@ pub fn command(
         Message::Heartbeat
         | Message::ParamRequestList(..)
         | Message::RequestDataStream(_)
-        | Message::CommandLong(_) => return Err(reject(RejectReason::BadShape, "not a command")),
+        | Message::CommandLong(_)
+        | Message::Ignored(_) => return Err(reject(RejectReason::BadShape, "not a command")),
         Message::RcOverride(o) => {
             target(o.target_system)?;
             let c = o.target_component;

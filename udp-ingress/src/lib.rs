@@ -91,9 +91,11 @@ pub struct Counters {
     /// Status queries answered with `{"pad_to": N}` instead of the reply:
     /// too short for it from a source outside `ingress.status_allow`.
     pub status_short: u64,
-    /// MAVLink datagrams without a command (HEARTBEATs, requests for the
-    /// parameters): counted here only, never in `received`.
+    /// MAVLink datagrams without a command (HEARTBEATs, requests): counted
+    /// here only, never in `received`.
     pub mavlink_no_command: u64,
+    /// Well-formed MAVLink frames ppm ignores ([`mavlink::IGNORED`]).
+    pub mavlink_ignored: u64,
 }
 
 impl Counters {
@@ -579,6 +581,9 @@ impl Intake {
                 self.peers.request(from, h, m);
             }
         }
+        for (_, m) in &d.requests {
+            self.counters.mavlink_ignored += matches!(m, mavlink::Message::Ignored(_)) as u64;
+        }
         let Some((_, message)) = d.command else {
             return Ok(None);
         };
@@ -705,6 +710,7 @@ impl Intake {
             status_short: c.status_short,
             mavlink: MavlinkStatus {
                 no_command: c.mavlink_no_command,
+                ignored: c.mavlink_ignored,
                 peers: self.peers.known() as u64,
                 sent: self.peers.counters().sent,
                 held: self.peers.counters().held,

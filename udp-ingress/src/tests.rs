@@ -443,7 +443,7 @@ fn status_reply_is_built_from_the_counters() {
             "status_requests": 1,
             "status_dropped": 1,
             "status_short": 0,
-            "mavlink": {"no_command": 0, "peers": 0, "sent": 0, "held": 0},
+            "mavlink": {"no_command": 0, "ignored": 0, "peers": 0, "sent": 0, "held": 0},
             "newest_command_age_ms": 7.0,
             "newest_seq": null,
             "publish_latency_us": {"count": 0, "p50": 0.0, "p99": 0.0, "max": 0.0},
@@ -472,7 +472,7 @@ fn status_reply_is_built_from_the_counters() {
     // keys sorted at every level, numbers as serde_json writes an f64.
     assert_eq!(
         typed.to_json(),
-        r#"{"datagrams":{"applied":2,"clamped":1,"clamped_values":2,"received":6,"rejected":{"bad_mac":0,"bad_shape":1,"invalid_json":1,"invalid_utf8":0,"mavlink_bad_crc":0,"mavlink_bad_length":0,"mavlink_junk":0,"mavlink_truncated":0,"mavlink_unknown_message":0,"no_seq":0,"no_to":0,"not_a_number":0,"not_allowed":0,"out_of_range":0,"replay":0,"too_many_values":0,"unknown_channel":0,"unsigned":0,"wrong_output":0},"seq_resets":0,"stale":1,"superseded":1},"mavlink":{"held":0,"no_command":0,"peers":0,"sent":0},"name":"pi","newest_command_age_ms":7.0,"newest_seq":null,"ppmd":{"aborted_frames":4,"degraded":true,"edge_error_us":{"max":17000.4,"p50":0.031,"p99":1.25},"expired_commands":0,"failsafe_entries":3,"frames":400,"glitched_frames":5,"late_frames":2,"log_errors":0,"mismatched_commands":0,"overruns":1,"repeats":0,"snapshot_age_ms":250.0,"state":"active","timing":"grid"},"ppmd_stale":false,"publish_latency_us":{"count":0,"max":0.0,"p50":0.0,"p99":0.0},"receiver":{"cpu":1,"degraded":true,"policy":"fifo","priority":70,"wait":"busy_poll"},"status_dropped":1,"status_requests":1,"status_short":0,"uptime_s":2345.678}"#
+        r#"{"datagrams":{"applied":2,"clamped":1,"clamped_values":2,"received":6,"rejected":{"bad_mac":0,"bad_shape":1,"invalid_json":1,"invalid_utf8":0,"mavlink_bad_crc":0,"mavlink_bad_length":0,"mavlink_junk":0,"mavlink_truncated":0,"mavlink_unknown_message":0,"no_seq":0,"no_to":0,"not_a_number":0,"not_allowed":0,"out_of_range":0,"replay":0,"too_many_values":0,"unknown_channel":0,"unsigned":0,"wrong_output":0},"seq_resets":0,"stale":1,"superseded":1},"mavlink":{"held":0,"ignored":0,"no_command":0,"peers":0,"sent":0},"name":"pi","newest_command_age_ms":7.0,"newest_seq":null,"ppmd":{"aborted_frames":4,"degraded":true,"edge_error_us":{"max":17000.4,"p50":0.031,"p99":1.25},"expired_commands":0,"failsafe_entries":3,"frames":400,"glitched_frames":5,"late_frames":2,"log_errors":0,"mismatched_commands":0,"overruns":1,"repeats":0,"snapshot_age_ms":250.0,"state":"active","timing":"grid"},"ppmd_stale":false,"publish_latency_us":{"count":0,"max":0.0,"p50":0.0,"p99":0.0},"receiver":{"cpu":1,"degraded":true,"policy":"fifo","priority":70,"wait":"busy_poll"},"status_dropped":1,"status_requests":1,"status_short":0,"uptime_s":2345.678}"#
     );
 
     let old = snapshot(now - PPMD_STALE_AFTER_NS - 1);

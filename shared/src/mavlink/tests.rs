@@ -206,10 +206,10 @@ fn every_fault_has_its_reason() {
             MavlinkBadLength
         );
     }
-    // FILE_TRANSFER_PROTOCOL (110), which MAVProxy sends.
-    let mut ftp = V2_REQUEST_DATA_STREAM;
-    ftp[7] = 110;
-    assert_eq!(reason(&ftp), MavlinkUnknownMessage);
+    // Message 4660, in no table (its CRC cannot be checked).
+    let mut unknown = V2_REQUEST_DATA_STREAM;
+    unknown[7..9].copy_from_slice(&4660u16.to_le_bytes());
+    assert_eq!(reason(&unknown), MavlinkUnknownMessage);
     // PARAM_VALUE is ppm's to send, not to take.
     assert_eq!(reason(&V2_PARAM_VALUE), MavlinkUnknownMessage);
     // An incompat flag ppm does not know.
@@ -598,4 +598,47 @@ fn requests_read_as_pymavlink_wrote_them_and_replies_are_byte_identical() {
     // RC_CHANNELS and COMMAND_ACK are ppm's to send, not to take.
     let e = read_frame(&V2_RC_CHANNELS).unwrap_err();
     assert_eq!(e.reason, RejectReason::MavlinkUnknownMessage);
+}
+
+/// pymavlink's timesync_send(0, 123456789) from 255/190, MAVLink 2.
+const V2_TIMESYNC: [u8; 24] = [
+    0xfd, 0x0c, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x6f, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+    0x00, 0x00, 0x15, 0xcd, 0x5b, 0x07, 0xa0, 0xe4,
+];
+/// pymavlink's mission_request_list_send(1, 1, 0) from 255/190.
+const V2_MISSION_REQUEST_LIST: [u8; 14] = [
+    0xfd, 0x02, 0x00, 0x00, 0x00, 0xff, 0xbe, 0x2b, 0x00, 0x00, 0x01, 0x01, 0xa8, 0x90,
+];
+
+#[test]
+fn what_groundstations_send_any_vehicle_is_read_and_ignored_not_rejected() {
+    let mut both = V2_TIMESYNC.to_vec();
+    both.extend_from_slice(&V2_MISSION_REQUEST_LIST);
+    let d = read_datagram(&both).unwrap();
+    let got: Vec<Message> = d.requests.iter().map(|(_, m)| *m).collect();
+    assert_eq!(got, [Message::Ignored(111), Message::Ignored(43)]);
+    assert_eq!(d.command, None);
+    // Checked like the others: a bad CRC, or a length the message cannot
+    // have, is a fault.
+    let mut bad = V2_TIMESYNC;
+    bad[23] ^= 1;
+    assert_eq!(
+        read_frame(&bad).unwrap_err().reason,
+        RejectReason::MavlinkBadCrc
+    );
+    let long = frame(2, (0, 255, 190), spec(111).unwrap(), &[1; 19]);
+    assert_eq!(
+        read_frame(&long).unwrap_err().reason,
+        RejectReason::MavlinkBadLength
+    );
+    // No id is in both tables.
+    for s in &IGNORED {
+        assert_eq!(
+            SPECS.iter().filter(|k| k.id == s.id).count(),
+            0,
+            "{}",
+            s.name
+        );
+        assert!(s.v1_len <= s.max_len);
+    }
 }
