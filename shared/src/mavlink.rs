@@ -774,6 +774,50 @@ impl Signing {
     }
 }
 
+/// The kind of vehicle ppm says it is in its HEARTBEAT (MAV_TYPE):
+/// QGroundControl keeps its joystick mode per kind, and shows the kind's
+/// icon.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VehicleType {
+    /// MAV_TYPE_GENERIC (0): a vehicle of no particular kind.
+    #[default]
+    Generic,
+    /// MAV_TYPE_FIXED_WING (1).
+    FixedWing,
+    /// MAV_TYPE_QUADROTOR (2).
+    Quadrotor,
+    /// MAV_TYPE_HELICOPTER (4).
+    Helicopter,
+    /// MAV_TYPE_GROUND_ROVER (10).
+    GroundRover,
+    /// MAV_TYPE_SURFACE_BOAT (11).
+    SurfaceBoat,
+    /// MAV_TYPE_SUBMARINE (12).
+    Submarine,
+    /// MAV_TYPE_HEXAROTOR (13).
+    Hexarotor,
+    /// MAV_TYPE_OCTOROTOR (14).
+    Octorotor,
+}
+
+impl VehicleType {
+    /// Its MAV_TYPE.
+    pub fn mav_type(self) -> u8 {
+        match self {
+            VehicleType::Generic => 0,
+            VehicleType::FixedWing => 1,
+            VehicleType::Quadrotor => 2,
+            VehicleType::Helicopter => 4,
+            VehicleType::GroundRover => 10,
+            VehicleType::SurfaceBoat => 11,
+            VehicleType::Submarine => 12,
+            VehicleType::Hexarotor => 13,
+            VehicleType::Octorotor => 14,
+        }
+    }
+}
+
 /// How z, MANUAL_CONTROL's thrust axis, maps onto its channel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -810,6 +854,8 @@ pub struct Settings {
     /// RC_CHANNELS per second to each peer, unless it asks otherwise
     /// (`mavlink.rc_channels_hz`, 0..=[`RC_CHANNELS_MAX_HZ`]).
     pub rc_channels_hz: u8,
+    /// The HEARTBEAT's type (`mavlink.vehicle_type`).
+    pub vehicle_type: VehicleType,
 }
 
 /// RC_CHANNELS a second to each groundstation by default.
@@ -831,6 +877,7 @@ impl Settings {
             key_file: None,
             timestamp_file: None,
             rc_channels_hz: RC_CHANNELS_HZ,
+            vehicle_type: VehicleType::Generic,
         }
     }
 }

@@ -60,13 +60,16 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
         panic!("pymavlink is needed for this test: python3 -m pip install pymavlink");
     }
     let sb = Sandbox::new("mavlink");
-    let cfg = sb.config("[mavlink]\nbuttons = [\"aux1\", \"aux2\"]\n");
+    let cfg = sb.config(
+        "[mavlink]\nbuttons = [\"aux1\", \"aux2\"]\nvehicle_type = \"surface_boat\"\n",
+    );
     let trace = sb.dir.join("line.trace");
     let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
     let mut ingress = sb.start_ingress(&cfg, &[]);
     let out = python3(&sb.dir, "", &["-c", SENDER, &sb.port.to_string()]);
     // ppm's HEARTBEATs as pymavlink read them: from system 1, component
-    // 1, type and autopilot GENERIC; the first at once (the line still
+    // 1, type SURFACE_BOAT (11, mavlink.vehicle_type), autopilot GENERIC
+    // (0); the first at once (the line still
     // silent: STANDBY), then one a second, each with the line's state as
     // ppmd last reported it (STANDBY, ACTIVE or, between the phases,
     // CRITICAL for the failsafe).
@@ -74,7 +77,7 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
     assert_eq!(lines.len(), 4, "{out}");
     let (n, ids) = lines[0].split_once(' ').unwrap();
     assert!((3..=5).contains(&n.parse::<u32>().unwrap()), "{out}");
-    assert_eq!(ids, "[(1, 1, 0, 0)]", "{out}");
+    assert_eq!(ids, "[(1, 1, 11, 0)]", "{out}");
     let states: Vec<&str> = lines[1].split(' ').collect();
     assert_eq!(states[0], "3", "{out}");
     assert!(states.iter().all(|s| ["3", "4", "5"].contains(s)), "{out}");

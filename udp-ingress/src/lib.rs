@@ -346,7 +346,8 @@ impl Intake {
             settings.component_id,
             self.model.channels(),
             settings.rc_channels_hz,
-        );
+        )
+        .with_mav_type(settings.vehicle_type.mav_type());
         self.mavlink = settings;
         self
     }

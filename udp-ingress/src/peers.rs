@@ -45,9 +45,6 @@ pub const MAV_RESULT_DENIED: u8 = 2;
 /// MAV_RESULT_UNSUPPORTED: a command ppm does not know.
 pub const MAV_RESULT_UNSUPPORTED: u8 = 3;
 
-/// ppm's HEARTBEAT type: MAV_TYPE_GENERIC (0), a vehicle of no particular
-/// kind (an RC vehicle flown through its transmitter).
-pub const MAV_TYPE: u8 = 0;
 /// ppm's HEARTBEAT autopilot: MAV_AUTOPILOT_GENERIC (0).
 pub const MAV_AUTOPILOT: u8 = 0;
 
@@ -102,6 +99,9 @@ pub struct Peers {
     next_heartbeat: Option<Instant>,
     /// The RC_CHANNELS interval of a peer that did not ask for one.
     rc_default: Option<Duration>,
+    /// The HEARTBEAT's MAV_TYPE (`mavlink.vehicle_type`; by default
+    /// MAV_TYPE_GENERIC, 0: a vehicle of no particular kind).
+    mav_type: u8,
     seq: u8,
     counters: ReplyCounters,
 }
@@ -143,6 +143,7 @@ impl Peers {
             param_value,
             next_heartbeat: None,
             rc_default: every_of_hz(rc_hz as f64),
+            mav_type: 0,
             seq: 0,
             counters: ReplyCounters::default(),
         }
@@ -182,6 +183,12 @@ impl Peers {
         if self.next_heartbeat.is_none_or(|t| t > now) {
             self.next_heartbeat = Some(now);
         }
+    }
+
+    /// Its HEARTBEAT says it is a vehicle of MAV_TYPE `mav_type`.
+    pub fn with_mav_type(mut self, mav_type: u8) -> Peers {
+        self.mav_type = mav_type;
+        self
     }
 
     /// How many peers are kept (those heard from within [`PEER_TIMEOUT`]
@@ -286,7 +293,7 @@ impl Peers {
         self.next_heartbeat = Some(later(at, HEARTBEAT_EVERY, now));
         // custom_mode 0, type, autopilot, base_mode 0, system_status,
         // mavlink_version 3.
-        let payload = [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, state, 3];
+        let payload = [0, 0, 0, 0, self.mav_type, MAV_AUTOPILOT, 0, state, 3];
         for i in 0..self.peers.len() {
             self.reply(i, &HEARTBEAT, &payload, signing.as_deref_mut(), ts, out);
         }
@@ -478,7 +485,7 @@ mod tests {
         let (h, _, _) = mavlink::read_frame(&out[0].1).unwrap();
         assert_eq!((h.sysid, h.compid, h.seq), (1, 1, 0));
         let payload = &out[0].1[10..19];
-        assert_eq!(payload, [0, 0, 0, 0, MAV_TYPE, MAV_AUTOPILOT, 0, 4, 3]);
+        assert_eq!(payload, [0, 0, 0, 0, 0, MAV_AUTOPILOT, 0, 4, 3]);
         out.clear();
         p.due(t + Duration::from_millis(999), state(4), None, 0, &mut out);
         assert!(out.is_empty(), "one a second");

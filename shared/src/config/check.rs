@@ -208,6 +208,7 @@ impl Config {
             key_file: m.key_file.clone(),
             timestamp_file: Some(self.mavlink_timestamp_file()),
             rc_channels_hz: m.rc_channels_hz,
+            vehicle_type: m.vehicle_type,
         })
     }
 

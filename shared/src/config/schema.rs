@@ -326,6 +326,11 @@ pub struct MavlinkSection {
     /// heard from, per second, 0..=10 (0: none until a groundstation asks
     /// with MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM). Default 4.
     pub rc_channels_hz: u8,
+    /// The kind of vehicle ppm's HEARTBEAT says: `"generic"` (the
+    /// default), `"fixed_wing"`, `"quadrotor"`, `"helicopter"`,
+    /// `"ground_rover"`, `"surface_boat"`, `"submarine"`, `"hexarotor"` or
+    /// `"octorotor"`.
+    pub vehicle_type: crate::mavlink::VehicleType,
 }
 
 impl Default for MavlinkSection {
@@ -339,6 +344,7 @@ impl Default for MavlinkSection {
             key_file: None,
             timestamp_file: None,
             rc_channels_hz: crate::mavlink::RC_CHANNELS_HZ,
+            vehicle_type: crate::mavlink::VehicleType::Generic,
         }
     }
 }

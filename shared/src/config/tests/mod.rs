@@ -576,6 +576,9 @@ fn mavlink_keys_resolve_against_the_channels_or_name_the_key() {
     let s = plan("").unwrap();
     assert_eq!((s.system_id, s.component_id), (1, 1));
     assert_eq!(s.rc_channels_hz, 4);
+    assert_eq!(s.vehicle_type, crate::mavlink::VehicleType::Generic);
+    let rover = plan("[mavlink]\nvehicle_type = 'ground_rover'").unwrap();
+    assert_eq!(rover.vehicle_type.mav_type(), 10);
     assert_eq!(
         plan("[mavlink]\nrc_channels_hz = 0")
             .unwrap()
@@ -612,6 +615,7 @@ fn mavlink_keys_resolve_against_the_channels_or_name_the_key() {
         ("[mavlink]\nsysid = 3", "sysid"),
         ("[mavlink]\nrc_channels_hz = 11", "mavlink.rc_channels_hz"),
         ("[mavlink]\nrc_channels_hz = -1", "rc_channels_hz"),
+        ("[mavlink]\nvehicle_type = 'car'", "vehicle_type"),
     ] {
         let e = plan(text).unwrap_err();
         assert!(e.contains(key), "{text}: {e}");
