@@ -140,8 +140,17 @@ pub const COMMAND_ACK: Spec = Spec {
     max_len: 10,
 };
 
+/// `PROTOCOL_VERSION`: ppm's answer to a request for it (MAVLink 2 only).
+pub const PROTOCOL_VERSION: Spec = Spec {
+    id: 300,
+    name: "PROTOCOL_VERSION",
+    crc_extra: 217,
+    v1_len: 22,
+    max_len: 22,
+};
+
 /// Every message ppm reads or writes.
-pub const SPECS: [Spec; 9] = [
+pub const SPECS: [Spec; 10] = [
     HEARTBEAT,
     PARAM_REQUEST_LIST,
     PARAM_VALUE,
@@ -151,6 +160,7 @@ pub const SPECS: [Spec; 9] = [
     RC_CHANNELS_OVERRIDE,
     COMMAND_LONG,
     COMMAND_ACK,
+    PROTOCOL_VERSION,
 ];
 
 /// Messages a groundstation sends any vehicle that ppm reads, checks (its
@@ -189,6 +199,8 @@ const fn ignored(id: u32, name: &'static str, crc_extra: u8, v1_len: u8, max_len
 pub const MAV_CMD_SET_MESSAGE_INTERVAL: u16 = 511;
 /// MAV_CMD_REQUEST_MESSAGE: param1 a message id, sent once.
 pub const MAV_CMD_REQUEST_MESSAGE: u16 = 512;
+/// MAV_CMD_REQUEST_PROTOCOL_VERSION (deprecated for REQUEST_MESSAGE).
+pub const MAV_CMD_REQUEST_PROTOCOL_VERSION: u16 = 519;
 /// MAV_DATA_STREAM_ALL, in REQUEST_DATA_STREAM.
 pub const MAV_DATA_STREAM_ALL: u8 = 0;
 /// MAV_DATA_STREAM_RC_CHANNELS, in REQUEST_DATA_STREAM.
@@ -1015,6 +1027,16 @@ pub fn rc_channels_payload(time_boot_ms: u32, values_us: &[u16]) -> [u8; 42] {
     }
     p[40] = values_us.len().min(18) as u8;
     p[41] = u8::MAX;
+    p
+}
+
+/// PROTOCOL_VERSION's payload: MAVLink 2 (version 200), taking 1 and 2
+/// (min 100, max 200), no hashes (zeros).
+pub fn protocol_version_payload() -> [u8; 22] {
+    let mut p = [0u8; 22];
+    p[..2].copy_from_slice(&200u16.to_le_bytes());
+    p[2..4].copy_from_slice(&100u16.to_le_bytes());
+    p[4..6].copy_from_slice(&200u16.to_le_bytes());
     p
 }
 

@@ -60,9 +60,8 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
         panic!("pymavlink is needed for this test: python3 -m pip install pymavlink");
     }
     let sb = Sandbox::new("mavlink");
-    let cfg = sb.config(
-        "[mavlink]\nbuttons = [\"aux1\", \"aux2\"]\nvehicle_type = \"surface_boat\"\n",
-    );
+    let cfg =
+        sb.config("[mavlink]\nbuttons = [\"aux1\", \"aux2\"]\nvehicle_type = \"surface_boat\"\n");
     let trace = sb.dir.join("line.trace");
     let mut ppmd = sb.start_ppmd(&cfg, "line.trace");
     let mut ingress = sb.start_ingress(&cfg, &[]);
@@ -132,7 +131,8 @@ fn pymavlink_flies_the_line_with_exactly_the_commanded_values() {
 /// (MAV_CMD_SET_MESSAGE_INTERVAL) after 0.5 s, stopped
 /// (REQUEST_DATA_STREAM) after 2.5 s. argv: the port. Prints JSON: the
 /// RC_CHANNELS (chancount, chan1..9) in order, the COMMAND_ACKs (command,
-/// result), and how many RC_CHANNELS came before the stop was surely taken.
+/// result), how many RC_CHANNELS came in the 1.5 s from 0.5 s after the
+/// request, and how many before the stop was surely taken.
 const RC_READER: &str = r#"
 import json, os, sys, time
 os.environ["MAVLINK20"] = "1"
@@ -157,13 +157,16 @@ def fly(ch, seconds):
         time.sleep(0.02)
 fly(A, 0.5)
 m.mav.command_long_send(1, 1, 511, 0, 65, 100000, 0, 0, 0, 0, 0)
-fly(A, 1.0)
+fly(A, 0.5)
+at_10hz = len(rc)
+fly(A, 0.5)
 fly(B, 1.0)
+at_10hz = len(rc) - at_10hz
 m.mav.request_data_stream_send(1, 1, 3, 0, 0)
 fly(B, 0.5)
 before_stop = len(rc)
 fly(B, 1.0)
-print(json.dumps({"rc": rc, "acks": acks, "before_stop": before_stop}))
+print(json.dumps({"rc": rc, "acks": acks, "at_10hz": at_10hz, "before_stop": before_stop}))
 "#;
 
 /// RC_CHANNELS as pymavlink reads them: the values the line carried,
@@ -224,6 +227,9 @@ fn rc_channels_tell_the_groundstation_what_the_line_carried() {
         }
     }
     assert_eq!(seen, [0, 1], "{rc:?}");
+    // At 10 Hz for 1.5 s (about 15; at the default 4 Hz about 6).
+    let at_10hz = got["at_10hz"].as_u64().unwrap();
+    assert!(at_10hz >= 11, "{at_10hz} RC_CHANNELS in 1.5 s: {out}");
     // Stopped: nothing more once the stop was taken.
     let before_stop = got["before_stop"].as_u64().unwrap() as usize;
     assert_eq!(rc.len(), before_stop, "{out}");

@@ -17,7 +17,8 @@
 //! Logic only, without I/O: the server sends what [`Peers::due`] gives.
 
 use ppm_shared::mavlink::{
-    self, CommandLong, Header, Message, COMMAND_ACK, HEARTBEAT, PARAM_VALUE, RC_CHANNELS,
+    self, CommandLong, Header, Message, COMMAND_ACK, HEARTBEAT, PARAM_VALUE, PROTOCOL_VERSION,
+    RC_CHANNELS,
 };
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
@@ -76,6 +77,11 @@ struct Peer {
     next_rc: Instant,
     /// It asked for one RC_CHANNELS now (MAV_CMD_REQUEST_MESSAGE).
     rc_now: bool,
+    /// It asked for PROTOCOL_VERSION.
+    protocol_now: bool,
+    /// The sequence number of the next frame it gets (counted per peer,
+    /// and only for frames sent, so that it sees no gap).
+    seq: u8,
 }
 
 /// Counters of the replies.
@@ -102,7 +108,6 @@ pub struct Peers {
     /// The HEARTBEAT's MAV_TYPE (`mavlink.vehicle_type`; by default
     /// MAV_TYPE_GENERIC, 0: a vehicle of no particular kind).
     mav_type: u8,
-    seq: u8,
     counters: ReplyCounters,
 }
 
@@ -113,7 +118,7 @@ pub struct LineNow<'a> {
     pub state: u8,
     /// The values on the line, us (empty: no frame goes out).
     pub values_us: &'a [u16],
-    /// Milliseconds since this ingress started (RC_CHANNELS'
+    /// The frame's start on CLOCK_MONOTONIC, ms (RC_CHANNELS'
     /// `time_boot_ms`).
     pub boot_ms: u32,
 }
@@ -144,7 +149,6 @@ impl Peers {
             next_heartbeat: None,
             rc_default: every_of_hz(rc_hz as f64),
             mav_type: 0,
-            seq: 0,
             counters: ReplyCounters::default(),
         }
     }
@@ -177,6 +181,8 @@ impl Peers {
             rc_every: self.rc_default,
             next_rc: now,
             rc_now: false,
+            protocol_now: false,
+            seq: 0,
         });
         // The first HEARTBEAT goes out at once: a groundstation shows the
         // vehicle without waiting a second.
@@ -232,10 +238,12 @@ impl Peers {
     }
 
     /// The frames due at `now` and where they go (appended to `out`), to
-    /// each live peer with the credit for it: answers to its requests
-    /// (PARAM_VALUE, COMMAND_ACK, an RC_CHANNELS asked for), its
-    /// RC_CHANNELS when due, and a HEARTBEAT once per [`HEARTBEAT_EVERY`].
-    /// `line` is what the line carries.
+    /// each live peer with the credit for it: answers to its requests first
+    /// (PARAM_VALUE, COMMAND_ACK, PROTOCOL_VERSION, an RC_CHANNELS asked
+    /// for: each request earns three times its size, more than its answer),
+    /// then a HEARTBEAT once per [`HEARTBEAT_EVERY`], then its RC_CHANNELS
+    /// when due, from what is left: a groundstation that earns little keeps
+    /// getting the HEARTBEAT. `line` is what the line carries.
     ///
     /// With `signing` (`mavlink.key_file`), every frame is signed, at the
     /// clock's signature timestamp `ts` or after.
@@ -259,6 +267,13 @@ impl Peers {
                 let ack = mavlink::command_ack_payload(command, result, to);
                 self.reply(i, &COMMAND_ACK, &ack, signing.as_deref_mut(), ts, out);
             }
+            if std::mem::take(&mut self.peers[i].protocol_now) {
+                let v = mavlink::protocol_version_payload();
+                self.reply(i, &PROTOCOL_VERSION, &v, signing.as_deref_mut(), ts, out);
+            }
+        }
+        self.heartbeats(now, line.state, signing.as_deref_mut(), ts, out);
+        for i in 0..self.peers.len() {
             let p = &mut self.peers[i];
             let scheduled = p.rc_every.filter(|_| now >= p.next_rc);
             if let Some(every) = scheduled {
@@ -268,7 +283,6 @@ impl Peers {
                 self.reply(i, &RC_CHANNELS, &rc, signing.as_deref_mut(), ts, out);
             }
         }
-        self.heartbeats(now, line.state, signing, ts, out);
     }
 
     /// A HEARTBEAT to each peer, if one is due at `now`.
@@ -299,8 +313,9 @@ impl Peers {
         }
     }
 
-    /// One frame from ppm to peer `i`, numbered, in its version or signed
-    /// with `signing` if given, handed on (to `out`) if the peer earned it.
+    /// One frame from ppm to peer `i`, numbered, in its version (MAVLink 2
+    /// for a message MAVLink 1 cannot carry) or signed with `signing` if
+    /// given, handed on (to `out`) if the peer earned it.
     fn reply(
         &mut self,
         i: usize,
@@ -310,13 +325,11 @@ impl Peers {
         ts: u64,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
     ) {
-        let seq = self.seq;
-        self.seq = self.seq.wrapping_add(1);
-        let header = (seq, self.system_id, self.component_id);
+        let header = (self.peers[i].seq, self.system_id, self.component_id);
         let frame = match signing {
             Some(s) => s.frame(header, spec, payload, ts),
             // MAVLink 1 carries no extension fields.
-            None if self.peers[i].version == 1 => {
+            None if self.peers[i].version == 1 && spec.id <= 255 => {
                 mavlink::frame(1, header, spec, &payload[..spec.v1_len as usize])
             }
             None => mavlink::frame(2, header, spec, payload),
@@ -329,6 +342,7 @@ impl Peers {
         if !p.exempt {
             p.credit -= frame.len();
         }
+        p.seq = p.seq.wrapping_add(1);
         self.counters.sent += 1;
         out.push((p.addr, frame));
     }
@@ -357,25 +371,48 @@ fn later(at: Instant, every: Duration, now: Instant) -> Instant {
     }
 }
 
+/// The longest RC_CHANNELS interval a peer can ask for (as ArduPilot
+/// clamps its message intervals).
+pub const RC_CHANNELS_MAX_EVERY: Duration = Duration::from_secs(60);
+
 /// The MAV_RESULT of COMMAND_LONG `c` from peer `p`, which it changes:
 /// MAV_CMD_SET_MESSAGE_INTERVAL of RC_CHANNELS sets the peer's interval
-/// (-1: none, 0: `rc_default`, else at least [`RC_CHANNELS_MIN_EVERY`]);
-/// MAV_CMD_REQUEST_MESSAGE of RC_CHANNELS sends one now. Both are denied
-/// for another message; every other command is unsupported.
+/// (param2 in us: -1 none, 0 `rc_default`, else clamped to
+/// [`RC_CHANNELS_MIN_EVERY`]..=[`RC_CHANNELS_MAX_EVERY`]; any other
+/// negative, or a value that is not a number, is denied);
+/// MAV_CMD_REQUEST_MESSAGE of RC_CHANNELS or PROTOCOL_VERSION, and
+/// MAV_CMD_REQUEST_PROTOCOL_VERSION, send one at once. Both are denied for
+/// another message; every other command is unsupported.
 fn command_result(c: &CommandLong, p: &mut Peer, rc_default: Option<Duration>) -> u8 {
     let [message, param2, ..] = c.params;
     let rc = message == RC_CHANNELS.id as f32;
     match c.command {
-        mavlink::MAV_CMD_SET_MESSAGE_INTERVAL if rc => {
-            p.rc_every = match param2 {
-                v if v < 0.0 => None,
-                0.0 => rc_default,
-                v => every_of_hz(1e6 / v as f64),
-            };
-            MAV_RESULT_ACCEPTED
-        }
+        mavlink::MAV_CMD_SET_MESSAGE_INTERVAL if rc => match param2 {
+            -1.0 => {
+                p.rc_every = None;
+                MAV_RESULT_ACCEPTED
+            }
+            0.0 => {
+                p.rc_every = rc_default;
+                MAV_RESULT_ACCEPTED
+            }
+            us if us.is_finite() && us > 0.0 => {
+                let every = Duration::from_micros(us.min(1e12) as u64);
+                p.rc_every = Some(every.clamp(RC_CHANNELS_MIN_EVERY, RC_CHANNELS_MAX_EVERY));
+                MAV_RESULT_ACCEPTED
+            }
+            _ => MAV_RESULT_DENIED,
+        },
         mavlink::MAV_CMD_REQUEST_MESSAGE if rc => {
             p.rc_now = true;
+            MAV_RESULT_ACCEPTED
+        }
+        mavlink::MAV_CMD_REQUEST_MESSAGE if message == PROTOCOL_VERSION.id as f32 => {
+            p.protocol_now = true;
+            MAV_RESULT_ACCEPTED
+        }
+        mavlink::MAV_CMD_REQUEST_PROTOCOL_VERSION => {
+            p.protocol_now = true;
             MAV_RESULT_ACCEPTED
         }
         mavlink::MAV_CMD_SET_MESSAGE_INTERVAL | mavlink::MAV_CMD_REQUEST_MESSAGE => {
@@ -725,5 +762,115 @@ mod tests {
         out.clear();
         p.due(t, state(3), None, 0, &mut out);
         assert!(acks(&out).is_empty());
+    }
+
+    #[test]
+    fn a_groundstation_that_sends_only_its_heartbeat_keeps_getting_ppms() {
+        let t = Instant::now();
+        let mut p = Peers::new(1, 1, 8, 4);
+        let values = [1500; 8];
+        let line = LineNow {
+            state: 4,
+            values_us: &values,
+            boot_ms: 0,
+        };
+        let mut out = vec![];
+        // Its 21-byte HEARTBEAT each second earns 63 bytes: ppm's HEARTBEAT
+        // (21) every second, RC_CHANNELS (54) with what is left.
+        for k in 0..1_000u64 {
+            let now = t + Duration::from_millis(10 * k);
+            if k % 100 == 0 {
+                p.heard(addr(1), 2, 21, false, now);
+            }
+            p.due(now, line, None, 0, &mut out);
+        }
+        let beats = out.iter().filter(|(_, f)| f[7] == 0).count();
+        assert_eq!(beats, 10, "one a second");
+        let rc = rc_channels(&out).len();
+        assert!((5..=10).contains(&rc), "{rc} RC_CHANNELS");
+        let sent: usize = out.iter().map(|(_, f)| f.len()).sum();
+        assert!(sent <= 10 * 63, "{sent} bytes");
+        // Its frames are numbered 0, 1, 2, ... without a gap, whatever
+        // was held.
+        let seqs: Vec<u8> = out.iter().map(|(_, f)| f[4]).collect();
+        assert_eq!(seqs, (0..seqs.len() as u8).collect::<Vec<_>>());
+        assert!(p.counters().held > 0);
+    }
+
+    #[test]
+    fn any_interval_a_peer_asks_for_is_taken_or_denied_never_a_fault() {
+        let t = Instant::now();
+        let mut p = Peers::new(1, 1, 8, 4);
+        for (param2, result) in [
+            (f32::NAN, MAV_RESULT_DENIED),
+            (f32::INFINITY, MAV_RESULT_DENIED),
+            (f32::NEG_INFINITY, MAV_RESULT_DENIED),
+            (-2.0, MAV_RESULT_DENIED),
+            (f32::MAX, MAV_RESULT_ACCEPTED),
+            (1e30, MAV_RESULT_ACCEPTED),
+            (1.0, MAV_RESULT_ACCEPTED),
+        ] {
+            p.heard(addr(1), 2, 4_000, false, t);
+            p.request(addr(1), &GCS, &command_long(1, 511, 65.0, param2));
+            let mut out = vec![];
+            p.due(t, state(3), None, 0, &mut out);
+            assert_eq!(acks(&out), [(1, 511, result, 255, 190)], "{param2}");
+        }
+        // The last asked for 1 us: 10 Hz at most (counted over the second
+        // second). f32::MAX before it: every 60 s.
+        let mut out = vec![];
+        for k in 1..=200 {
+            if k == 101 {
+                out.clear();
+            }
+            let now = t + Duration::from_millis(10 * k);
+            p.due(now, state(3), None, 0, &mut out);
+        }
+        assert_eq!(rc_channels(&out).len(), 10);
+        p.request(addr(1), &GCS, &command_long(1, 511, 65.0, f32::MAX));
+        let mut out = vec![];
+        let later = t + Duration::from_secs(2);
+        p.heard(addr(1), 2, 4_000, false, later);
+        for k in 0..300 {
+            p.due(
+                later + Duration::from_millis(10 * k),
+                state(3),
+                None,
+                0,
+                &mut out,
+            );
+        }
+        assert_eq!(rc_channels(&out).len(), 1, "one, then a minute later");
+    }
+
+    #[test]
+    fn a_request_for_the_protocol_version_gets_mavlink_2() {
+        let t = Instant::now();
+        let mut p = Peers::new(1, 1, 8, 0);
+        // A MAVLink 1 peer: PROTOCOL_VERSION still goes out in MAVLink 2.
+        p.heard(addr(1), 1, 4_000, false, t);
+        p.request(addr(1), &GCS, &command_long(1, 512, 300.0, 0.0));
+        p.request(addr(1), &GCS, &command_long(1, 519, 0.0, 0.0));
+        let mut out = vec![];
+        p.due(t, state(3), None, 0, &mut out);
+        assert_eq!(
+            acks(&out),
+            [
+                (1, 512, MAV_RESULT_ACCEPTED, 0, 0),
+                (1, 519, MAV_RESULT_ACCEPTED, 0, 0)
+            ]
+        );
+        let v: Vec<&Vec<u8>> = out
+            .iter()
+            .map(|(_, f)| f)
+            .filter(|f| f[0] == mavlink::STX_V2 && f[7..10] == [0x2c, 0x01, 0])
+            .collect();
+        assert_eq!(v.len(), 1, "one, for both requests");
+        let mut payload = v[0][10..v[0].len() - 2].to_vec();
+        payload.resize(22, 0);
+        assert_eq!(payload, mavlink::protocol_version_payload());
+        assert_eq!(payload[..6], [200, 0, 100, 0, 200, 0]);
+        let crc = mavlink::frame_crc(&PROTOCOL_VERSION, &v[0][1..v[0].len() - 2]);
+        assert_eq!(v[0][v[0].len() - 2..], crc.to_le_bytes());
     }
 }

@@ -930,7 +930,10 @@ fn rc_channels_report_the_newest_frame_on_the_line_while_it_is_fresh() {
         &mavlink::HEARTBEAT,
         &[0, 0, 0, 0, 6, 8, 0, 4, 3],
     );
-    assert_eq!(i.offer(&hb, from(), 1, 1, t), Outcome::NoCommand);
+    // Three of them earn a HEARTBEAT and an RC_CHANNELS.
+    for _ in 0..3 {
+        assert_eq!(i.offer(&hb, from(), 1, 1, t), Outcome::NoCommand);
+    }
     let mut values_ns = [0; ppm_shared::frame::MAX_CHANNELS];
     values_ns[..3].copy_from_slice(&[1_100_400, 1_200_600, 1_499_500]);
     let line = LineSample {
@@ -963,8 +966,10 @@ fn rc_channels_report_the_newest_frame_on_the_line_while_it_is_fresh() {
         (5_000, 3, [1100, 1201, 1500, u16::MAX])
     );
     // A frame that started more than 300 ms ago: no channels now (the
-    // peer's next HEARTBEAT earned the reply).
+    // peer's next HEARTBEATs earned the reply).
     let later = t + Duration::from_millis(250);
-    assert_eq!(i.offer(&hb, from(), 2, 2, later), Outcome::NoCommand);
+    for _ in 0..3 {
+        assert_eq!(i.offer(&hb, from(), 2, 2, later), Outcome::NoCommand);
+    }
     assert_eq!(rc(&mut i, 5_300_000_001, later), (5_300, 0, [u16::MAX; 4]));
 }

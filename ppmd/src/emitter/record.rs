@@ -274,7 +274,9 @@ mod tests {
         // Every read, however it meets the writer, is one frame's whole:
         // its start, count and values all of one store.
         let mut seen = 0;
-        while !writer.is_finished() {
+        loop {
+            // One read at least after the writer finished.
+            let done = writer.is_finished();
             if let Some(s) = last.load() {
                 let k = s.frame;
                 assert_eq!(s.start_mono_ns, 2 * k);
@@ -284,6 +286,9 @@ mod tests {
                     .all(|&v| v as u64 == k));
                 assert_eq!(s.state, LineState::Active as u32);
                 seen += 1;
+            }
+            if done {
+                break;
             }
         }
         writer.join().unwrap();
