@@ -43,7 +43,9 @@ fn check(data: &[u8]) {
     for (h, message) in &d.requests {
         let (spec, payload) = message.encode();
         assert_eq!(spec.id, h.msgid);
-        for version in [1, 2] {
+        // MAVLink 1 carries ids up to 255 only.
+        let versions: &[u8] = if spec.id > 255 { &[2] } else { &[1, 2] };
+        for &version in versions {
             let again = mavlink::frame(version, (h.seq, h.sysid, h.compid), spec, &payload);
             let (_, m2, len) = mavlink::read_frame(&again).expect("written again");
             assert_eq!((m2.encode().1, len), (payload.clone(), again.len()));

@@ -1063,6 +1063,7 @@ fn build_frame(
     payload: &[u8],
 ) -> Vec<u8> {
     let (seq, sysid, compid) = header;
+    debug_assert!(version == 2 || spec.id <= 255, "MAVLink 1 has 8-bit ids");
     let mut out = Vec::with_capacity(payload.len() + 12 + SIGNATURE_LEN);
     if version == 1 {
         out.extend_from_slice(&[
