@@ -64,6 +64,8 @@ struct Totals {
     late_frames: u64,
     aborted_frames: u64,
     overruns: u64,
+    /// Edges the loop counted as written (each one's error is in `error`).
+    edges: u64,
 }
 
 impl Totals {
@@ -76,6 +78,7 @@ impl Totals {
             late_frames: 0,
             aborted_frames: 0,
             overruns: 0,
+            edges: 0,
         }
     }
 
@@ -165,11 +168,21 @@ fn run_block(
     }
     totals.cpu_ns += thread_cpu_ns() - cpu0;
     totals.wall_ns += clock::now_ns() - wall0;
-    for (s, (m, _)) in stats.iter().zip(&meters) {
+    for (s, (m, reader)) in stats.iter().zip(&mut meters) {
         totals.spin_ns += s.spin_ns.load(Relaxed);
         totals.late_frames += s.late_frames.load(Relaxed);
         totals.aborted_frames += s.aborted_frames.load(Relaxed);
         totals.overruns += s.overruns.load(Relaxed);
+        totals.edges += s.edges.load(Relaxed);
+        // The loop hands its interval over when it ends: what it measured
+        // is in the reader's intervals (and whatever the meter still holds).
+        let mut merged = Ok(());
+        reader.drain(|iv| {
+            if merged.is_ok() {
+                merged = totals.error.add(&iv.edge_error);
+            }
+        });
+        merged.context("merging histograms")?;
         totals
             .error
             .add(&m.current().edge_error)
@@ -178,13 +191,43 @@ fn run_block(
     Ok(())
 }
 
+/// `cfg` on a grid. A frame length that only follow timing takes (follow
+/// does not use `ppm.frame_us`) is lengthened, in 100 us steps up to 60 ms,
+/// to the shortest the grid takes; the length it had comes back with it.
+fn grid_config(cfg: &Config) -> Result<(Config, Option<f64>)> {
+    let mut grid = cfg.clone();
+    grid.ppm.timing = Timing::Grid;
+    let err = match grid.validate() {
+        Ok(_) => return Ok((grid, None)),
+        Err(e) => e,
+    };
+    if cfg.ppm.timing != Timing::Follow || cfg.validate().is_err() {
+        return Err(err.into());
+    }
+    let from = grid.ppm.frame_us();
+    for k in 1..=600 {
+        let mut longer = grid.clone();
+        longer.ppm.frame_us = Some(from + 100.0 * k as f64);
+        if longer.validate().is_ok() {
+            return Ok((longer, Some(from)));
+        }
+    }
+    Err(err.into())
+}
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
-    let mut cfg = Config::load_or_default(cli.config.as_deref())?;
+    let loaded = Config::load_or_default(cli.config.as_deref())?;
     // The baseline and the two-output blocks run on a grid, whatever the
     // configuration's timing; the follow block is measured beside them.
-    cfg.ppm.timing = Timing::Grid;
+    let (cfg, lengthened) = grid_config(&loaded)?;
     let model = cfg.validate()?;
+    if let Some(from) = lengthened {
+        println!(
+            "ppm.frame_us {from:.0} us is too short a grid frame for these channels (follow timing does not use it): the grid blocks use {:.0} us, the shortest that is",
+            model.frame_ns() as f64 / 1e3
+        );
+    }
     let mut rt = cfg.rt.clone();
     rt.priority = cli.priority;
     rt.cpu = cli.cpu.map_or(CpuChoice::Last, CpuChoice::Index);
@@ -326,4 +369,53 @@ fn main() -> Result<()> {
         spin.spin_ns as f64 * 100.0 / spin.wall_ns.max(1) as f64
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_frame_only_follow_takes_is_lengthened_for_the_grid_blocks() {
+        // The default 22.5 ms frame is too short for 12 channels on a grid;
+        // follow timing does not use it.
+        let cfg = Config::parse("[ppm]\nchannels = 12\ntiming = 'follow'").unwrap();
+        assert!(cfg.validate().is_ok());
+        let (grid, from) = grid_config(&cfg).unwrap();
+        assert_eq!(from, Some(22_500.0));
+        assert_eq!(grid.ppm.timing, Timing::Grid);
+        let f = grid.ppm.frame_us();
+        assert!(grid.validate().is_ok());
+        // The shortest in 100 us steps: 100 us less is refused.
+        let mut shorter = grid.clone();
+        shorter.ppm.frame_us = Some(f - 100.0);
+        let e = shorter.validate().unwrap_err();
+        assert_eq!(e.key(), Some("ppm.frame_us"), "{e}");
+        // A grid frame that validates is kept as it is.
+        let (same, none) = grid_config(&Config::default()).unwrap();
+        assert_eq!((same.ppm.frame_us(), none), (22_500.0, None));
+        // A grid configuration's error stays the error.
+        let bad = Config::parse("[ppm]\nchannels = 12\ntiming = 'grid'").unwrap();
+        let e = grid_config(&bad).unwrap_err().to_string();
+        assert!(e.contains("ppm.frame_us"), "{e}");
+    }
+
+    #[test]
+    fn a_block_measures_every_edge_the_loop_wrote() {
+        // The plain loop writes every edge however late: 5 frames of 18
+        // edges, and the lead-in pulse's 2, at least (more lead-ins if the
+        // loop skipped frames).
+        let (cfg, _) = grid_config(&Config::default()).unwrap();
+        let model = cfg.validate().unwrap().unguarded();
+        let cmd = parse(b"[1000, 1200, 1700, 2000]", &model).unwrap();
+        let sample = CommandSample::new(&cmd, model.fingerprint(), 1, 0, 0);
+        let mut totals = Totals::new();
+        run_block(&[(&model, sample)], Margin::Fixed(50_000), 5, &mut totals).unwrap();
+        assert!(totals.edges >= 5 * 18 + 2, "{} edges", totals.edges);
+        assert_eq!(
+            totals.error.len(),
+            totals.edges,
+            "every edge's error measured"
+        );
+    }
 }
