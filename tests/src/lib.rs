@@ -304,12 +304,14 @@ pub fn rejected_total(status: &StatusReply) -> u64 {
 /// defaults otherwise, on the sandbox's port, line `sim:a.trace`, frame
 /// log `a.jsonl`) and `<name>b` (line `sim:b.trace`, on `port_b`), with
 /// `b_keys` added to b's entry (keys, then its `[outputs.*]` sections);
-/// returns the path and the names.
+/// returns the path and the names. Like [`Sandbox::config`], it sets the
+/// late-edge guard to 20 us: these debug builds, two outputs in one
+/// thread, write each simulated edge as a line of text.
 pub fn two_outputs(sb: &Sandbox, port_b: u16, b_keys: &str) -> (PathBuf, [String; 2]) {
     let (a, b) = (format!("{}a", sb.name), format!("{}b", sb.name));
     let path = sb.dir.join("ppm.toml");
     let text = format!(
-        "[ppm]\ntiming = \"grid\"\n\
+        "[ppm]\ntiming = \"grid\"\nlate_edge_guard_us = 20\n\
          [ingress]\nlisten = \"127.0.0.1:{}\"\n[ipc]\nroot = \"{}\"\n[rt]\nallow_degraded = true\n\n\
          [[outputs]]\nname = \"{a}\"\noutput = \"sim:a.trace\"\nframe_log = \"a.jsonl\"\n\n\
          [[outputs]]\nname = \"{b}\"\noutput = \"sim:b.trace\"\ningress.listen = \"127.0.0.1:{port_b}\"\n{b_keys}\n",
