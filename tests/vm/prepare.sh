@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
 # tests/vm/prepare.sh FLAVOR      (FLAVOR = std | rt)
+# tests/vm/prepare.sh --check     (only: are the host tools below there?)
 #
 # Prepares everything needed to boot a real Debian 6.1 kernel under QEMU
 # with the gpio-sim driver, without installing any kernel on the host:
@@ -41,9 +42,10 @@ set -euo pipefail
 die() { echo "prepare.sh: error: $*" >&2; exit 1; }
 log() { echo "prepare.sh: [${SECONDS}s] $*" >&2; }
 
-[ $# -eq 1 ] || die "usage: $0 std|rt"
+[ $# -eq 1 ] || die "usage: $0 std|rt|--check"
 FLAVOR=$1
 case "$FLAVOR" in
+    --check) ;;
     std) VARIANT=amd64;    COMMON_SUFFIX= ;;
     rt)  VARIANT=rt-amd64; COMMON_SUFFIX=-rt ;;
     *) die "FLAVOR must be 'std' or 'rt', got '$FLAVOR'" ;;
@@ -177,6 +179,8 @@ add_module() {
 
 # ---------------------------------------------------------------------- main
 check_tools
+# --check: only whether the host has every tool (CI asks before its tests).
+[ "$FLAVOR" != --check ] || { log "every host tool is there"; exit 0; }
 
 ENVFILE=$CACHE/$FLAVOR.env
 if ! sel=$(select_abi); then

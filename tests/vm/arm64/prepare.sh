@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# tests/vm/arm64/prepare.sh
+# tests/vm/arm64/prepare.sh [--check]   (--check: only whether the host
+#                                        has the tools named below)
 #
 # Prepares a Debian bookworm arm64 system that boots with systemd as PID 1
 # under qemu-system-aarch64 -M virt (software emulation), for the package's
@@ -39,10 +40,21 @@ OUT=$CACHE/arm64
 exec 9>"$OUT/.prepare.lock"
 flock 9
 
-for t in mmdebstrap qemu-aarch64-static qemu-system-aarch64 qemu-img mkfs.ext4 \
-         aarch64-linux-gnu-gcc apt-get dpkg-deb make; do
-    command -v "$t" >/dev/null || die "$t not found: apt-get install mmdebstrap arch-test qemu-user-static qemu-system-arm qemu-utils e2fsprogs gcc-aarch64-linux-gnu make"
+# TOOL:PACKAGE; every missing one is named, with the package to install.
+need=()
+for pair in mmdebstrap:mmdebstrap arch-test:arch-test qemu-aarch64-static:qemu-user-static \
+            qemu-system-aarch64:qemu-system-arm qemu-img:qemu-utils mkfs.ext4:e2fsprogs \
+            aarch64-linux-gnu-gcc:gcc-aarch64-linux-gnu apt-get:apt dpkg-deb:dpkg make:make; do
+    command -v "${pair%%:*}" >/dev/null || {
+        echo "arm64/prepare.sh: ${pair%%:*} not found (package ${pair#*:})" >&2
+        need+=("${pair#*:}")
+    }
 done
+[ ${#need[@]} -eq 0 ] || die "missing host tools; install them with:
+    apt-get update && apt-get install -y --no-install-recommends ${need[*]}
+(qemu-system-arm and qemu-utils must be of one version: a newer qemu-utils breaks the release's qemu-system-common)"
+# --check: only whether the host has every tool (CI asks before its tests).
+[ "${1:-}" != --check ] || { log "every host tool is there"; exit 0; }
 
 # What goes into the image; the key covers it and this script.
 PACKAGES="systemd,systemd-sysv,udev,kmod,dbus,procps,iproute2,initramfs-tools,linux-image-arm64,linux-image-rt-arm64"
