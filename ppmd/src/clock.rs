@@ -300,9 +300,13 @@ impl EdgeTimer {
             // Waits that never sleep teach nothing about lateness; without a
             // first observation the starting (largest) margin would never
             // shrink, and a loop whose deadlines are closer than it would spin
-            // forever (and meet RT throttling).
+            // forever (and meet RT throttling). Halved at each such wait, it
+            // reaches the least in a few, while the first sleeps keep a
+            // margin that a late wake-up does not overrun (dropped to the
+            // least at once, a first sleep woken 40 us late aborted the
+            // first frame).
             if self.window.as_ref().is_some_and(|w| w.filled == 0) {
-                self.margin_ns = min_ns.max(AUTO_HEADROOM_NS);
+                self.margin_ns = (self.margin_ns / 2).max(min_ns.max(AUTO_HEADROOM_NS));
             }
         }
         loop {
@@ -395,7 +399,17 @@ mod tests {
         let sim = sim::Sim::new();
         let w = first.wait(&sim, sim.at() + 100_000);
         assert_eq!(w.woke_late_ns, None, "inside the starting margin: no sleep");
-        assert_eq!(first.margin_ns(), 20_000, "but the margin left its start");
+        assert_eq!(first.margin_ns(), 500_000, "but the margin halved");
+        for _ in 0..4 {
+            first.wait(&sim, sim.at() + 10_000);
+        }
+        assert_eq!(
+            first.margin_ns(),
+            31_250,
+            "halved at each wait without a sleep"
+        );
+        first.wait(&sim, sim.at() + 10_000);
+        assert_eq!(first.margin_ns(), 20_000, "down to the least");
         let mut f = EdgeTimer::new(Margin::Fixed(300_000));
         f.observe(900_000);
         assert_eq!(f.margin_ns(), 300_000);

@@ -384,7 +384,12 @@ pub fn run_outputs<C: Clock + ?Sized>(
                     let anchor = grid_anchor(outputs, prog, output);
                     decide_frame(clk, &mut outputs[output], &mut prog[output], lead, anchor);
                     // A decaying peak of the decision time sizes the slot.
-                    let took = clk.now_ns() - took_from;
+                    // A decision that took longer than DECIDE_NS was held
+                    // up (preempted, or a page fault): no slot keeps edges
+                    // clear of that, and sizing the slot by it would defer
+                    // every decision (moving frames late) for hundreds of
+                    // frames after.
+                    let took = (clk.now_ns() - took_from).min(DECIDE_NS);
                     decide_peak_ns = took.max(decide_peak_ns - decide_peak_ns / 64);
                 }
                 woke
