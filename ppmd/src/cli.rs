@@ -8,10 +8,11 @@ use ppm_shared::config::{validate_name, Config, ConfigError, OutputSpec, Plan, T
 use ppm_shared::daemon::DaemonArgs;
 use std::path::PathBuf;
 
-/// PPM daemon: takes the newest command from udp-ingress once per frame and
-/// emits it as a PPM trainer signal.
+/// Real-time trainer-signal daemon: takes the newest command from
+/// udp-ingress once per frame and emits it as PPM (a GPIO line or SPI) or
+/// SBUS (a UART or SPI).
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 pub struct Cli {
     #[command(flatten)]
     pub daemon: DaemonArgs,

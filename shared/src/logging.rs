@@ -15,7 +15,8 @@ pub enum LogFormat {
     Auto,
     /// `<N>message`: the syslog priority the journal reads, no timestamp.
     Journal,
-    /// `[2026-11-23T13:02:30.123Z INFO  ppmd] message`.
+    /// `[2026-11-23T13:02:30.123Z INFO  MODULE] message`, MODULE naming the
+    /// part of the program that said it.
     Plain,
 }
 

@@ -166,4 +166,47 @@ fn readme_installs_what_the_units_run() {
     let rules = read("deploy/60-ppm.rules");
     assert!(rules.contains("KERNEL==\"cpu_dma_latency\", GROUP=\"ppm\""));
     assert!(rules.contains("KERNEL==\"gpiochip*\", GROUP=\"gpio\""));
+    // spidev to the group spi, which the package's user is in and its
+    // postinst triggers the rules for.
+    assert!(rules.contains("SUBSYSTEM==\"spidev\", KERNEL==\"spidev*\", GROUP=\"spi\""));
+    let postinst = read("deploy/debian/postinst");
+    assert!(postinst.contains("--subsystem-match=spidev"), "{postinst}");
+    assert!(read("deploy/debian/ppm.sysusers").contains("m ppm spi"));
+}
+
+/// `tools/package arm64` on a machine without the aarch64 cross toolchain
+/// stops before building anything and names the packages to install.
+#[test]
+fn the_package_script_names_the_cross_toolchain_it_lacks() {
+    let dir = std::env::temp_dir().join(format!("ppm-package-path-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    // A PATH with only what the script needs before its check.
+    for tool in ["bash", "dirname"] {
+        let found = which(tool);
+        std::os::unix::fs::symlink(found, dir.join(tool)).unwrap();
+    }
+    let out = std::process::Command::new(dir.join("bash"))
+        .arg(format!("{ROOT}/tools/package"))
+        .arg("arm64")
+        .env("PATH", &dir)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("gcc-aarch64-linux-gnu") && err.contains("apt-get install"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Where `tool` is on this machine's PATH.
+fn which(tool: &str) -> std::path::PathBuf {
+    std::env::var_os("PATH")
+        .iter()
+        .flat_map(std::env::split_paths)
+        .map(|d| d.join(tool))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| panic!("{tool} not on PATH"))
 }

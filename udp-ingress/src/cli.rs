@@ -11,7 +11,7 @@ use std::path::PathBuf;
 /// UDP command receiver: keeps the newest valid command and hands it to ppmd
 /// through shared memory.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 pub struct Cli {
     #[command(flatten)]
     pub daemon: DaemonArgs,

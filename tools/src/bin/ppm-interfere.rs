@@ -20,7 +20,7 @@ use std::time::Duration;
 /// the kernel's real-time throttling: bursts of a few hundred microseconds
 /// are far below it.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Cli {
     /// The CPU to hold: ppmd's (`rt.cpu`; "last" is the highest online one).
     #[arg(long, default_value = "last", value_name = "N|last")]

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 /// --duration or Ctrl-C). Without, forwards each line of standard input as
 /// one datagram. Every datagram goes to every --to target.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Cli {
     /// Where to send: HOST:PORT. Repeat it to send every command to each
     /// target (each gets its own `seq` numbering).

@@ -12,7 +12,7 @@ use std::time::Duration;
 /// Sends one status query and prints the reply. Read-only: a query never
 /// changes anything, and needs no signature when udp-ingress has a key.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Cli {
     /// The udp-ingress to ask: HOST:PORT (its `ingress.listen`).
     #[arg(long, value_name = "HOST:PORT")]

@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 /// Decode a ppmd sim trace as a receiver does and print the channels.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Cli {
     /// The trace file written by `ppmd --output sim:PATH`.
     trace: PathBuf,

@@ -30,7 +30,7 @@ use std::sync::Arc;
 
 /// Timing benchmark: ppmd's sleep-then-spin loop against a plain absolute sleep.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Cli {
     /// Total run time in seconds, split block by block among the four loops
     /// (ppmd's, the plain sleep, two outputs, follow timing); at least one

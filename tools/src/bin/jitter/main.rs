@@ -31,7 +31,7 @@ mod cyclictest;
 /// Timing measurements for ppm: cyclictest-style tests of this machine with
 /// ppmd's own timer, a running ppmd's edge error, sim traces, captured edges.
 #[derive(Parser, Debug)]
-#[command(name = "jitter", version, about, disable_help_flag = true)]
+#[command(name = "jitter", version, disable_help_flag = true)]
 struct Cli {
     /// Print help.
     #[arg(long, action = ArgAction::Help)]

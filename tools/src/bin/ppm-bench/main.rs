@@ -1,4 +1,4 @@
-//! `ppm-bench`: the input path under measurement, against the seed system's
+//! `ppm-bench`: the input path under measurement, against the paper's
 //! approach, with the real binaries as separate processes on loopback.
 //!
 //! 1. ingress latency: kernel receive timestamp (SO_TIMESTAMPNS) to the
@@ -43,9 +43,9 @@ mod sbus;
 use plots::{plot_dir, write_plots, Plots};
 
 /// Benchmarks of ppm's input path (ingress latency, flood, end-to-end
-/// latency, memory and CPU), with the seed system's approach as baseline.
+/// latency, memory and CPU), with the paper's approach as baseline.
 #[derive(Parser, Debug)]
-#[command(version, about)]
+#[command(version)]
 struct Cli {
     /// Datagrams for the latency comparison (sent at 1 kHz).
     #[arg(long, default_value_t = 3000)]
@@ -84,7 +84,7 @@ struct Cli {
 /// The parts of the benchmark, in the order they run.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 enum Part {
-    /// 1. ingress latency against the seed system's receiver.
+    /// 1. ingress latency against the paper's receiver.
     Ingress,
     /// 2. a flood of datagrams.
     Flood,
