@@ -197,11 +197,11 @@ fn signed_commands_apply_and_forgeries_and_replays_do_not() {
 
     let ch1 = ppm_tests::channel_of_frames(&read_trace(&trace), 0);
     assert!(ch1.iter().all(|&v| v == 1100 || v == 1300), "{ch1:?}");
-    // Each flew (about 45 frames each on an idle machine; how many a
-    // loaded one cuts short at a late edge is its business).
-    assert!(ch1.iter().filter(|&&v| v == 1100).count() >= 10, "{ch1:?}");
-    assert!(ch1.iter().filter(|&&v| v == 1300).count() >= 10, "{ch1:?}");
-    let first_1300 = ch1.iter().position(|&v| v == 1300).unwrap();
+    // Each flew, 1100 then only 1300: one frame of each is all the order
+    // needs (about 45 each on an idle machine; how many a loaded one cuts
+    // short at a late edge is its business).
+    assert!(ch1.contains(&1100), "{ch1:?}");
+    let first_1300 = ch1.iter().position(|&v| v == 1300).expect("1300 flew");
     assert!(ch1[first_1300..].iter().all(|&v| v == 1300), "{ch1:?}");
 }
 
@@ -336,9 +336,12 @@ fn allowlist_drops_other_sources_before_parsing() {
     assert_eq!(s.newest_seq, Some(50));
     std::thread::sleep(Duration::from_millis(100));
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
-    let frames = read_trace(&trace).decode(false);
-    assert!(frames.len() >= 10, "{} frames", frames.len());
-    assert!(frames.iter().all(|f| ppm_tests::carries(f, &[1100])));
+    // Only the insider's command flies: every frame that carried channel 1
+    // carries it, and one such frame shows it flew at all (how many a
+    // loaded machine cuts short is its business).
+    let ch1 = ppm_tests::channel_of_frames(&read_trace(&trace), 0);
+    assert!(!ch1.is_empty(), "the insider's command never flew");
+    assert!(ch1.iter().all(|&v| v == 1100), "{ch1:?}");
     // Not one log line per datagram: at most one per second for the reason.
     let lines = ingress
         .log_text()
@@ -448,25 +451,20 @@ fn a_signed_command_copied_to_another_output_with_the_same_key_is_refused() {
         unreachable!()
     };
     stop_all(&mut ppmd, &mut [a, b]);
-    // The lines: the rover's throttle (channel 1, TAER) is its own, never the plane's.
-    let thr = |trace: &str, i: usize| -> Vec<u64> {
-        ppm_tests::whole_frames(&read_trace(&sb.dir.join(trace)))
-            .iter()
-            .map(|f| f.channels_us()[i])
-            .collect()
-    };
-    // Frames cut short at a late edge are left out of the values, not of
-    // the count.
-    let rover_frames = read_trace(&sb.dir.join("rover.trace")).decode(false).len();
-    // (About 90 frames each; ppmd runs here without real-time priority, so
-    // on a loaded machine many are cut short, some before their first
-    // channel: what is checked is what they carry.)
-    assert!(rover_frames >= 10, "{rover_frames} rover frames");
+    // The lines: the rover's throttle (channel 1, TAER) is its own, never
+    // the plane's; the plane's (channel 3, AETR) is its own. Every frame
+    // that carried the throttle counts, whole or cut short after it (exact).
+    // One such frame on each line shows its command flew (about 90 frames
+    // each on an idle machine; ppmd runs here without real-time priority,
+    // so on a loaded one many are cut short, some before their first
+    // channel: what is checked is what they carry).
+    let thr =
+        |trace: &str, i: usize| ppm_tests::channel_of_frames(&read_trace(&sb.dir.join(trace)), i);
     let rover_thr = thr("rover.trace", 0);
+    assert!(!rover_thr.is_empty(), "the rover's command never flew");
     assert!(rover_thr.iter().all(|&v| v == 1000), "{rover_thr:?}");
-    let plane_frames = read_trace(&sb.dir.join("plane.trace")).decode(false).len();
-    assert!(plane_frames >= 10, "{plane_frames} plane frames");
     let plane_thr = thr("plane.trace", 2);
+    assert!(!plane_thr.is_empty(), "the plane's command never flew");
     assert!(plane_thr.iter().all(|&v| v == 1800), "{plane_thr:?}");
 }
 

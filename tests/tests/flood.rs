@@ -56,6 +56,8 @@ fn a_flood_leaves_only_the_newest_command() {
         .signal_and_wait(Signal::SIGTERM, Duration::from_secs(10))
         .success());
 
+    // How many is the function: a flood, not a trickle (a sender on a
+    // loaded machine still sends far more in 2 s).
     assert!(
         sent.load(Relaxed) > 10_000,
         "the flood sent only {}",
@@ -70,25 +72,33 @@ fn a_flood_leaves_only_the_newest_command() {
         .recv(&mut buf)
         .expect("udp-ingress answers after the flood");
     let status: StatusReply = serde_json::from_slice(&buf[..n]).unwrap();
+    // It took the flood in (how many is the function, as above).
     assert!(status.datagrams.received > 10_000);
     // Memory stays flat: no queue of stale commands builds up.
     assert!(
         rss_after <= rss_before + 2048,
         "udp-ingress grew from {rss_before} KiB to {rss_after} KiB"
     );
-    // From two frames after the last datagram on, the line carries it.
-    let frames = ppm_tests::whole_frames(&read_trace(&trace));
+    // From two frames after the last datagram on, the line carries it:
+    // every frame, whole or cut short at a late edge (then with the
+    // channels before it, exact), and one carrying both channels shows it
+    // (how many a loaded machine cuts short is its business).
+    let frames = read_trace(&trace).decode(false);
     let after: Vec<_> = frames
         .iter()
         .filter(|f| f.start_ns >= last + 2 * FRAME_NS && f.start_ns <= last + 150_000_000)
         .collect();
-    assert!(!after.is_empty(), "no frame after the flood");
+    assert!(
+        after.iter().any(|f| f.channels_us().len() >= 2),
+        "no frame after the flood with both channels: {:?}",
+        after.iter().map(|f| f.channels_us()).collect::<Vec<_>>()
+    );
     for f in after {
-        assert_eq!(
-            f.channels_us()[..2],
-            [1777, 1333],
-            "frame at +{} ms",
-            (f.start_ns - last) / 1_000_000
+        assert!(
+            ppm_tests::carries(f, &[1777, 1333]),
+            "frame at +{} ms: {:?}",
+            (f.start_ns - last) / 1_000_000,
+            f.channels_us()
         );
     }
 }

@@ -280,13 +280,15 @@ print(json.dumps(errors))
             1300.0, 1500.0, 1000.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0,
         ],
     ];
+    // 1100, then 1300, and nothing else: a run has one frame at the least,
+    // and one of each is all the order needs (how many a loaded machine
+    // cuts short is its business).
     let runs = runs(&sb.dir.join("line.trace"), &patterns);
     assert_eq!(
         runs.iter().map(|r| r.0).collect::<Vec<_>>(),
         [0, 1],
         "{runs:?}"
     );
-    assert!(runs.iter().all(|r| r.1 >= 10), "{runs:?}");
 }
 
 /// Two targets, one sender each: `status()` returns each one's reply as a

@@ -120,7 +120,14 @@ fn case(order: Order, signal: Signal, follow: bool, action: &str, startup: &str)
             waiting.iter().map(|f| f.channels_us()).collect::<Vec<_>>()
         ),
         Some(want) => {
-            assert!(waiting.len() >= 10, "{label}: {} frames", waiting.len());
+            // One frame carrying the three channels that tell the old
+            // command from the defaults shows the action (how many a loaded
+            // machine cuts short is its business).
+            assert!(
+                waiting.iter().any(|f| f.channels_us().len() >= 3),
+                "{label}: {} frames, none with three channels",
+                waiting.len()
+            );
             for f in &waiting {
                 let full = if want[0] == 1500 {
                     &DEFAULTS_US[..]
