@@ -124,8 +124,29 @@ log "kernels ${KREL[std]} and ${KREL[rt]} (Debian $DEBVER)"
 SRC_FILES="drivers/gpio/gpio-sim.c drivers/gpio/gpiolib.h kernel/irq/irq_sim.c"
 SRC=$CACHE/src-$DEBVER
 have_src() { for f in $SRC_FILES; do [ -f "$SRC/$f" ] || return 1; done; }
-PKGS="linux-kbuild-6.1=$DEBVER"
-have_src || PKGS="$PKGS linux-source-6.1=$DEBVER"
+# The host's (amd64) packages at the kernels' Debian version; when the
+# archive has only another revision of the same upstream version for amd64
+# (a rebuild: 6.1.192-3 beside arm64's 6.1.192-2), that one: modpost and the
+# gpio-sim sources are the upstream version's.
+host_version() { # PACKAGE
+    local versions up
+    versions=$(apt-cache madison "$1" 2>/dev/null | awk '{print $3}')
+    if grep -qxF "$DEBVER" <<<"$versions"; then
+        echo "$DEBVER"
+        return
+    fi
+    up=${DEBVER%-*}
+    grep -F "$up-" <<<"$versions" | grep "^${up//./\.}-" | sort -V | tail -n 1
+}
+KBUILD=$(host_version linux-kbuild-6.1)
+[ -n "$KBUILD" ] || die "no linux-kbuild-6.1 of upstream ${DEBVER%-*} in apt for the kernels $DEBVER (run apt-get update)"
+[ "$KBUILD" = "$DEBVER" ] || log "linux-kbuild-6.1 $DEBVER is not in apt for this host: $KBUILD, of the same upstream version"
+PKGS="linux-kbuild-6.1=$KBUILD"
+if ! have_src; then
+    SOURCE=$(host_version linux-source-6.1)
+    [ -n "$SOURCE" ] || die "no linux-source-6.1 of upstream ${DEBVER%-*} in apt (run apt-get update)"
+    PKGS="$PKGS linux-source-6.1=$SOURCE"
+fi
 mkdir -p "$WORK/debs" "$WORK/host"
 # shellcheck disable=SC2086 # one package per word
 ( cd "$WORK/debs" && apt-get download -q $PKGS ) > "$WORK/download.log" 2>&1 ||
