@@ -6,6 +6,11 @@
 //! alone as a first byte. So one socket, one port, one allowlist and one
 //! set of counters serve both, and a groundstation needs no second port.
 //!
+//! A datagram that does not start with a start byte, is not UTF-8 and has a
+//! good frame at one of its first start bytes is refused as `mavlink_junk`
+//! too ([`junk_before_frame`]), not as a JSON fault: bytes before a frame
+//! are junk as bytes between or after frames are.
+//!
 //! A datagram holds one or more whole frames back to back (the MAVLink
 //! senders we know put exactly one in each). Every frame is checked (start
 //! byte, length, CRC with the message's CRC_EXTRA); any byte that is not
@@ -46,6 +51,36 @@ pub const SIGNATURE_LEN: usize = 13;
 /// True when the datagram is read as MAVLink (its first byte is a start byte).
 pub fn is_mavlink(datagram: &[u8]) -> bool {
     matches!(datagram.first(), Some(&STX_V1 | &STX_V2))
+}
+
+/// Most start bytes [`junk_before_frame`] tries a frame at.
+pub const JUNK_SCAN_MAX_STARTS: usize = 16;
+
+/// For a datagram not read as MAVLink (its first byte starts no frame),
+/// refused as not UTF-8: `mavlink_junk` when a good MAVLink frame (one
+/// [`read_frame`] takes, CRC and all) starts at one of its first
+/// [`JUNK_SCAN_MAX_STARTS`] start bytes, so that bytes before a frame are
+/// counted as MAVLink junk, as bytes between or after frames are, and not
+/// as a JSON fault. `None` otherwise. At most that many frames are tried,
+/// each read within its own few hundred bytes: a flood of start bytes
+/// costs little.
+pub fn junk_before_frame(datagram: &[u8]) -> Option<Reject> {
+    let at = datagram
+        .iter()
+        .enumerate()
+        .skip(1)
+        .filter(|(_, b)| matches!(**b, STX_V1 | STX_V2))
+        .take(JUNK_SCAN_MAX_STARTS)
+        .map(|(i, _)| i)
+        .find(|&i| read_frame(&datagram[i..]).is_ok())?;
+    let (h, _, _) = read_frame(&datagram[at..]).ok()?;
+    Some(reject(
+        RejectReason::MavlinkJunk,
+        format!(
+            "{at} byte(s) that start no MAVLink frame before a MAVLink {} frame (message {}): a MAVLink datagram starts with its first frame (0xFE or 0xFD)",
+            h.version, h.msgid
+        ),
+    ))
 }
 
 /// What ppm knows of one message: id, CRC_EXTRA, and payload lengths.
@@ -688,13 +723,16 @@ impl Signing {
     /// not above its stream's last, or (a new stream) more than
     /// [`NEW_STREAM_MAX_LAG`] behind ppm's.
     pub fn check(&mut self, frame: &[u8], header: &Header, now: u64) -> Result<(), Reject> {
+        if header.version == 1 {
+            return Err(reject(
+                RejectReason::Unsigned,
+                "a MAVLink 1 frame: mavlink.key_file is set, so frames must be signed with its key, and only MAVLink 2 carries a signature: send MAVLink 2 (pymavlink writes it only with MAVLINK20=1 set in the environment before it is imported; MAVProxy does unless started with --mavversion 1.0)",
+            ));
+        }
         if !header.signed {
             return Err(reject(
                 RejectReason::Unsigned,
-                format!(
-                    "an unsigned MAVLink {} frame: mavlink.key_file is set, so frames must be signed (MAVLink 2) with its key",
-                    header.version
-                ),
+                "an unsigned MAVLink 2 frame: mavlink.key_file is set, so frames must be signed with its key (pymavlink: setup_signing(key, sign_outgoing=True); MAVProxy: signing key PASSPHRASE)",
             ));
         }
         let n = frame.len();

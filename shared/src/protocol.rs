@@ -25,7 +25,9 @@
 //! Channels a command does not give take their configured default. Values may
 //! be fractional and are kept to the nanosecond. A value outside its channel's
 //! limits is clamped (and counted); a command is rejected whole, and never
-//! applied, for any [`RejectReason`].
+//! applied, for any [`RejectReason`]. An object with the same key twice, at
+//! any depth, is `duplicate_key` ([`json`]): JSON readers disagree on which
+//! value counts.
 
 use crate::frame::{Channels, FrameModel, MAX_CHANNELS};
 use serde_json::Value;
@@ -64,6 +66,10 @@ pub enum RejectReason {
     UnknownChannel,
     /// Valid JSON of any other shape (no channels, a bad `seq`, unexpected keys, ...).
     BadShape,
+    /// An object with the same key twice, at any depth (`{"thr": 1000,
+    /// "thr": 2000}`): JSON readers disagree on which value counts, so the
+    /// command has no one meaning.
+    DuplicateKey,
     /// A command without a signature while `ingress.auth_key` is set.
     Unsigned,
     /// A signed datagram whose MAC does not match its `msg` (or is not 64 hex characters).
@@ -95,7 +101,7 @@ pub enum RejectReason {
 
 impl RejectReason {
     /// Every reason, in counter order.
-    pub const ALL: [RejectReason; 19] = [
+    pub const ALL: [RejectReason; 20] = [
         RejectReason::InvalidUtf8,
         RejectReason::InvalidJson,
         RejectReason::NotANumber,
@@ -103,6 +109,7 @@ impl RejectReason {
         RejectReason::TooManyValues,
         RejectReason::UnknownChannel,
         RejectReason::BadShape,
+        RejectReason::DuplicateKey,
         RejectReason::Unsigned,
         RejectReason::BadMac,
         RejectReason::NoSeq,
@@ -127,6 +134,7 @@ impl RejectReason {
             RejectReason::TooManyValues => "too_many_values",
             RejectReason::UnknownChannel => "unknown_channel",
             RejectReason::BadShape => "bad_shape",
+            RejectReason::DuplicateKey => "duplicate_key",
             RejectReason::Unsigned => "unsigned",
             RejectReason::BadMac => "bad_mac",
             RejectReason::NoSeq => "no_seq",
@@ -229,9 +237,7 @@ pub fn parse(datagram: &[u8], model: &FrameModel) -> Result<Command, Reject> {
 /// `to`, `no_to`) whatever that output's channels are. A `to` that is not a
 /// string is `bad_shape`.
 pub fn parse_for(datagram: &[u8], model: &FrameModel, to: To) -> Result<Command, Reject> {
-    let text = std::str::from_utf8(datagram)
-        .map_err(|e| reject(RejectReason::InvalidUtf8, e.to_string()))?;
-    let value: Value = serde_json::from_str(text).map_err(json_reject)?;
+    let value = json(datagram)?;
     check_to(&value, to)?;
     let mut b = Builder::new(model);
     let seq = match value {
@@ -284,6 +290,128 @@ pub fn parse_for(datagram: &[u8], model: &FrameModel, to: To) -> Result<Command,
     })
 }
 
+/// Reads a datagram as JSON: `invalid_utf8` when it is not UTF-8,
+/// `invalid_json` (or `out_of_range`, see [`parse_for`]) when it is not
+/// JSON, and `duplicate_key` for an object that has the same key twice, at
+/// any depth (keys compared as parsed, so `"\u0074hr"` is `"thr"`). JSON
+/// leaves duplicates undefined and its readers disagree on which value
+/// counts (serde_json, like Python's, takes the last; others the first, or
+/// refuse): such a datagram has no one meaning, and ppm takes none.
+///
+/// serde_json has no setting for it: the value is built by [`Strict`], which
+/// is serde_json's own `Value` visitor with the check where a key is
+/// inserted (one map lookup the insertion does anyway), so the text is read
+/// once, as fast as before.
+pub fn json(datagram: &[u8]) -> Result<Value, Reject> {
+    let text = std::str::from_utf8(datagram)
+        .map_err(|e| reject(RejectReason::InvalidUtf8, e.to_string()))?;
+    let mut de = serde_json::Deserializer::from_str(text);
+    let Strict(value) = serde::Deserialize::deserialize(&mut de).map_err(json_reject)?;
+    // Only whitespace may follow, as serde_json::from_str checks.
+    de.end().map_err(json_reject)?;
+    Ok(value)
+}
+
+/// A JSON value read with every object's keys checked for duplicates
+/// ([`json`]).
+struct Strict(Value);
+
+impl<'de> serde::Deserialize<'de> for Strict {
+    #[inline]
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Strict, D::Error> {
+        d.deserialize_any(StrictVisitor).map(Strict)
+    }
+}
+
+/// serde_json's `Value` visitor, refusing a key an object already has.
+struct StrictVisitor;
+
+impl<'de> serde::de::Visitor<'de> for StrictVisitor {
+    type Value = Value;
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("any JSON value")
+    }
+
+    #[inline]
+    fn visit_bool<E>(self, v: bool) -> Result<Value, E> {
+        Ok(Value::Bool(v))
+    }
+
+    #[inline]
+    fn visit_i64<E>(self, v: i64) -> Result<Value, E> {
+        Ok(Value::Number(v.into()))
+    }
+
+    #[inline]
+    fn visit_u64<E>(self, v: u64) -> Result<Value, E> {
+        Ok(Value::Number(v.into()))
+    }
+
+    #[inline]
+    fn visit_f64<E>(self, v: f64) -> Result<Value, E> {
+        Ok(serde_json::Number::from_f64(v).map_or(Value::Null, Value::Number))
+    }
+
+    #[inline]
+    fn visit_str<E>(self, v: &str) -> Result<Value, E> {
+        Ok(Value::String(v.to_owned()))
+    }
+
+    #[inline]
+    fn visit_string<E>(self, v: String) -> Result<Value, E> {
+        Ok(Value::String(v))
+    }
+
+    #[inline]
+    fn visit_none<E>(self) -> Result<Value, E> {
+        Ok(Value::Null)
+    }
+
+    #[inline]
+    fn visit_unit<E>(self) -> Result<Value, E> {
+        Ok(Value::Null)
+    }
+
+    #[inline]
+    fn visit_some<D: serde::Deserializer<'de>>(self, d: D) -> Result<Value, D::Error> {
+        serde::Deserialize::deserialize(d).map(|Strict(v)| v)
+    }
+
+    #[inline]
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Value, A::Error> {
+        let mut items = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(64));
+        while let Some(Strict(v)) = seq.next_element()? {
+            items.push(v);
+        }
+        Ok(Value::Array(items))
+    }
+
+    #[inline]
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<Value, A::Error> {
+        use serde_json::map::Entry;
+        let mut out = serde_json::Map::new();
+        while let Some(key) = map.next_key::<String>()? {
+            let Strict(v) = map.next_value()?;
+            match out.entry(key) {
+                Entry::Vacant(e) => {
+                    e.insert(v);
+                }
+                Entry::Occupied(e) => {
+                    return Err(serde::de::Error::custom(format_args!(
+                        "{DUPLICATE_KEY} `{}`",
+                        e.key()
+                    )))
+                }
+            }
+        }
+        Ok(Value::Object(out))
+    }
+}
+
+/// How [`StrictVisitor`]'s error starts (serde_json adds the position).
+const DUPLICATE_KEY: &str = "duplicate key";
+
 /// Checks a command's `to` against what `to` asks (see [`parse_for`]).
 fn check_to(value: &Value, to: To) -> Result<(), Reject> {
     let given = match value.get("to") {
@@ -317,10 +445,18 @@ fn check_to(value: &Value, to: To) -> Result<(), Reject> {
 
 /// The rejection for text serde_json does not parse: `out_of_range` for a
 /// number beyond a 64-bit float (`1e400`, in any form: such a number has no
-/// value to clamp, so `norm` and `units` reject it too), `invalid_json` for
-/// anything else.
+/// value to clamp, so `norm` and `units` reject it too), `duplicate_key` for
+/// an object with a key twice ([`json`]), `invalid_json` for anything else.
 fn json_reject(e: serde_json::Error) -> Reject {
     let detail = e.to_string();
+    // The only data error reading a value can have: any JSON text is a
+    // `Value`, so serde_json's own are all syntax (or I/O) errors.
+    if e.is_data() && detail.starts_with(DUPLICATE_KEY) {
+        return reject(
+            RejectReason::DuplicateKey,
+            format!("{detail}: JSON readers disagree on which of the two counts, so the datagram has no one meaning; give each key once"),
+        );
+    }
     // serde_json has no public error code; its message for this case is
     // "number out of range at line L column C" (pinned by a test below).
     if e.is_syntax() && detail.starts_with("number out of range") {
@@ -922,6 +1058,93 @@ mod tests {
         );
         let e = parse_for(none, &m, To::Exactly("rover")).unwrap_err();
         assert!(e.detail.contains(r#""to": "rover""#), "{e}");
+    }
+
+    /// The same key twice, at the top or in a nested object, whatever the
+    /// form, spelled alike or escaped: `duplicate_key`, never the last one
+    /// flown (serde_json's `Value` takes the last, silently). Alike keys in
+    /// different objects, and alike values, are no duplicates.
+    #[test]
+    fn a_key_given_twice_is_refused_at_any_depth() {
+        let m = units_model();
+        for d in [
+            r#"{"thr": 1000, "thr": 2000}"#,
+            r#"{"thr": 1000, "ail": 1500, "thr": 1000}"#,
+            r#"{"ch": [1500], "seq": 1, "seq": 2}"#,
+            r#"{"seq": 1, "ch": [1500], "seq": 1}"#,
+            r#"{"ch": [1500], "ch": [1600]}"#,
+            r#"{"ch": [1500], "to": "rover", "to": "plane"}"#,
+            r#"{"norm": {"ail": 0.2, "ail": -1}}"#,
+            r#"{"norm": {"thr": -1}, "norm": {"thr": 1}}"#,
+            r#"{"units": {"ail": 3.0, "ele": 1, "ail": -3.0}, "seq": 5}"#,
+            r#"{"thr": 1000, "\u0074hr": 2000}"#,
+            r#"[1500, {"a": 1, "a": 2}]"#,
+            r#"{"get": "status", "get": "status"}"#,
+        ] {
+            let e = parse(d.as_bytes(), &m).unwrap_err();
+            assert_eq!(e.reason, RejectReason::DuplicateKey, "{d}: {e}");
+            assert!(e.detail.starts_with("duplicate key `"), "{d}: {e}");
+            assert_eq!(json(d.as_bytes()).unwrap_err(), e, "{d}");
+        }
+        // The detail names the key and where the second one ends.
+        let e = parse(br#"{"norm": {"ail": 0.2, "ail": -1}}"#, &m).unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("duplicate_key: duplicate key `ail` at line 1 column "),
+            "{e}"
+        );
+        // Once per object: the same names in two objects, or values alike.
+        for d in [
+            r#"{"norm": {"ail": 0.2}, "seq": 1}"#,
+            r#"{"ail": 1500, "ele": 1500}"#,
+            r#"{"ch": [1500, 1500], "seq": 1}"#,
+        ] {
+            assert!(parse(d.as_bytes(), &m).is_ok(), "{d}");
+        }
+        assert_eq!(
+            json(br#"[{"a": 1}, {"a": 1, "b": {"a": 2}}]"#).unwrap(),
+            serde_json::json!([{"a": 1}, {"a": 1, "b": {"a": 2}}])
+        );
+        // A fault before the second key is what the datagram is refused for.
+        let e = parse(br#"{"thr": 1000, "ail": x, "thr": 2000}"#, &m).unwrap_err();
+        assert_eq!(e.reason, RejectReason::InvalidJson, "{e}");
+        let e = parse(br#"{"thr": 1000, "thr": 2000, "ail": x}"#, &m).unwrap_err();
+        assert_eq!(e.reason, RejectReason::DuplicateKey, "{e}");
+    }
+
+    /// [`json`] reads what serde_json reads, to the same value: numbers in
+    /// every spelling, escapes, nesting, trailing whitespace; and refuses
+    /// what it refuses, with the same reason.
+    #[test]
+    fn json_reads_as_serde_json_does() {
+        for d in [
+            "[1500, -1, 0, -0, 1.5, 1e3, 18446744073709551615, 18446744073709551616, -9223372036854775809]",
+            r#"{"a": [null, true, false, "s\u00e9\n", {}], "b": {"c": [[]]}}  "#,
+            "\t 7 \n",
+            r#""x""#,
+            "1e-400",
+            "-1.7976931348623157e308",
+        ] {
+            let want: Value = serde_json::from_str(d).unwrap();
+            assert_eq!(json(d.as_bytes()).unwrap(), want, "{d}");
+        }
+        for (d, reason) in [
+            ("[1500] x", RejectReason::InvalidJson),
+            ("", RejectReason::InvalidJson),
+            ("[1e400]", RejectReason::OutOfRange),
+            ("{\"a\": 1,}", RejectReason::InvalidJson),
+            ("\u{ff}", RejectReason::InvalidJson),
+        ] {
+            assert!(serde_json::from_str::<Value>(d).is_err(), "{d}");
+            assert_eq!(json(d.as_bytes()).unwrap_err().reason, reason, "{d}");
+        }
+        // Nesting deeper than serde_json's limit (128) is refused, not a
+        // stack overflow.
+        let deep = format!("{}{}", "[".repeat(10_000), "]".repeat(10_000));
+        assert_eq!(
+            json(deep.as_bytes()).unwrap_err().reason,
+            RejectReason::InvalidJson
+        );
     }
 
     #[test]

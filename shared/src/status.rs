@@ -43,7 +43,9 @@ pub struct StatusReply {
     pub mavlink: MavlinkStatus,
     /// Age of the newest valid command, ms (to the us); `null` before the first.
     pub newest_command_age_ms: Option<f64>,
-    /// The `seq` of the newest valid command, if it had one.
+    /// The `seq` of the newest command applied that had one (the last
+    /// numbered JSON command): commands without one, MAVLink's among them,
+    /// leave it; `null` before the first.
     pub newest_seq: Option<u64>,
     /// Kernel receive to published, us, of every published command.
     #[serde(default)]

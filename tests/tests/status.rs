@@ -177,6 +177,7 @@ fn status_counts_every_datagram_and_reports_ppmd() {
                 "too_many_values": 1,
                 "unknown_channel": 1,
                 "bad_shape": 4,
+                "duplicate_key": 0,
                 "unsigned": 0,
                 "bad_mac": 0,
                 "no_seq": 0,

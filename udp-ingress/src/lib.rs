@@ -173,7 +173,8 @@ pub fn query(datagram: &[u8]) -> Option<Result<Query, Reject>> {
     if !protocol::may_have_key(datagram, "get") {
         return None;
     }
-    let Ok(Value::Object(map)) = serde_json::from_slice::<Value>(datagram) else {
+    // Not JSON, or with a key twice: the command's parse says why.
+    let Ok(Value::Object(map)) = protocol::json(datagram) else {
         return None;
     };
     let get = map.get("get")?;
@@ -270,6 +271,10 @@ pub struct Intake {
     allow: Vec<IpNet>,
     /// The `seq` of the last command that passed the gate.
     last_seq: Option<u64>,
+    /// The `seq` of the newest command applied that had one (not the floor
+    /// of a restart): the status reply's `newest_seq`. Commands without
+    /// one, MAVLink's among them, leave it as it is.
+    newest_seq: Option<u64>,
     gate: SeqGate,
     /// Without a key: how long without an accepted command before the
     /// gate forgets (`None`: never).
@@ -298,6 +303,7 @@ impl Intake {
             key: None,
             allow: Vec::new(),
             last_seq: None,
+            newest_seq: None,
             gate: SeqGate::default(),
             forget_seq: None,
             last_accepted: None,
@@ -424,7 +430,16 @@ impl Intake {
                     return Outcome::Status;
                 }
                 Some(Err(r)) => Err(r),
-                None => self.command(datagram),
+                None => self.command(datagram).map_err(|r| {
+                    // Not UTF-8, so no JSON: bytes before a good MAVLink
+                    // frame are MAVLink junk, as they are between frames.
+                    match r.reason {
+                        RejectReason::InvalidUtf8 => {
+                            mavlink::junk_before_frame(datagram).unwrap_or(r)
+                        }
+                        _ => r,
+                    }
+                }),
             }
         };
         self.counters.received += 1;
@@ -453,6 +468,7 @@ impl Intake {
                 self.last_accepted = Some(now);
                 if command.seq.is_some() {
                     self.last_seq = command.seq;
+                    self.newest_seq = command.seq;
                 }
                 if command.clamped > 0 {
                     self.counters.clamped_commands += 1;
@@ -531,12 +547,21 @@ impl Intake {
             };
         };
         match auth::envelope(datagram) {
-            Some(envelope) => envelope?.open(key, &self.name, &self.model),
+            Some(envelope) => {
+                let envelope = envelope?;
+                // auth::envelope reads it with serde_json's `Value`, which
+                // keeps the last of two alike keys: a second `msg` or `mac`
+                // is refused here, as in the command.
+                protocol::json(datagram)?;
+                envelope.open(key, &self.name, &self.model)
+            }
             None => match protocol::parse(datagram, &self.model) {
                 Err(r)
                     if matches!(
                         r.reason,
-                        RejectReason::InvalidUtf8 | RejectReason::InvalidJson
+                        RejectReason::InvalidUtf8
+                            | RejectReason::InvalidJson
+                            | RejectReason::DuplicateKey
                     ) =>
                 {
                     Err(r)
@@ -717,7 +742,7 @@ impl Intake {
                 held: self.peers.counters().held,
             },
             newest_command_age_ms: self.latest.map(|r| round3(age_ns(r.mono_ns) as f64 / 1e6)),
-            newest_seq: self.latest.and_then(|r| r.command.seq),
+            newest_seq: self.newest_seq,
             publish_latency_us: PublishLatency {
                 count: self.latency.len(),
                 p50: round3(self.latency.value_at_quantile(0.5) as f64 / 1e3),

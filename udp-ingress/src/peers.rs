@@ -10,7 +10,11 @@
 //! No peer gets more than [`REPLY_MAX_RATIO`] times the bytes it sent (a
 //! credit, capped at [`CREDIT_MAX`] bytes), unless it lies in
 //! `ingress.status_allow`: a forged source address earns its victim at most
-//! three times what the forger sent, as status replies do. A peer silent
+//! three times what the forger sent, as status replies do. RC_CHANNELS
+//! leave [`HEARTBEATS_KEPT`] HEARTBEATs' worth of the credit unspent, so a
+//! groundstation that sends little (its own HEARTBEAT a second) gets ppm's
+//! every second, whatever the phase of its datagrams against ppm's timers.
+//! A peer silent
 //! for [`PEER_TIMEOUT`] gets nothing more; at most [`MAX_PEERS`] are kept,
 //! the one heard from longest ago making room.
 //!
@@ -31,6 +35,13 @@ pub const PEER_TIMEOUT: Duration = Duration::from_secs(5);
 pub const HEARTBEAT_EVERY: Duration = Duration::from_secs(1);
 /// A peer earns this many bytes of replies for each byte it sent.
 pub const REPLY_MAX_RATIO: usize = 3;
+/// RC_CHANNELS leave this many of a peer's HEARTBEATs' worth of its credit
+/// unspent: what the peer earned goes to ppm's HEARTBEAT first, whenever
+/// its own datagrams come. One would do for a peer whose datagrams keep
+/// their phase against ppm's beat; two also pay for a beat in a second
+/// that brought none of them (its datagram a little late, the next
+/// second's two), as jitter and drift between two clocks bring.
+pub const HEARTBEATS_KEPT: usize = 2;
 /// Most reply bytes a peer can have earned and not used.
 pub const CREDIT_MAX: usize = 4_096;
 
@@ -242,8 +253,10 @@ impl Peers {
     /// (PARAM_VALUE, COMMAND_ACK, PROTOCOL_VERSION, an RC_CHANNELS asked
     /// for: each request earns three times its size, more than its answer),
     /// then a HEARTBEAT once per [`HEARTBEAT_EVERY`], then its RC_CHANNELS
-    /// when due, from what is left: a groundstation that earns little keeps
-    /// getting the HEARTBEAT. `line` is what the line carries.
+    /// when due, from what is left beyond [`HEARTBEATS_KEPT`] HEARTBEATs: a
+    /// groundstation that earns little keeps getting the HEARTBEAT, even
+    /// when its datagrams come just after ppm's beat and an RC_CHANNELS is
+    /// due before the next. `line` is what the line carries.
     ///
     /// With `signing` (`mavlink.key_file`), every frame is signed, at the
     /// clock's signature timestamp `ts` or after.
@@ -279,8 +292,16 @@ impl Peers {
             if let Some(every) = scheduled {
                 p.next_rc = later(p.next_rc, every, now);
             }
-            if std::mem::take(&mut p.rc_now) || scheduled.is_some() {
-                self.reply(i, &RC_CHANNELS, &rc, signing.as_deref_mut(), ts, out);
+            let asked = std::mem::take(&mut p.rc_now);
+            if asked || scheduled.is_some() {
+                // One asked for is an answer, earned by its request; the
+                // stream's leave the HEARTBEATs' bytes.
+                let keep = if asked {
+                    0
+                } else {
+                    HEARTBEATS_KEPT * heartbeat_len(p.version, signing.is_some())
+                };
+                self.reply_keeping(i, &RC_CHANNELS, &rc, keep, signing.as_deref_mut(), ts, out);
             }
         }
     }
@@ -325,6 +346,22 @@ impl Peers {
         ts: u64,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
     ) {
+        self.reply_keeping(i, spec, payload, 0, signing, ts, out)
+    }
+
+    /// [`Peers::reply`], handed on only if the peer earned it and `keep`
+    /// bytes more (kept for its HEARTBEATs: see [`HEARTBEATS_KEPT`]).
+    #[allow(clippy::too_many_arguments)]
+    fn reply_keeping(
+        &mut self,
+        i: usize,
+        spec: &mavlink::Spec,
+        payload: &[u8],
+        keep: usize,
+        signing: Option<&mut mavlink::Signing>,
+        ts: u64,
+        out: &mut Vec<(SocketAddr, Vec<u8>)>,
+    ) {
         let header = (self.peers[i].seq, self.system_id, self.component_id);
         let frame = match signing {
             Some(s) => s.frame(header, spec, payload, ts),
@@ -335,7 +372,7 @@ impl Peers {
             None => mavlink::frame(2, header, spec, payload),
         };
         let p = &mut self.peers[i];
-        if !p.exempt && p.credit < frame.len() {
+        if !p.exempt && p.credit < frame.len() + keep {
             self.counters.held += 1;
             return;
         }
@@ -359,6 +396,18 @@ impl Peers {
     }
 }
 
+/// The length of ppm's HEARTBEAT to a peer of MAVLink `version`, `signed`
+/// or not: 17 bytes in MAVLink 1, 21 in MAVLink 2 (its last payload byte,
+/// the MAVLink version 3, is never trimmed), 34 signed.
+pub fn heartbeat_len(version: u8, signed: bool) -> usize {
+    let payload = HEARTBEAT.max_len as usize;
+    match (version, signed) {
+        (_, true) => 10 + payload + 2 + mavlink::SIGNATURE_LEN,
+        (1, false) => 6 + payload + 2,
+        _ => 10 + payload + 2,
+    }
+}
+
 /// The next time of something every `every`, last due `at`: a whole
 /// interval after `at`, or after `now` when the loop fell behind by more
 /// than an interval.
@@ -377,9 +426,9 @@ pub const RC_CHANNELS_MAX_EVERY: Duration = Duration::from_secs(60);
 
 /// The MAV_RESULT of COMMAND_LONG `c` from peer `p`, which it changes:
 /// MAV_CMD_SET_MESSAGE_INTERVAL of RC_CHANNELS sets the peer's interval
-/// (param2 in us: -1 none, 0 `rc_default`, else clamped to
-/// [`RC_CHANNELS_MIN_EVERY`]..=[`RC_CHANNELS_MAX_EVERY`]; any other
-/// negative, or a value that is not a number, is denied);
+/// (param2 in us: -1 none, 0 `rc_default`, any other positive, infinity
+/// included, clamped to [`RC_CHANNELS_MIN_EVERY`]..=[`RC_CHANNELS_MAX_EVERY`];
+/// any other negative, or a value that is not a number, is denied);
 /// MAV_CMD_REQUEST_MESSAGE of RC_CHANNELS or PROTOCOL_VERSION, and
 /// MAV_CMD_REQUEST_PROTOCOL_VERSION, send one at once. Both are denied for
 /// another message; every other command is unsupported.
@@ -396,7 +445,10 @@ fn command_result(c: &CommandLong, p: &mut Peer, rc_default: Option<Duration>) -
                 p.rc_every = rc_default;
                 MAV_RESULT_ACCEPTED
             }
-            us if us.is_finite() && us > 0.0 => {
+            // Infinity too: over 60 s, so 60 s, as the docs say and as
+            // ArduPilot takes it on its boards (its float-to-int32 cast
+            // saturates, and it clamps what is over 60 s).
+            us if us > 0.0 => {
                 let every = Duration::from_micros(us.min(1e12) as u64);
                 p.rc_every = Some(every.clamp(RC_CHANNELS_MIN_EVERY, RC_CHANNELS_MAX_EVERY));
                 MAV_RESULT_ACCEPTED
@@ -797,14 +849,177 @@ mod tests {
         assert!(p.counters().held > 0);
     }
 
+    /// How a groundstation's own HEARTBEAT a second comes against ppm's
+    /// beat, in the phase test below.
+    #[derive(Debug, Clone, Copy)]
+    enum Clock {
+        /// Every 1000 ms exactly.
+        Exact,
+        /// Every 1000 ms, each up to 200 ms early or late (a second may
+        /// bring none of them, the next two: one HEARTBEAT kept back is
+        /// not enough then).
+        Jitter,
+        /// Every 997 ms: its phase slides 60 ms in 20 s.
+        Drift,
+    }
+
+    /// A groundstation that sends only its own HEARTBEAT, once a second (as
+    /// QGroundControl may, joystick off), whatever the phase of its
+    /// datagrams against ppm's beat (set by another groundstation heard
+    /// first), 0 to 995 ms in 5 ms steps, sent exactly, with jitter or
+    /// drifting, in MAVLink 1, 2 and signed: ppm's HEARTBEAT every second
+    /// for 20 s, RC_CHANNELS from what is left, and never more than 3 times
+    /// the bytes it sent. Simulated time, 1 ms steps: `due` runs every 20 ms
+    /// (the receive loop's poll timeout) and after each of its datagrams,
+    /// as the server drains, then settles. (Before RC_CHANNELS kept the
+    /// HEARTBEAT's bytes, 11 HEARTBEATs came in 20 s at some phases.)
+    #[test]
+    fn a_heartbeat_every_second_whatever_the_phase_of_the_peers_own() {
+        let values = [1500; 8];
+        let line = LineNow {
+            state: 4,
+            values_us: &values,
+            boot_ms: 0,
+        };
+        let ms = |n: u64| Duration::from_millis(n);
+        let mut worst_rc = usize::MAX;
+        for (version, signed) in [(2u8, false), (1, false), (2, true)] {
+            // The groundstation's HEARTBEAT, as it sends it.
+            let own = match (version, signed) {
+                (1, _) => 17,
+                (_, false) => 21,
+                (_, true) => 34,
+            };
+            for clock in [Clock::Exact, Clock::Jitter, Clock::Drift] {
+                for offset in (0..1_000u64).step_by(10) {
+                    let t = Instant::now();
+                    let mut p = Peers::new(1, 1, 8, 4);
+                    let mut signing = signed
+                        .then(|| mavlink::Signing::new(ppm_shared::auth::AuthKey::new([7; 32])));
+                    // Its first datagram, when it connects, starts ppm's
+                    // beat (a HEARTBEAT at once, then one a second); its
+                    // own timer then sends at `offset` into each second.
+                    let mut lcg = offset * 2_654_435_761 + 1;
+                    let sends: Vec<u64> = std::iter::once(0)
+                        .chain((1..=21u64).map(|k| match clock {
+                            Clock::Exact => offset + 1_000 * k,
+                            Clock::Drift => offset + 997 * k,
+                            Clock::Jitter => {
+                                lcg = lcg.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+                                offset + 1_000 * k + 200 - (lcg >> 33) % 401
+                            }
+                        }))
+                        .collect();
+                    let last = 20_000;
+                    let (mut earned, mut got) = (0usize, 0usize);
+                    let mut beats = vec![];
+                    let mut rc = 0;
+                    let mut next = 0;
+                    for now_ms in 0..=last {
+                        let now = t + ms(now_ms);
+                        let mut wake = now_ms % 20 == 0;
+                        while next < sends.len() && sends[next] == now_ms {
+                            p.heard(addr(1), version, own, false, now);
+                            earned += own;
+                            next += 1;
+                            wake = true;
+                        }
+                        if !wake {
+                            continue;
+                        }
+                        let mut out = vec![];
+                        p.due(now, line, signing.as_mut(), now_ms, &mut out);
+                        for (_, f) in out.iter().filter(|(a, _)| a.port() == 1) {
+                            let (v, s, id) = frame_kind(f);
+                            assert_eq!((v, s), (if signed { 2 } else { version }, signed));
+                            got += f.len();
+                            match id {
+                                0 => beats.push(now_ms),
+                                65 => rc += 1,
+                                other => panic!("message {other}"),
+                            }
+                        }
+                        let what = format!("{version} {signed} {clock:?} at {offset} ms");
+                        assert!(
+                            got <= REPLY_MAX_RATIO * earned,
+                            "{what}: {got} bytes for {earned} at {now_ms} ms"
+                        );
+                    }
+                    let what = format!("MAVLink {version}, signed {signed}, {clock:?}, at {offset} ms: beats {beats:?}");
+                    // One a second, none missed, for 20 s.
+                    let want: Vec<u64> = (0..=20).map(|s| s * 1_000).collect();
+                    assert_eq!(beats, want, "{what}");
+                    worst_rc = worst_rc.min(rc);
+                }
+            }
+        }
+        // What is left beyond the HEARTBEAT buys RC_CHANNELS: at least 42
+        // bytes a second (MAVLink 1: 51 earned, 17 for the HEARTBEAT), 0.68
+        // RC_CHANNELS (50 bytes in MAVLink 1) a second.
+        assert!(worst_rc >= 11, "{worst_rc} RC_CHANNELS in 20 s");
+    }
+
+    /// A frame's MAVLink version, whether it is signed, and its message.
+    fn frame_kind(f: &[u8]) -> (u8, bool, u32) {
+        match f[0] {
+            mavlink::STX_V1 => (1, false, f[5] as u32),
+            _ => (
+                2,
+                f[2] & mavlink::IFLAG_SIGNED != 0,
+                u32::from_le_bytes([f[7], f[8], f[9], 0]),
+            ),
+        }
+    }
+
+    /// An RC_CHANNELS asked for (MAV_CMD_REQUEST_MESSAGE) is an answer,
+    /// earned by its request: it needs no HEARTBEATs' bytes left over, as
+    /// those of the stream do.
+    #[test]
+    fn an_rc_channels_asked_for_is_earned_by_its_request() {
+        let t = Instant::now();
+        let values = [1500; 8];
+        let line = LineNow {
+            state: 4,
+            values_us: &values,
+            boot_ms: 0,
+        };
+        let mut p = Peers::new(1, 1, 8, 0);
+        // A MAVLink 2 COMMAND_LONG (trimmed) is 43 bytes: it earns 129, the
+        // COMMAND_ACK (22), ppm's first HEARTBEAT (21) and the RC_CHANNELS
+        // (54) take 97; 42 more kept would be 139.
+        let request = command_long(1, 512, 65.0, 0.0);
+        let (_, payload) = request.encode();
+        let len = mavlink::frame(2, (0, 255, 190), &mavlink::COMMAND_LONG, &payload).len();
+        assert_eq!(len, 43);
+        p.heard(addr(1), 2, len, false, t);
+        p.request(addr(1), &GCS, &request);
+        let mut out = vec![];
+        p.due(t, line, None, 0, &mut out);
+        assert_eq!(acks(&out), [(1, 512, MAV_RESULT_ACCEPTED, 255, 190)]);
+        assert_eq!(rc_channels(&out).len(), 1, "{out:?}");
+        assert_eq!(p.counters(), ReplyCounters { sent: 3, held: 0 });
+    }
+
+    #[test]
+    fn heartbeat_len_is_the_heartbeats() {
+        let mut s = mavlink::Signing::new(ppm_shared::auth::AuthKey::new([7; 32]));
+        let payload = [0, 0, 0, 0, 0, MAV_AUTOPILOT, 0, 4, 3];
+        for version in [1, 2] {
+            let f = mavlink::frame(version, (0, 1, 1), &HEARTBEAT, &payload);
+            assert_eq!(heartbeat_len(version, false), f.len());
+            let f = s.frame((0, 1, 1), &HEARTBEAT, &payload, 1);
+            assert_eq!(heartbeat_len(version, true), f.len());
+        }
+    }
+
     #[test]
     fn any_interval_a_peer_asks_for_is_taken_or_denied_never_a_fault() {
         let t = Instant::now();
         let mut p = Peers::new(1, 1, 8, 4);
         for (param2, result) in [
             (f32::NAN, MAV_RESULT_DENIED),
-            (f32::INFINITY, MAV_RESULT_DENIED),
             (f32::NEG_INFINITY, MAV_RESULT_DENIED),
+            (f32::INFINITY, MAV_RESULT_ACCEPTED),
             (-2.0, MAV_RESULT_DENIED),
             (f32::MAX, MAV_RESULT_ACCEPTED),
             (1e30, MAV_RESULT_ACCEPTED),
@@ -841,6 +1056,41 @@ mod tests {
             );
         }
         assert_eq!(rc_channels(&out).len(), 1, "one, then a minute later");
+    }
+
+    /// An infinite interval is over 60 s: taken as 60 s, as the docs say
+    /// of any interval over it (and as ArduPilot takes it), not denied. -1
+    /// stops them; minus infinity and NaN are denied and change nothing.
+    #[test]
+    fn an_infinite_interval_is_a_minute() {
+        let t = Instant::now();
+        let ms = Duration::from_millis;
+        let mut p = Peers::new(1, 1, 8, 4);
+        p.heard(addr(1), 2, 4_000, false, t);
+        let mut out = vec![];
+        p.due(t, state(3), None, 0, &mut out);
+        assert_eq!(rc_channels(&out).len(), 1, "the first at once");
+        for (param2, result) in [
+            (f32::INFINITY, MAV_RESULT_ACCEPTED),
+            (f32::NEG_INFINITY, MAV_RESULT_DENIED),
+            (f32::NAN, MAV_RESULT_DENIED),
+        ] {
+            p.request(addr(1), &GCS, &command_long(1, 511, 65.0, param2));
+            let mut out = vec![];
+            p.due(t + ms(1), state(3), None, 0, &mut out);
+            assert_eq!(acks(&out), [(1, 511, result, 255, 190)], "{param2}");
+        }
+        // The next one due (at 250 ms, the default 4 Hz) goes out, then
+        // one a minute: 3 in 3 minutes.
+        let mut out = vec![];
+        for k in 1..=18_000u64 {
+            let now = t + ms(10 * k);
+            if k % 400 == 0 {
+                p.heard(addr(1), 2, 4_000, false, now);
+            }
+            p.due(now, state(3), None, 0, &mut out);
+        }
+        assert_eq!(rc_channels(&out).len(), 3, "at 0.25, 60.25 and 120.25 s");
     }
 
     #[test]

@@ -421,6 +421,7 @@ fn status_reply_is_built_from_the_counters() {
                     "too_many_values": 0,
                     "unknown_channel": 0,
                     "bad_shape": 1,
+                    "duplicate_key": 0,
                     "unsigned": 0,
                     "bad_mac": 0,
                     "no_seq": 0,
@@ -445,7 +446,8 @@ fn status_reply_is_built_from_the_counters() {
             "status_short": 0,
             "mavlink": {"no_command": 0, "ignored": 0, "peers": 0, "sent": 0, "held": 0},
             "newest_command_age_ms": 7.0,
-            "newest_seq": null,
+            // Of the newest command that had one: [1300] has none.
+            "newest_seq": 8,
             "publish_latency_us": {"count": 0, "p50": 0.0, "p99": 0.0, "max": 0.0},
             "ppmd": {
                 "state": "active",
@@ -472,7 +474,7 @@ fn status_reply_is_built_from_the_counters() {
     // keys sorted at every level, numbers as serde_json writes an f64.
     assert_eq!(
         typed.to_json(),
-        r#"{"datagrams":{"applied":2,"clamped":1,"clamped_values":2,"received":6,"rejected":{"bad_mac":0,"bad_shape":1,"invalid_json":1,"invalid_utf8":0,"mavlink_bad_crc":0,"mavlink_bad_length":0,"mavlink_junk":0,"mavlink_truncated":0,"mavlink_unknown_message":0,"no_seq":0,"no_to":0,"not_a_number":0,"not_allowed":0,"out_of_range":0,"replay":0,"too_many_values":0,"unknown_channel":0,"unsigned":0,"wrong_output":0},"seq_resets":0,"stale":1,"superseded":1},"mavlink":{"held":0,"ignored":0,"no_command":0,"peers":0,"sent":0},"name":"pi","newest_command_age_ms":7.0,"newest_seq":null,"ppmd":{"aborted_frames":4,"degraded":true,"edge_error_us":{"max":17000.4,"p50":0.031,"p99":1.25},"expired_commands":0,"failsafe_entries":3,"frames":400,"glitched_frames":5,"late_frames":2,"log_errors":0,"mismatched_commands":0,"overruns":1,"repeats":0,"snapshot_age_ms":250.0,"state":"active","timing":"grid"},"ppmd_stale":false,"publish_latency_us":{"count":0,"max":0.0,"p50":0.0,"p99":0.0},"receiver":{"cpu":1,"degraded":true,"policy":"fifo","priority":70,"wait":"busy_poll"},"status_dropped":1,"status_requests":1,"status_short":0,"uptime_s":2345.678}"#
+        r#"{"datagrams":{"applied":2,"clamped":1,"clamped_values":2,"received":6,"rejected":{"bad_mac":0,"bad_shape":1,"duplicate_key":0,"invalid_json":1,"invalid_utf8":0,"mavlink_bad_crc":0,"mavlink_bad_length":0,"mavlink_junk":0,"mavlink_truncated":0,"mavlink_unknown_message":0,"no_seq":0,"no_to":0,"not_a_number":0,"not_allowed":0,"out_of_range":0,"replay":0,"too_many_values":0,"unknown_channel":0,"unsigned":0,"wrong_output":0},"seq_resets":0,"stale":1,"superseded":1},"mavlink":{"held":0,"ignored":0,"no_command":0,"peers":0,"sent":0},"name":"pi","newest_command_age_ms":7.0,"newest_seq":8,"ppmd":{"aborted_frames":4,"degraded":true,"edge_error_us":{"max":17000.4,"p50":0.031,"p99":1.25},"expired_commands":0,"failsafe_entries":3,"frames":400,"glitched_frames":5,"late_frames":2,"log_errors":0,"mismatched_commands":0,"overruns":1,"repeats":0,"snapshot_age_ms":250.0,"state":"active","timing":"grid"},"ppmd_stale":false,"publish_latency_us":{"count":0,"max":0.0,"p50":0.0,"p99":0.0},"receiver":{"cpu":1,"degraded":true,"policy":"fifo","priority":70,"wait":"busy_poll"},"status_dropped":1,"status_requests":1,"status_short":0,"uptime_s":2345.678}"#
     );
 
     let old = snapshot(now - PPMD_STALE_AFTER_NS - 1);
@@ -972,4 +974,190 @@ fn rc_channels_report_the_newest_frame_on_the_line_while_it_is_fresh() {
         assert_eq!(i.offer(&hb, from(), 2, 2, later), Outcome::NoCommand);
     }
     assert_eq!(rc(&mut i, 5_300_000_001, later), (5_300, 0, [u16::MAX; 4]));
+}
+
+/// `newest_seq` is the `seq` of the newest command applied that had one,
+/// as docs/protocol.md says: a MAVLink command (which has none) leaves it,
+/// and so does a JSON command without one. It used to become `null` after
+/// one MAVLink command.
+#[test]
+fn newest_seq_stays_that_of_the_last_numbered_command() {
+    let mut i = intake();
+    let t = Instant::now();
+    let seq = |i: &Intake| {
+        i.status(Duration::ZERO, &ReceiveThread::default(), 1, None)
+            .newest_seq
+    };
+    assert_eq!(seq(&i), None, "none before the first");
+    i.offer(br#"{"ch":[1100],"seq":41}"#, from(), 1, 1, t);
+    assert_eq!(seq(&i), Some(41));
+    assert_eq!(
+        i.offer(&rc_override(2, &[1200]), from(), 2, 2, t),
+        Outcome::Accepted
+    );
+    assert_eq!(seq(&i), Some(41), "after a MAVLink command");
+    assert_eq!(i.offer(b"[1300]", from(), 3, 3, t), Outcome::Accepted);
+    assert_eq!(seq(&i), Some(41), "after a JSON command without seq");
+    // A stale command is not applied: it changes nothing either.
+    assert_eq!(
+        i.offer(br#"{"ch":[1300],"seq":40}"#, from(), 4, 4, t),
+        Outcome::Stale
+    );
+    assert_eq!(seq(&i), Some(41));
+    i.offer(br#"{"ch":[1400],"seq":42}"#, from(), 5, 5, t);
+    assert_eq!(seq(&i), Some(42));
+    // With a key, the floor of a restart is no command's: null until one.
+    let i = intake().with_auth(key(), Some(1_000));
+    assert_eq!(seq(&i), None);
+}
+
+/// The same key twice in one object, at the top or nested, is refused as
+/// `duplicate_key` and changes nothing; with a key too, in the signed
+/// envelope (two `msg`) as in the command it signs, and an unsigned command
+/// with a key twice is `duplicate_key`, not `unsigned`.
+#[test]
+fn a_key_given_twice_is_refused_and_counted_apart() {
+    let mut i = intake();
+    let t = Instant::now();
+    assert_eq!(
+        i.offer(br#"{"ch":[1100],"seq":5}"#, from(), 1, 1, t),
+        Outcome::Accepted
+    );
+    i.take();
+    for d in [
+        &br#"{"thr": 1000, "thr": 2000}"#[..],
+        br#"{"ch": [1200], "seq": 6, "seq": 7}"#,
+        br#"{"norm": {"thr": -1, "thr": 1}, "seq": 8}"#,
+        br#"{"get": "status", "get": "status"}"#,
+    ] {
+        // One log line a second per reason: each a second apart.
+        let at = t + Duration::from_secs(1 + i.counters().rejected_total());
+        let o = i.offer(d, from(), 2, 2, at);
+        let Outcome::Rejected(RejectReason::DuplicateKey, Some(line)) = &o else {
+            panic!("{}: {o:?}", String::from_utf8_lossy(d));
+        };
+        assert!(line.contains("duplicate_key: duplicate key `"), "{line}");
+    }
+    assert_eq!(i.take(), None, "nothing applied");
+    let c = i.counters();
+    assert_eq!(c.rejected[RejectReason::DuplicateKey.index()], 4);
+    assert_eq!((c.rejected_total(), c.status_requests), (4, 0));
+    assert_eq!(i.last_seq(), Some(5), "the seq gate did not move");
+
+    let k = key();
+    let mut i = intake().with_auth(k.clone(), None);
+    let cmd = r#"{"ch":[1100],"seq":9,"to":"pi"}"#;
+    let signed = k.envelope(cmd);
+    let twice = format!(
+        r#"{{"msg":{},"mac":"{}","msg":{}}}"#,
+        serde_json::to_string(r#"{"ch":[2000],"seq":9,"to":"pi"}"#).unwrap(),
+        k.sign(cmd.as_bytes()),
+        serde_json::to_string(cmd).unwrap()
+    );
+    assert_eq!(
+        reason(i.offer(twice.as_bytes(), from(), 1, 1, t)),
+        RejectReason::DuplicateKey
+    );
+    let dup = r#"{"ch":[1100],"seq":9,"seq":10,"to":"pi"}"#;
+    let inner = k.envelope(dup);
+    assert_eq!(
+        reason(i.offer(inner.as_bytes(), from(), 1, 1, t)),
+        RejectReason::DuplicateKey
+    );
+    assert_eq!(
+        reason(i.offer(dup.as_bytes(), from(), 1, 1, t)),
+        RejectReason::DuplicateKey
+    );
+    assert_eq!(i.take(), None);
+    assert_eq!(i.last_seq(), None);
+    assert_eq!(
+        i.offer(signed.as_bytes(), from(), 1, 1, t),
+        Outcome::Accepted
+    );
+}
+
+/// Bytes before a MAVLink frame are `mavlink_junk`, as docs/protocol.md
+/// says (and as bytes between or after frames are), not `invalid_utf8`;
+/// bytes that are not UTF-8 and hold no good frame stay `invalid_utf8`.
+#[test]
+fn junk_before_a_mavlink_frame_is_mavlink_junk() {
+    let mut i = intake();
+    let t = Instant::now();
+    let hb = mavlink::frame(
+        2,
+        (0, 255, 190),
+        &mavlink::HEARTBEAT,
+        &[0, 0, 0, 0, 6, 8, 0, 4, 3],
+    );
+    for d in [
+        [&b"xx"[..], &rc_override(2, &[1000])].concat(),
+        [&b"\n"[..], &rc_override(1, &[1000])].concat(),
+        [&[0u8, 0xFD, 0xFE][..], &hb].concat(),
+        [&[0xFFu8][..], &hb, &rc_override(2, &[1000])].concat(),
+    ] {
+        let at = t + Duration::from_secs(i.counters().rejected_total());
+        let o = i.offer(&d, from(), 1, 1, at);
+        let Outcome::Rejected(RejectReason::MavlinkJunk, Some(line)) = &o else {
+            panic!("{d:?}: {o:?}");
+        };
+        assert!(line.contains("before a MAVLink"), "{line}");
+    }
+    assert_eq!(i.take(), None);
+    assert_eq!(i.peers.known(), 0, "no peer made");
+    let mut bad_crc = hb.clone();
+    bad_crc[12] ^= 1;
+    // Not UTF-8, no good frame: invalid_utf8, however many start bytes.
+    for d in [
+        b"\xff\xfe[1500]".to_vec(),
+        [&b"x"[..], &bad_crc].concat(),
+        [&b"x"[..], &[0xFD; 65_000]].concat(),
+        [&b"x"[..], &[0xFE; 65_000]].concat(),
+        [&b"x"[..], &[0xFE; mavlink::JUNK_SCAN_MAX_STARTS], &hb].concat(),
+    ] {
+        let started = Instant::now();
+        assert_eq!(
+            reason(i.offer(&d, from(), 1, 1, t)),
+            RejectReason::InvalidUtf8,
+            "{:?}",
+            &d[..d.len().min(20)]
+        );
+        assert!(started.elapsed() < Duration::from_millis(50));
+    }
+    let c = i.counters();
+    assert_eq!(c.rejected[RejectReason::MavlinkJunk.index()], 4);
+    assert_eq!(c.rejected[RejectReason::InvalidUtf8.index()], 5);
+}
+
+/// With `mavlink.key_file`, a MAVLink 1 frame is `unsigned`, and the log
+/// line says why and how to fix it: MAVLink 2, which pymavlink writes only
+/// with MAVLINK20=1 set before it is imported.
+#[test]
+fn an_unsigned_mavlink_1_frame_says_how_to_send_mavlink_2() {
+    let mut i = intake().with_mavlink_signing(key(), None);
+    let t = Instant::now();
+    let o = i.offer(&rc_override(1, &[1000]), from(), 1, 1, t);
+    let Outcome::Rejected(RejectReason::Unsigned, Some(line)) = &o else {
+        panic!("{o:?}");
+    };
+    assert!(
+        line.contains("only MAVLink 2 carries a signature")
+            && line.contains("MAVLINK20=1")
+            && line.contains("before it is imported"),
+        "{line}"
+    );
+    // MAVLink 2 without a signature: how to sign.
+    let o = i.offer(
+        &rc_override(2, &[1000]),
+        from(),
+        2,
+        2,
+        t + Duration::from_secs(1),
+    );
+    let Outcome::Rejected(RejectReason::Unsigned, Some(line)) = &o else {
+        panic!("{o:?}");
+    };
+    assert!(
+        line.contains("unsigned MAVLink 2") && line.contains("setup_signing"),
+        "{line}"
+    );
 }
