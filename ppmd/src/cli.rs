@@ -4,7 +4,9 @@
 //! made from the file's settings when it has none).
 
 use clap::Parser;
-use ppm_shared::config::{validate_name, Config, ConfigError, OutputSpec, Plan, Timing};
+use ppm_shared::config::{
+    validate_name, Config, ConfigError, Inert, OutputSpec, Plan, Program, Timing,
+};
 use ppm_shared::daemon::DaemonArgs;
 use std::path::PathBuf;
 
@@ -54,8 +56,16 @@ impl Cli {
     /// What ppmd runs: the file (`--config`, or every default without one)
     /// with these options applied ([`Cli::apply`]), resolved and checked.
     pub fn plan(&self) -> Result<Plan, ConfigError> {
+        self.resolve().map(|(plan, _)| plan)
+    }
+
+    /// [`Cli::plan`], and the keys the file sets that do nothing for ppmd
+    /// in it (`ppm.frame_us` under follow timing, ...), to warn about.
+    pub fn resolve(&self) -> Result<(Plan, Vec<Inert>), ConfigError> {
         let file = Config::load_or_default(self.daemon.config.as_deref())?;
-        Plan::resolve(&self.apply(file)?)
+        let cfg = self.apply(file)?;
+        let plan = Plan::resolve(&cfg)?;
+        Ok((plan, cfg.inert_keys(Program::Ppmd)))
     }
 
     /// Applies these options to `cfg`: `--name` picks that output alone
@@ -71,11 +81,13 @@ impl Cli {
         cfg.rt.allow_degraded |= self.allow_degraded;
         if let Some(t) = self.timing {
             cfg.ppm.timing = t;
+            cfg.set.note_option("ppm.timing", "--timing");
         }
         for out in cfg.outputs.iter_mut().map(|e| &mut e.config) {
             out.rt.allow_degraded = cfg.rt.allow_degraded;
             if let Some(t) = self.timing {
                 out.ppm.timing = t;
+                out.set.note_option("ppm.timing", "--timing");
             }
         }
         if let Some(path) = &self.frame_log {
@@ -85,6 +97,7 @@ impl Cli {
                 ));
             }
             cfg.ppmd.frame_log = Some(path.clone());
+            cfg.set.note_option("ppmd.frame_log", "--frame-log");
         }
         Ok(cfg)
     }
@@ -118,6 +131,7 @@ pub fn apply_cli_outputs(cfg: &mut Config, args: &[String]) -> Result<(), Config
                 )));
             }
             cfg.ppmd.output = args[0].clone();
+            cfg.set.note_option("ppmd.output", "--output");
             Ok(())
         }
         (true, false) => {
@@ -131,6 +145,7 @@ pub fn apply_cli_outputs(cfg: &mut Config, args: &[String]) -> Result<(), Config
                     let mut c = cfg.clone();
                     c.name = name.to_string();
                     c.ppmd.output = spec.to_string();
+                    c.set.note_option("ppmd.output", "--output");
                     cfg.push_cli_output(c);
                 }
                 return Ok(());
@@ -147,6 +162,7 @@ pub fn apply_cli_outputs(cfg: &mut Config, args: &[String]) -> Result<(), Config
                         ))
                     })?;
                 out.config.ppmd.output = spec.to_string();
+                out.config.set.note_option("ppmd.output", "--output");
             }
             Ok(())
         }
@@ -182,6 +198,7 @@ mod tests {
         assert_eq!(outs.len(), 2);
         let sim = |path: Option<&str>| OutputSpec::Sim {
             path: path.map(PathBuf::from),
+            whole: false,
         };
         assert_eq!(
             (outs[0].name.as_str(), &outs[0].output),

@@ -7,6 +7,7 @@
 use anyhow::{bail, Context, Result};
 use nix::errno::Errno;
 use nix::fcntl::{Flock, FlockArg};
+use ppm_shared::config::{fault, KeyName};
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, Write};
 use std::os::unix::fs::OpenOptionsExt;
@@ -23,10 +24,16 @@ pub struct Claim {
     _lock: Flock<File>,
 }
 
+/// What to do about an ipc root ppmd cannot use.
+const IPC_ROOT_FIX: &str = "set ipc.root to a directory ppmd and udp-ingress (the same user) may create files in; under systemd /run/ppm, the units' RuntimeDirectory";
+
 /// Claims output `name` for this process, or says which ppmd drives it.
+/// An ipc root (`ipc.root`) that cannot be made or written is the
+/// configuration's fault (exit status 78); another ppmd on the name is not
+/// (exit status 1: restarted, this one starts once that one is gone).
 pub fn claim(root: &Path, name: &str) -> Result<Claim> {
-    std::fs::create_dir_all(root)
-        .with_context(|| format!("creating the ipc root {}", root.display()))?;
+    let key = KeyName::File("ipc.root".into());
+    fault::ensure_dir(&key, "the ipc root", root, IPC_ROOT_FIX)?;
     let path = lock_path(root, name);
     let file = OpenOptions::new()
         .read(true)
@@ -35,7 +42,15 @@ pub fn claim(root: &Path, name: &str) -> Result<Claim> {
         .truncate(false)
         .mode(0o644)
         .open(&path)
-        .with_context(|| format!("opening the lock file {}", path.display()))?;
+        .map_err(|e| {
+            fault::path_error(
+                &key,
+                &format!("opening the lock file {}", path.display()),
+                &path,
+                e,
+                IPC_ROOT_FIX,
+            )
+        })?;
     let mut lock = match Flock::lock(file, FlockArg::LockExclusiveNonblock) {
         Ok(lock) => lock,
         Err((mut file, Errno::EWOULDBLOCK)) => {

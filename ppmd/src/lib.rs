@@ -63,12 +63,22 @@ pub mod startup;
 pub mod timing;
 pub mod watchdog;
 
-/// Whether `e` says the configured output is not on this machine: a GPIO
-/// chip or line it does not have, or a serial or SPI device that does not
-/// exist or is no such device. ppmd then exits with
-/// [`EXIT_CONFIG`](ppm_shared::daemon::EXIT_CONFIG), as for a bad key:
-/// restarting cannot help.
-pub fn output_missing(e: &(dyn std::error::Error + 'static)) -> bool {
+/// Whether `e` says the configured output cannot be had on this machine
+/// as configured, which a restart does not change: a GPIO chip or line it
+/// does not have, a serial or SPI device that does not exist, is the wrong
+/// kind of file or is kept from ppmd by the unit's device policy (EPERM:
+/// `DeviceAllow=`), a PPM frame too long for spidev's buffer at
+/// `ppmd.spi_hz`. ppmd then exits with
+/// [`EXIT_CONFIG`](ppm_shared::daemon::EXIT_CONFIG), as for a bad key.
+///
+/// Left to a restart (exit status 1): a line or device another process
+/// holds (EBUSY), and a device file this user may not open (EACCES): at
+/// boot udev gives a device its group (`60-ppm.rules`) only after the
+/// kernel made it, so a ppmd started in between is cured by its restart a
+/// second later. A device that appears late (a USB serial adaptor) is
+/// waited for by ordering the unit after it (docs/deployment.md), not by
+/// restarting into its absence.
+pub fn output_fault(e: &(dyn std::error::Error + 'static)) -> bool {
     use line::gpio::GpioError;
     use line::serial::{SerialError, SerialStep};
     use line::spi::SpiError;
@@ -84,17 +94,83 @@ pub fn output_missing(e: &(dyn std::error::Error + 'static)) -> bool {
                 | GpioError::OffsetWithoutChip { .. }
         );
     }
-    let missing = |io: &std::io::Error| io.kind() == std::io::ErrorKind::NotFound;
+    // Opening the device: what path_at_fault says, but for EACCES.
+    let open_fault = |io: &std::io::Error| {
+        io.raw_os_error() != Some(libc::EACCES) && ppm_shared::config::fault::path_at_fault(io)
+    };
     if let Some(s) = e.downcast_ref::<SerialError>() {
         return match s {
             SerialError::NotATty { .. } => true,
             SerialError::Device { step, source, .. } => {
-                *step == SerialStep::Open && missing(source)
+                *step == SerialStep::Open && open_fault(source)
             }
         };
     }
-    if let Some(SpiError::Device { what, source, .. }) = e.downcast_ref::<SpiError>() {
-        return *what == "not a spidev device" || missing(source);
+    match e.downcast_ref::<SpiError>() {
+        Some(SpiError::Device { what, source, .. }) => {
+            *what == "not a spidev device" || (*what == "opening" && open_fault(source))
+        }
+        Some(SpiError::TooLong { .. }) => true,
+        None => false,
     }
-    false
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use line::serial::{SerialError, SerialStep};
+    use line::spi::SpiError;
+    use std::io::Error;
+    use std::path::PathBuf;
+
+    /// What stays wrong stops ppmd with 78; what a restart may cure (a
+    /// device udev has not given its group yet, a busy one) does not.
+    #[test]
+    fn outputs_that_cannot_be_had_as_configured_are_faults_of_the_configuration() {
+        let serial = |step, errno: i32| SerialError::Device {
+            path: PathBuf::from("/dev/ttyAMA0"),
+            step,
+            source: Error::from_raw_os_error(errno),
+        };
+        let spi = |what, errno: i32| SpiError::Device {
+            path: PathBuf::from("/dev/spidev0.0"),
+            what,
+            source: Error::from_raw_os_error(errno),
+        };
+        for (e, fault) in [
+            (serial(SerialStep::Open, libc::ENOENT), true),
+            (serial(SerialStep::Open, libc::EISDIR), true),
+            (serial(SerialStep::Open, libc::EPERM), true),
+            (serial(SerialStep::Open, libc::EACCES), false),
+            (serial(SerialStep::Open, libc::EBUSY), false),
+            (serial(SerialStep::Configure, libc::EINVAL), false),
+        ] {
+            assert_eq!(output_fault(&e), fault, "{e}");
+        }
+        assert!(output_fault(&SerialError::NotATty {
+            path: PathBuf::from("/tmp/x")
+        }));
+        for (e, fault) in [
+            (spi("opening", libc::ENOENT), true),
+            (spi("opening", libc::EPERM), true),
+            (spi("opening", libc::EACCES), false),
+            (spi("not a spidev device", libc::EINVAL), true),
+            (spi("a first transfer", libc::EIO), false),
+        ] {
+            assert_eq!(output_fault(&e), fault, "{e}");
+        }
+        let long = SpiError::TooLong {
+            path: PathBuf::from("/dev/spidev0.0"),
+            hz: 20_000_000,
+            longest_us: 30_000,
+            bytes: 75_000,
+            bufsiz: 4096,
+            fits_hz: 1_000_000,
+        };
+        assert!(
+            output_fault(&long),
+            "ppmd.spi_hz too high for spidev's buffer"
+        );
+        assert!(!output_fault(&Error::other("anything else")));
+    }
 }

@@ -4,9 +4,9 @@
 use crate::emitter::{self, LineRef};
 use crate::line::serial::SerialLine;
 use crate::line::spi::{self, SpiLine};
-use crate::line::{FrameLine, Line, SimLine, SimSbusLine};
+use crate::line::{FrameLine, Line, SimLine, SimSbusLine, SimWholeLine};
 use anyhow::{Context, Result};
-use ppm_shared::config::{OutputPlan, OutputSpec, Shared, Timing};
+use ppm_shared::config::{fault, ConfigError, KeyName, OutputPlan, OutputSpec, Shared, Timing};
 use ppm_shared::frame::{Level, Protocol};
 use std::path::PathBuf;
 
@@ -67,17 +67,26 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
     for (i, cfg) in outputs.iter().enumerate() {
         let model = &cfg.model;
         match cfg.output.clone() {
-            OutputSpec::Sim { path } if model.protocol() == Protocol::Sbus => {
+            OutputSpec::Sim { path, .. } if model.protocol() == Protocol::Sbus => {
                 let sim = create_sim(cfg, shared.trace_max_mb, path)?;
                 let line = SimSbusLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
                 each[i] = Some(OpenLine::Whole(Box::new(line)));
             }
-            OutputSpec::Sim { path } => {
+            OutputSpec::Sim { path, whole: true } => {
+                let sim = create_sim(cfg, shared.trace_max_mb, path)?;
+                log::info!(
+                    "output `{}`: each frame handed to the simulated line whole at its start, timed by the line's own clock, as an spi: output sends it",
+                    cfg.name
+                );
+                let line = SimWholeLine::new(sim, ppm_shared::time::now_ns);
+                each[i] = Some(OpenLine::Whole(Box::new(line)));
+            }
+            OutputSpec::Sim { path, .. } => {
                 each[i] = Some(OpenLine::Edges(open_sim(cfg, shared.trace_max_mb, path)?));
             }
             OutputSpec::Spi { device } if model.protocol() == Protocol::Sbus => {
                 let out = SpiLine::open(&device, spi::SBUS_HZ, ppm_shared::sbus::FRAME_WIRE_NS)
-                    .with_context(|| format!("output `{}`", cfg.name))?;
+                    .map_err(|e| line_error(cfg, e, format!("output `{}`", cfg.name)))?;
                 log::info!(
                     "output `{}`: spi {} (true SBUS, each frame one transfer, bits to 10 us)",
                     cfg.name,
@@ -86,8 +95,9 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                 each[i] = Some(OpenLine::Whole(Box::new(out)));
             }
             OutputSpec::Serial { device } => {
-                let out = SerialLine::open(&device).with_context(|| {
-                    format!("output `{}`: serial:{}", cfg.name, device.display())
+                let out = SerialLine::open(&device).map_err(|e| {
+                    let at = format!("output `{}`: serial:{}", cfg.name, device.display());
+                    line_error(cfg, e, at)
                 })?;
                 log::info!(
                     "output `{}`: serial {} (SBUS, 100000 baud 8E2, each frame one write)",
@@ -105,7 +115,7 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                         .sum::<u64>()
                     + model.pulse_ns();
                 let out = SpiLine::open(&device, shared.spi_hz, longest)
-                    .with_context(|| format!("output `{}`", cfg.name))?;
+                    .map_err(|e| line_error(cfg, e, format!("output `{}`", cfg.name)))?;
                 log::info!(
                     "output `{}`: spi {} (each frame one transfer, edges to {} ns)",
                     cfg.name,
@@ -121,7 +131,7 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                     format!("gpio:{chip}:{line}")
                 };
                 let (_, summary, _) = crate::line::gpio::resolve_line(&chip, &line)
-                    .with_context(|| format!("output `{}`: {spec}", cfg.name))?;
+                    .map_err(|e| line_error(cfg, e, format!("output `{}`: {spec}", cfg.name)))?;
                 // `gpio:LINE`: the chip that has it, by its path.
                 let chip = if chip.is_empty() {
                     summary.path.to_string_lossy().into_owned()
@@ -139,8 +149,10 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
     for (path, chip, members) in chips {
         if let [(i, line)] = members.as_slice() {
             let cfg = &outputs[*i];
-            let out = crate::line::gpio::open(&chip, line, cfg.model.idle_level())
-                .with_context(|| format!("output `{}`: gpio:{chip}:{line}", cfg.name))?;
+            let out =
+                crate::line::gpio::open(&chip, line, cfg.model.idle_level()).map_err(|e| {
+                    line_error(cfg, e, format!("output `{}`: gpio:{chip}:{line}", cfg.name))
+                })?;
             log::info!("output `{}`: gpio {}", cfg.name, out.description());
             each[*i] = Some(OpenLine::Edges(Box::new(out)));
             continue;
@@ -176,6 +188,55 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
     Ok(Lines { each, banks })
 }
 
+/// `e`, met opening output `cfg`'s line, with `context` (`output `NAME``,
+/// and the line), as ppmd stops with. When the line cannot be had as
+/// configured ([`crate::output_fault`]) and the file's key named it, a
+/// configuration error naming the key (`ppmd.output`,
+/// `outputs[1].output`), with a fix where the line's own message has
+/// none; given with `--output`, the message is the line's own (exit status
+/// 78 all the same, by [`crate::output_fault`]).
+fn line_error<E>(cfg: &OutputPlan, e: E, context: String) -> anyhow::Error
+where
+    E: std::error::Error + Send + Sync + 'static,
+{
+    let chain = || {
+        std::iter::successors(Some(&e as &(dyn std::error::Error + 'static)), |c| {
+            c.source()
+        })
+    };
+    let fault = chain().any(crate::output_fault);
+    let errno = chain()
+        .find_map(|c| c.downcast_ref::<std::io::Error>())
+        .and_then(|io| io.raw_os_error());
+    let spi = chain().any(|c| c.is::<crate::line::spi::SpiError>());
+    let fix = match (spi, errno) {
+        (true, Some(libc::EPERM)) => ": the unit's device policy refuses it (DevicePolicy=closed): uncomment DeviceAllow=char-spi rw in ppmd.service (`sudo systemctl edit ppmd`)",
+        (true, Some(libc::ENOENT)) => ": name a spidev device this machine has (/dev/spidevB.C; on a Raspberry Pi enable SPI with dtparam=spi=on in config.txt)",
+        _ => "",
+    };
+    let err = anyhow::Error::new(e).context(context);
+    match cfg.keys.name("ppmd.output") {
+        KeyName::File(key) if fault => {
+            // The chain, each cause once (a line's error may say its
+            // source in its own words already).
+            let mut message = String::new();
+            for cause in err.chain().map(|c| c.to_string()) {
+                if !message.contains(&cause) {
+                    if !message.is_empty() {
+                        message += ": ";
+                    }
+                    message += &cause;
+                }
+            }
+            anyhow::Error::new(ConfigError::Invalid {
+                key,
+                message: message + fix,
+            })
+        }
+        _ => err,
+    }
+}
+
 /// Opens output `cfg`'s simulated line: its trace at `path` (by default
 /// `ppm-NAME.trace`, with a header saying the model), rotated at
 /// `trace_max_mb` MiB.
@@ -202,8 +263,15 @@ fn create_sim(cfg: &OutputPlan, trace_max_mb: u64, path: Option<PathBuf>) -> Res
         format!("receiver {}", model.receiver().name()),
         format!("protocol {}", model.protocol().name()),
     ];
-    let sim = SimLine::create(&path, &header, trace_max_mb << 20)
-        .with_context(|| format!("creating sim trace {}", path.display()))?;
+    let sim = SimLine::create(&path, &header, trace_max_mb << 20).map_err(|e| {
+        fault::path_error(
+            &cfg.keys.name("ppmd.output"),
+            &format!("creating sim trace {}", path.display()),
+            &path,
+            e,
+            "give the trace a path ppmd may create, in a directory that exists (sim:PATH; plain sim writes ppm-NAME.trace in ppmd's working directory, / under systemd, which is read-only)",
+        )
+    })?;
     log::info!("output `{}`: sim, trace in {}", cfg.name, path.display());
     Ok(sim)
 }

@@ -7,7 +7,7 @@
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Parser;
-use ppm_shared::config::Plan;
+use ppm_shared::config::{fault, CpuChoice, KeyName, Plan};
 use ppmd::cli::Cli;
 use ppmd::lines::{describe, open_lines, Lines};
 use ppmd::monitor::HdrLog;
@@ -26,12 +26,32 @@ fn main() {
     cli.daemon.init_logging();
     if let Err(e) = run(cli) {
         log::error!("{e:#}");
-        std::process::exit(ppm_shared::daemon::exit_status(&e, ppmd::output_missing));
+        std::process::exit(ppm_shared::daemon::exit_status(&e, ppmd::output_fault));
     }
 }
 
 fn run(cli: Cli) -> Result<()> {
-    let Plan { shared, outputs } = cli.plan()?;
+    let (Plan { shared, outputs }, inert) = cli.resolve()?;
+    for key in &inert {
+        log::warn!("{key}");
+    }
+    // What only this machine can refuse, before anything is opened: a CPU
+    // it does not have (with rt.allow_degraded the loop runs unpinned).
+    if let (CpuChoice::Index(cpu), false) = (shared.rt.cpu, shared.rt.allow_degraded) {
+        ppm_shared::sched::check_online(cpu, &shared.keys.name("rt.cpu"))?;
+    }
+    let mut hdr = match &cli.hdr_log {
+        Some(path) => Some(HdrLog::open(path).map_err(|e| {
+            fault::path_error(
+                &KeyName::Option("--hdr-log"),
+                &format!("opening the HdrHistogram log {}", path.display()),
+                path,
+                e,
+                "name a file ppmd may create and append to, in a directory that exists (under systemd: /var/log/ppm, or add a ReadWritePaths= line)",
+            )
+        })?),
+        None => None,
+    };
     let several = outputs.len() > 1;
     // Each output name is this ppmd's alone, before any line is opened.
     let _claims = outputs
@@ -77,13 +97,6 @@ fn run(cli: Cli) -> Result<()> {
         log::info!("{}{}", o.tag, describe(&shared, &o.plan));
     }
 
-    let mut hdr = match &cli.hdr_log {
-        Some(path) => Some(
-            HdrLog::open(path)
-                .with_context(|| format!("opening the HdrHistogram log {}", path.display()))?,
-        ),
-        None => None,
-    };
     let mut watched = startup::watch_all(outputs, &obtained);
     let progress = |watched: &[Watched]| -> u64 {
         watched

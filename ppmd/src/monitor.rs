@@ -34,7 +34,11 @@ impl From<&crate::rt::RtObtained> for Obtained {
     fn from(o: &crate::rt::RtObtained) -> Self {
         Obtained {
             summary: o.summary(),
-            shortfalls: o.shortfalls.iter().map(|s| s.to_string()).collect(),
+            shortfalls: o
+                .shortfalls
+                .iter()
+                .map(|s| s.degraded().to_string())
+                .collect(),
             priority: o.priority,
             cpu: o.cpu,
             preempt_rt: o.kernel.preempt_rt,
@@ -53,7 +57,9 @@ pub struct Monitor {
     pub start_ns: u64,
     pub next_log_ns: u64,
     pub state: LineState,
-    pub mismatched: u64,
+    /// Commands refused as made under another channel model: said once,
+    /// then as a count.
+    pub mismatched: Repeated,
     pub expired: u64,
     /// HdrHistogram intervals, and frame-log rows, that could not be written.
     pub hdr_lost: u64,
@@ -100,7 +106,7 @@ impl Monitor {
             start_ns,
             next_log_ns: start_ns + LOG_EVERY_NS,
             state: LineState::Silent,
-            mismatched: 0,
+            mismatched: Repeated::default(),
             expired: 0,
             hdr_lost: 0,
             frame_log_lost: 0,
@@ -301,13 +307,15 @@ impl Monitor {
             self.wake_errors = w;
         }
         let m = self.stats.mismatched.load(Relaxed);
-        if m != self.mismatched {
-            log::warn!(
-                "{who}{} command(s) refused: udp-ingress made them under another channel model (channel count, order, limits, defaults or units differ from this daemon's); restart udp-ingress with ppmd's configuration. The line takes the failsafe action once the last good command is {} ms old",
-                m - self.mismatched,
+        match self.mismatched.note(m, clock::now_ns()) {
+            Some(Said::First(n)) => log::warn!(
+                "{who}{n} command(s) refused: udp-ingress made them under another channel model (channel count, order, limits, defaults or units differ from this daemon's); restart udp-ingress with ppmd's configuration. The line takes the failsafe action once the last good command is {} ms old",
                 self.failsafe_after_ms
-            );
-            self.mismatched = m;
+            ),
+            Some(Said::More { since, total }) => log::warn!(
+                "{who}{since} more command(s) refused under another channel model ({total} since start); restart udp-ingress with ppmd's configuration"
+            ),
+            None => {}
         }
         let s = self.stats.expired.load(Relaxed);
         if s != self.expired {
@@ -318,6 +326,47 @@ impl Monitor {
             );
             self.expired = s;
         }
+    }
+}
+
+/// A fault the timing loop counts (it adds to an atomic, nothing more)
+/// and the monitor says, as it says the logs' failures: in full at once
+/// the first time, then at most every [`LOG_FAILURE_EVERY_NS`] while it
+/// goes on, as a count of how many more came since the last line. (Said
+/// every tick, a fault met on every command was 10 lines a second.)
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Repeated {
+    /// The loop's count when it was last said.
+    pub said: u64,
+    /// When it may be said again, CLOCK_MONOTONIC ns.
+    pub next_ns: u64,
+}
+
+/// What to say of a [`Repeated`] fault.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Said {
+    /// The first `n`: the whole message.
+    First(u64),
+    /// `since` more since the last line, `total` in all.
+    More { since: u64, total: u64 },
+}
+
+impl Repeated {
+    /// The loop's count is `total` at `now_ns`: what to say, if anything.
+    /// What is not said yet is said with the next line.
+    pub fn note(&mut self, total: u64, now_ns: u64) -> Option<Said> {
+        if total == self.said || now_ns < self.next_ns {
+            return None;
+        }
+        let first = self.said == 0;
+        let since = total - self.said;
+        self.said = total;
+        self.next_ns = now_ns + LOG_FAILURE_EVERY_NS;
+        Some(if first {
+            Said::First(since)
+        } else {
+            Said::More { since, total }
+        })
     }
 }
 
@@ -493,6 +542,63 @@ impl HdrLog {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A mismatch met on every command (50 a second, the monitor looking
+    /// 10 times a second) is said once, then once per
+    /// LOG_FAILURE_EVERY_NS with the count since; a quiet spell says
+    /// nothing, and the next one is a count again.
+    #[test]
+    fn a_repeated_fault_is_said_once_then_counted() {
+        let mut r = Repeated::default();
+        let tick = 100_000_000; // the monitor's 100 ms
+        let mut said = Vec::new();
+        for t in 1..=300u64 {
+            // 5 more commands refused each tick, for 30 s.
+            if let Some(s) = r.note(5 * t, 1_000_000_000 + t * tick) {
+                said.push((t, s));
+            }
+        }
+        assert_eq!(
+            said,
+            [
+                (1, Said::First(5)),
+                (
+                    101,
+                    Said::More {
+                        since: 500,
+                        total: 505
+                    }
+                ),
+                (
+                    201,
+                    Said::More {
+                        since: 500,
+                        total: 1005
+                    }
+                ),
+            ]
+        );
+        // They stop: what came since the last line is said when due, then
+        // nothing however long it stays quiet.
+        assert_eq!(
+            r.note(1500, 1_000_000_000 + 301 * tick),
+            Some(Said::More {
+                since: 495,
+                total: 1500
+            })
+        );
+        for t in 302..=600u64 {
+            assert_eq!(r.note(1500, 1_000_000_000 + t * tick), None);
+        }
+        // One more, long after: said at once, as a count.
+        assert_eq!(
+            r.note(1501, 1_000_000_000 + 601 * tick),
+            Some(Said::More {
+                since: 1,
+                total: 1501
+            })
+        );
+    }
 
     #[test]
     fn snapshots_reach_a_subscriber_of_the_outputs_stats_service() {

@@ -11,8 +11,8 @@ use crate::lines::{tag, OpenLine};
 use crate::meter::{self, MeterReader};
 use crate::monitor::{HdrLog, Monitor, Obtained, SnapshotPublisher, SNAPSHOT_EVERY_NS};
 use crate::timing::TimedOutput;
-use anyhow::{Context, Result};
-use ppm_shared::config::{FailsafeSection, OutputPlan, RtSection, Shared, SpinMargin};
+use anyhow::Result;
+use ppm_shared::config::{fault, FailsafeSection, OutputPlan, RtSection, Shared, SpinMargin};
 use ppm_shared::logging::Chain;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
@@ -78,8 +78,15 @@ impl Output {
         let tag = tag(several, &plan.name);
         let (log, log_writer) = match &plan.frame_log {
             Some(path) => {
-                let (p, w) = framelog::open(path, shared.frame_log_max_mb << 20)
-                    .with_context(|| format!("opening the frame log {}", path.display()))?;
+                let (p, w) = framelog::open(path, shared.frame_log_max_mb << 20).map_err(|e| {
+                    fault::path_error(
+                        &plan.keys.name("ppmd.frame_log"),
+                        &format!("opening the frame log {}", path.display()),
+                        path,
+                        e,
+                        "name a file ppmd may create and append to, in a directory that exists (under systemd: /var/log/ppm, the unit's LogsDirectory; elsewhere add a ReadWritePaths= line)",
+                    )
+                })?;
                 log::info!("{tag}frame log: {}", path.display());
                 (Some(p), Some(w))
             }

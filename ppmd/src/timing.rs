@@ -10,7 +10,7 @@ use crate::line::Bank;
 use crate::lines::OpenLine;
 use crate::meter::Meter;
 use crate::monitor::Obtained;
-use crate::rt::{RtSetup, RT_STACK_BYTES};
+use crate::rt::{RtSetup, Shortfall, RT_STACK_BYTES};
 use crate::source::{CommandSource, IpcSource};
 use anyhow::Result;
 use ppm_shared::config::Timing;
@@ -76,6 +76,24 @@ impl Subscribed {
     }
 }
 
+/// A real-time setting the timing thread could not have (and
+/// `rt.allow_degraded` did not let it run without), naming the key that
+/// asked for it: the configuration's fault, exit status 78 (the shortfall
+/// says how to get it, or to allow a degraded run).
+fn rt_error(s: Shortfall) -> anyhow::Error {
+    let key = match s.what {
+        "CPU pinning" => Some("rt.cpu"),
+        "SCHED_FIFO" => Some("rt.priority"),
+        "mlockall" => Some("rt.mlock"),
+        "cpu_dma_latency" => Some("rt.cpu_dma_latency"),
+        _ => None,
+    };
+    match key {
+        Some(k) => anyhow::Error::new(s).context(format!("config key `{k}`")),
+        None => anyhow::Error::new(s),
+    }
+}
+
 /// Starts the timing thread with the `outputs` and the `banks` their lines
 /// may be in. It sends what its real-time setup obtained on `ready` (`None`
 /// when the sources or the setup failed: the thread then returns the
@@ -98,7 +116,7 @@ pub fn spawn(
                 .into_iter()
                 .map(|o| o.subscribe(&root))
                 .collect::<Result<Vec<_>>>()
-                .and_then(|subscribed| Ok((subscribed, setup.apply()?)));
+                .and_then(|subscribed| Ok((subscribed, setup.apply().map_err(rt_error)?)));
             let (mut subscribed, obtained) = match started {
                 Ok(v) => v,
                 Err(e) => {

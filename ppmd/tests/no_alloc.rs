@@ -124,7 +124,7 @@ impl FrameLine for SpiStandIn {
     }
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         let n = match frame {
-            WholeFrame::Ppm(edges) => spi::encode(edges, 1_000_000, &mut self.buf),
+            WholeFrame::Ppm { edges, .. } => spi::encode(edges, 1_000_000, &mut self.buf),
             WholeFrame::Sbus { bytes, .. } => spi::encode_sbus(bytes, &mut self.buf),
         }
         .ok_or(LineError::FrameTooLong)?;

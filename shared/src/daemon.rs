@@ -29,25 +29,32 @@ impl DaemonArgs {
 }
 
 /// The exit status of a daemon stopped by its configuration (a bad key, a
-/// missing file, an output this machine does not have): `EX_CONFIG` of
+/// file or directory a key names that is missing, of the wrong kind, not
+/// permitted or corrupt, a CPU this machine does not have, a real-time
+/// setting it does not grant, an output it does not have): `EX_CONFIG` of
 /// sysexits.h. The units say `RestartPreventExitStatus=78`, so systemd does
 /// not restart into the same error every second.
 pub const EXIT_CONFIG: i32 = 78;
 
-/// The exit status of any other fatal error.
+/// The exit status of any other fatal error: one a restart may cure (a
+/// full disk, a port or GPIO line another process still holds, ...).
 pub const EXIT_FAILURE: i32 = 1;
 
 /// The exit status for a daemon's fatal error `e`: [`EXIT_CONFIG`] when
-/// the configuration is at fault (a [`ConfigError`](crate::config::ConfigError)
-/// or a key file's [`KeyError`](crate::auth::KeyError) anywhere in its
-/// chain, or a cause that `is_config` says is one), else
-/// [`EXIT_FAILURE`].
+/// the configuration is at fault (a [`ConfigError`](crate::config::ConfigError),
+/// a key file's [`KeyError`](crate::auth::KeyError) or a real-time
+/// [`Shortfall`](crate::sched::Shortfall), which `rt.allow_degraded` would
+/// have let run, anywhere in its chain, or a cause that `is_config` says is
+/// one), else [`EXIT_FAILURE`].
 pub fn exit_status(
     e: &anyhow::Error,
     is_config: impl Fn(&(dyn std::error::Error + 'static)) -> bool,
 ) -> i32 {
     let config = e.chain().any(|c| {
-        c.is::<crate::config::ConfigError>() || c.is::<crate::auth::KeyError>() || is_config(c)
+        c.is::<crate::config::ConfigError>()
+            || c.is::<crate::auth::KeyError>()
+            || c.is::<crate::sched::Shortfall>()
+            || is_config(c)
     });
     if config {
         EXIT_CONFIG
@@ -70,6 +77,13 @@ mod tests {
         assert_eq!(exit_status(&e, |_| false), EXIT_FAILURE);
         let io = anyhow::Error::new(std::io::Error::other("no such line")).context("output `x`");
         assert_eq!(exit_status(&io, |c| c.is::<std::io::Error>()), EXIT_CONFIG);
+        let rt = anyhow::Error::new(crate::sched::Shortfall::new(
+            "SCHED_FIFO",
+            "refused".into(),
+            "",
+        ))
+        .context("config key `rt.priority`");
+        assert_eq!(exit_status(&rt, |_| false), EXIT_CONFIG);
     }
 
     #[derive(Parser)]

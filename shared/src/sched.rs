@@ -3,7 +3,7 @@
 //! list, and [`Shortfall`], a setting that could not be had and how to get
 //! it.
 
-use crate::config::CpuChoice;
+use crate::config::{ConfigError, CpuChoice, KeyName};
 use std::fmt;
 
 /// One real-time setting that could not be had, and how to get it.
@@ -29,12 +29,37 @@ impl Shortfall {
     }
 }
 
-impl fmt::Display for Shortfall {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+impl Shortfall {
+    /// The shortfall as a degraded run (one that was allowed) logs it: what
+    /// and how to fix it, without the way to run without it, which was
+    /// taken.
+    pub fn degraded(&self) -> impl fmt::Display + '_ {
+        Degraded(self)
+    }
+
+    fn what_and_fix(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "{}: {}", self.what, self.detail)?;
         if !self.fix.is_empty() {
             write!(f, ". Fix: {}", self.fix)?;
         }
+        Ok(())
+    }
+}
+
+/// A shortfall as [`Shortfall::degraded`] shows it.
+struct Degraded<'a>(&'a Shortfall);
+
+impl fmt::Display for Degraded<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0.what_and_fix(f)
+    }
+}
+
+/// The shortfall as an error (a degraded run was not allowed): what, how to
+/// fix it, and how to run without it.
+impl fmt::Display for Shortfall {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.what_and_fix(f)?;
         write!(
             f,
             " (or set rt.allow_degraded = true / --allow-degraded to run without it)"
@@ -74,6 +99,40 @@ pub fn resolve_rt_cpu(choice: CpuChoice) -> Option<usize> {
         CpuChoice::Last => Some(online_cpus().last().copied().unwrap_or(0)),
         CpuChoice::Index(i) => Some(i),
     }
+}
+
+/// Checks at start, before anything is opened, that `cpu`, which `key`
+/// names (`rt.cpu`, `ingress.cpu`, or the option `--cpu`), is online on
+/// this machine: a CPU it does not have is the configuration's fault (exit
+/// status 78), not a passing one. (With `rt.allow_degraded` the program
+/// runs unpinned instead: [`pin`] says so.)
+pub fn check_online(cpu: usize, key: &KeyName) -> Result<(), ConfigError> {
+    let online = online_cpus();
+    if online.contains(&cpu) {
+        return Ok(());
+    }
+    let list = online
+        .iter()
+        .map(|c| c.to_string())
+        .collect::<Vec<_>>()
+        .join(",");
+    let what = format!("CPU {cpu} does not exist or is offline on this machine (online: {list})");
+    Err(match key {
+        KeyName::File(k) => ConfigError::Invalid {
+            key: k.clone(),
+            message: format!(
+                "{what}: set {k} to one of them{}, or rt.allow_degraded = true to run unpinned, marked degraded",
+                if k.starts_with("rt.") {
+                    ", \"last\" (the highest online) or \"none\""
+                } else {
+                    " or \"none\""
+                }
+            ),
+        },
+        KeyName::Option(o) => ConfigError::Usage(format!(
+            "{o} {cpu}: {what}: give one of them or none, or add --allow-degraded to run unpinned, marked degraded"
+        )),
+    })
 }
 
 /// Pins the calling thread to `cpu`; `key` is the configuration key that
@@ -141,6 +200,22 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_degraded_run_is_not_told_to_allow_itself() {
+        let s = Shortfall::new("SCHED_FIFO", "refused".into(), "run as root");
+        let error = s.to_string();
+        assert_eq!(
+            error,
+            "SCHED_FIFO: refused. Fix: run as root (or set rt.allow_degraded = true / --allow-degraded to run without it)"
+        );
+        assert_eq!(
+            s.degraded().to_string(),
+            "SCHED_FIFO: refused. Fix: run as root"
+        );
+        let bare = Shortfall::new("timer slack", "EPERM".into(), "");
+        assert_eq!(bare.degraded().to_string(), "timer slack: EPERM");
+    }
+
+    #[test]
     fn cpu_lists() {
         assert_eq!(parse_cpu_list("0-3,6,8-9"), Some(vec![0, 1, 2, 3, 6, 8, 9]));
         assert_eq!(parse_cpu_list("0"), Some(vec![0]));
@@ -156,6 +231,23 @@ mod tests {
             resolve_rt_cpu(CpuChoice::Last),
             online_cpus().last().copied()
         );
+    }
+
+    #[test]
+    fn a_cpu_this_machine_lacks_is_a_configuration_error() {
+        let first = online_cpus()[0];
+        check_online(first, &KeyName::File("rt.cpu".into())).unwrap();
+        let e = check_online(4095, &KeyName::File("rt.cpu".into())).unwrap_err();
+        assert_eq!(e.key(), Some("rt.cpu"));
+        let text = e.to_string();
+        assert!(
+            text.starts_with("config key `rt.cpu`: CPU 4095 does not exist or is offline")
+                && text.contains("\"last\"")
+                && text.contains("rt.allow_degraded"),
+            "{text}"
+        );
+        let e = check_online(4095, &KeyName::Option("--cpu")).unwrap_err();
+        assert!(e.to_string().starts_with("--cpu 4095: CPU 4095"), "{e}");
     }
 
     #[test]

@@ -133,3 +133,52 @@ fn watch_decodes_as_the_receiver_asked_for() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("spektrum"));
 }
+
+/// A frame cut short at a late edge (ppmd writes the pulses before it, then
+/// a sync) shows as such: its channels before the cut, and how many of the
+/// frame's it has. Whole frames show no mark.
+#[test]
+fn watch_marks_a_frame_cut_short() {
+    let sb = Sandbox::new("watch-cut");
+    let model = Config::default().validate().unwrap();
+    let path = sb.dir.join("line.trace");
+    let mut t = 1_000_000_000;
+    append_frames(&path, &model, b"[1100, 1900]", 5, &mut t);
+    // The sixth frame's first three pulses only: two channels.
+    let channels = parse(b"[1100, 1900]", &model).unwrap().channels;
+    let mut f = std::fs::OpenOptions::new()
+        .append(true)
+        .open(&path)
+        .unwrap();
+    for e in model.encode(&channels).edges().iter().take(6) {
+        let at = t + e.at_ns;
+        let edge = TraceEdge {
+            scheduled_ns: at,
+            actual_ns: at,
+            level: e.level,
+        };
+        writeln!(f, "{edge}").unwrap();
+    }
+    t += model.frame_ns();
+    drop(f);
+    append_frames(&path, &model, b"[1100, 1900]", 3, &mut t);
+    let out = std::process::Command::new(ppm_tests::bin("ppm-watch"))
+        .arg(&path)
+        .arg("--once")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    let text = String::from_utf8(out.stdout).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    // Of the 9 frames, the first has no sync before it, and the gap after
+    // the cut one is too long for a sync (over 19 ms), so the frame after
+    // it is not read either: 4 whole, the cut one, 2 whole.
+    assert_eq!(lines.len(), 7, "{text}");
+    let cut: Vec<&&str> = lines.iter().filter(|l| l.contains("cut short")).collect();
+    assert_eq!(cut.len(), 1, "{text}");
+    assert!(
+        cut[0].contains("ail  1100.0 ele  1900.0  (cut short: 2 of 8 channels)"),
+        "{text}"
+    );
+    assert!(!text.contains("incomplete"), "{text}");
+}

@@ -3,7 +3,9 @@
 //! udp-ingress serves and the settings it shares.
 
 use clap::Parser;
-use ppm_shared::config::{parse_net, Config, ConfigError, IngressCpu, OutputPlan, Plan, Shared};
+use ppm_shared::config::{
+    parse_net, Config, ConfigError, Inert, IngressCpu, OutputPlan, Plan, Program, Shared,
+};
 use ppm_shared::daemon::DaemonArgs;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -53,6 +55,13 @@ impl Cli {
     /// without one), its output (`--name` picks one of `[[outputs]]`) with
     /// these options applied, resolved and checked.
     pub fn plan(&self) -> Result<(Shared, OutputPlan), ConfigError> {
+        self.resolve().map(|(shared, output, _)| (shared, output))
+    }
+
+    /// [`Cli::plan`], and the keys the file sets that do nothing for
+    /// udp-ingress in it (`ingress.seq_file` without a key, ...), to warn
+    /// about.
+    pub fn resolve(&self) -> Result<(Shared, OutputPlan, Vec<Inert>), ConfigError> {
         let file = Config::load_or_default(self.daemon.config.as_deref())?;
         // A file with [[outputs]] is checked whole, by the check ppmd makes:
         // a file ppmd refuses (two outputs on one listen address, ...) is
@@ -63,21 +72,27 @@ impl Cli {
         let mut cfg = file.select(self.name.as_deref())?;
         if let Some(listen) = self.listen {
             cfg.ingress.listen = listen;
+            cfg.set.note_option("ingress.listen", "--listen");
         }
         if let Some(key) = &self.auth_key {
             cfg.ingress.auth_key = Some(key.clone());
+            cfg.set.note_option("ingress.auth_key", "--auth-key");
         }
         if !self.allow.is_empty() {
             cfg.ingress.allow = self.allow.iter().map(|n| n.to_string()).collect();
+            cfg.set.note_option("ingress.allow", "--allow");
         }
         if let Some(p) = self.priority {
             cfg.ingress.priority = p;
+            cfg.set.note_option("ingress.priority", "--priority");
         }
         if let Some(cpu) = self.cpu {
             cfg.ingress.cpu = cpu;
+            cfg.set.note_option("ingress.cpu", "--cpu");
         }
         cfg.ingress.busy_poll |= self.busy_poll;
         cfg.rt.allow_degraded |= self.allow_degraded;
-        Plan::resolve_one(&cfg)
+        let (shared, output) = Plan::resolve_one(&cfg)?;
+        Ok((shared, output, cfg.inert_keys(Program::Ingress)))
     }
 }

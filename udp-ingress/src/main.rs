@@ -27,7 +27,10 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    let (shared, output) = cli.plan()?;
+    let (shared, output, inert) = cli.resolve()?;
+    for key in &inert {
+        log::warn!("{key}");
+    }
     if output.ingress.auth_key.is_some() && output.name == DEFAULT_NAME {
         // Signed commands are bound to the output's name: every board left
         // at the default name accepts the others' commands under one key.

@@ -10,7 +10,8 @@
 //! crash of the process but, until the kernel writes it back (seconds), not a
 //! power loss. A file on a tmpfs (`/run`, `/tmp`) is gone after a reboot.
 
-use anyhow::{bail, Context, Result};
+use anyhow::Result;
+use ppm_shared::config::{fault, ConfigError, KeyName};
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
@@ -29,6 +30,8 @@ pub struct Kind {
     pub key: &'static str,
     /// The number it holds.
     pub number: &'static str,
+    /// Where to put it instead, when it cannot be had where it is.
+    pub fix: &'static str,
 }
 
 /// The last accepted signed `seq` (`ingress.seq_file`).
@@ -36,6 +39,7 @@ pub const SEQ: Kind = Kind {
     what: "seq file",
     key: "ingress.seq_file",
     number: "the last accepted seq",
+    fix: "set ingress.seq_file to a regular file udp-ingress may create and rewrite, in a directory it may write (under systemd /var/lib/ppm/NAME.last_seq: the unit's StateDirectory, which also survives a reboot)",
 };
 
 /// The newest MAVLink signing timestamp accepted (`mavlink.timestamp_file`).
@@ -43,6 +47,7 @@ pub const MAVLINK_TIMESTAMP: Kind = Kind {
     what: "MAVLink timestamp file",
     key: "mavlink.timestamp_file",
     number: "the newest signing timestamp accepted",
+    fix: "set mavlink.timestamp_file to a regular file udp-ingress may create and rewrite, in a directory it may write (under systemd /var/lib/ppm/NAME.mavlink_timestamp: the unit's StateDirectory, which also survives a reboot)",
 };
 
 /// The state file, open for the life of the ingress.
@@ -66,13 +71,32 @@ impl SeqFile {
         SeqFile::open_as(SEQ, path, every)
     }
 
-    /// [`SeqFile::open`] for a file of `kind`.
+    /// [`SeqFile::open`] for a file of `kind`, named in messages by its
+    /// key.
     pub fn open_as(kind: Kind, path: &Path, every: Duration) -> Result<(SeqFile, Option<u64>)> {
+        SeqFile::open_named(kind, &KeyName::File(kind.key.into()), path, every)
+    }
+
+    /// [`SeqFile::open_as`], the key named `key` in messages (as the
+    /// file wrote it: `outputs[1].ingress.seq_file`). What stays wrong
+    /// until someone fixes the path or the file (a missing or unwritable
+    /// directory, a FIFO, a directory, a device, a file far too large, or
+    /// one holding anything but a number) is the configuration's fault,
+    /// exit status 78 ([`fault::path_error`]); a full disk or an I/O
+    /// error is not.
+    pub fn open_named(
+        kind: Kind,
+        key: &KeyName,
+        path: &Path,
+        every: Duration,
+    ) -> Result<(SeqFile, Option<u64>)> {
         let what = kind.what;
         use std::os::unix::fs::OpenOptionsExt;
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("creating {} for the {what}", dir.display()))?;
+            std::fs::create_dir_all(dir).map_err(|e| {
+                let doing = format!("creating {} for the {what}", dir.display());
+                fault::path_error(key, &doing, dir, e, kind.fix)
+            })?;
         }
         let max = ppm_shared::files::SEQ_MAX_BYTES;
         let file = ppm_shared::files::open_regular(
@@ -85,27 +109,39 @@ impl SeqFile {
             path,
             max,
         )
-        .with_context(|| {
-            format!(
-                "opening the {what} {} ({}) for reading and writing",
-                path.display(),
-                kind.key
-            )
+        .map_err(|e| {
+            let doing = format!(
+                "opening the {what} {} for reading and writing",
+                path.display()
+            );
+            fault::path_error(key, &doing, path, e, kind.fix)
         })?;
-        let text = ppm_shared::files::read_bounded(&file, max)
-            .with_context(|| format!("reading the {what} {}", path.display()))?;
+        let text = ppm_shared::files::read_bounded(&file, max).map_err(|e| {
+            let doing = format!("reading the {what} {}", path.display());
+            fault::path_error(key, &doing, path, e, kind.fix)
+        })?;
         let t = text.trim();
         let floor = if t.is_empty() {
             None
         } else {
             match t.parse::<u64>() {
                 Ok(n) => Some(n),
-                Err(_) => bail!(
-                    "the {what} {} holds `{}`, not {}: fix it, or delete it if no signed datagram recorded so far can be replayed",
-                    path.display(),
-                    t.chars().take(40).collect::<String>(),
-                    kind.number
-                ),
+                Err(_) => {
+                    let message = format!(
+                        "the {what} {} holds `{}`, not {}: fix it, or delete it if no signed datagram recorded so far can be replayed",
+                        path.display(),
+                        t.chars().take(40).collect::<String>(),
+                        kind.number
+                    );
+                    return Err(match key {
+                        KeyName::File(k) => ConfigError::Invalid {
+                            key: k.clone(),
+                            message,
+                        },
+                        KeyName::Option(o) => ConfigError::Usage(format!("{o}: {message}")),
+                    }
+                    .into());
+                }
             }
         };
         let sized = text.len() == WIDTH + 1;
@@ -249,12 +285,15 @@ mod tests {
             std::thread::spawn(move || {
                 let _ = tx.send(SeqFile::open(&path, Duration::ZERO).map(|_| ()));
             });
-            let e = rx
+            let err = rx
                 .recv_timeout(Duration::from_secs(10))
                 .expect("the open returned (it hung for 10 s)")
                 .unwrap_err();
-            let e = format!("{e:#}");
+            let e = format!("{err:#}");
             assert!(e.contains(&shown) && e.contains(what), "{e}");
+            assert!(e.starts_with("config key `ingress.seq_file`"), "{e}");
+            let status = ppm_shared::daemon::exit_status(&err, |_| false);
+            assert_eq!(status, ppm_shared::daemon::EXIT_CONFIG, "{e}");
         }
         std::fs::remove_dir_all(&d).unwrap();
     }
@@ -265,11 +304,16 @@ mod tests {
         std::fs::create_dir_all(&d).unwrap();
         let path = d.join("x.last_seq");
         std::fs::write(&path, "twelve").unwrap();
-        let e = format!("{:#}", SeqFile::open(&path, Duration::ZERO).unwrap_err());
+        let err = SeqFile::open(&path, Duration::ZERO).unwrap_err();
+        let e = format!("{err:#}");
         assert!(
-            e.contains(&path.display().to_string()) && e.contains("twelve"),
+            e.starts_with("config key `ingress.seq_file`: the seq file")
+                && e.contains(&path.display().to_string())
+                && e.contains("twelve"),
             "{e}"
         );
+        let status = ppm_shared::daemon::exit_status(&err, |_| false);
+        assert_eq!(status, ppm_shared::daemon::EXIT_CONFIG);
         std::fs::remove_dir_all(&d).unwrap();
     }
 }

@@ -9,8 +9,8 @@ use anyhow::{Context, Result};
 use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
 use mio::{Events, Interest, Poll, Token};
-use ppm_shared::auth::AuthKey;
-use ppm_shared::config::{IngressSection, OutputPlan, Shared};
+use ppm_shared::auth::{AuthKey, KeyError};
+use ppm_shared::config::{fault, ConfigError, IngressSection, KeyName, OutputPlan, Shared};
 use ppm_shared::ipc::{self, CommandSample, IpcError, LineSample, PublishError, TimingSnapshot};
 use ppm_shared::logging::Chain;
 use ppm_shared::sched;
@@ -108,7 +108,7 @@ fn schedule_receive_thread(
         priority = ingress.priority;
     }
     for s in &shortfalls {
-        log::warn!("DEGRADED RUN: receive thread: {s}");
+        log::warn!("DEGRADED RUN: receive thread: {}", s.degraded());
     }
     if ingress.busy_poll {
         if cpu.is_none() {
@@ -528,6 +528,52 @@ fn receive(
     }
 }
 
+/// Loads the key file at `path`, which `key` names. Its faults (missing,
+/// not a small regular file, readable by others, not 64 hex characters)
+/// are the configuration's (exit status 78, by [`KeyError`]); a key from
+/// the file is named, and told where to point, a key given with
+/// `--auth-key` keeps the key file's own message.
+fn load_key(key: &KeyName, path: &std::path::Path) -> Result<AuthKey> {
+    AuthKey::load(path).map_err(|e| match key {
+        KeyName::File(k) => {
+            let fix = match e {
+                KeyError::Read { .. } => format!(
+                    ": point {k} at the key file, a regular file this user may read holding 64 hex characters, mode 600 (`openssl rand -hex 32 > FILE; chmod 600 FILE`)"
+                ),
+                _ => String::new(),
+            };
+            anyhow::Error::new(ConfigError::Invalid {
+                key: k.clone(),
+                message: format!("{}{fix}", Chain(&e)),
+            })
+        }
+        KeyName::Option(_) => anyhow::Error::new(e),
+    })
+}
+
+/// Why `cfg`'s socket could not be bound: a port this user may not take
+/// (EACCES: below 1024, without CAP_NET_BIND_SERVICE) is the
+/// configuration's fault (exit status 78). Others may pass (exit status 1,
+/// restarted a second later): the port still held by a udp-ingress that is
+/// stopping, an address not yet on an interface at boot.
+fn bind_error(cfg: &OutputPlan, e: std::io::Error) -> anyhow::Error {
+    let listen = cfg.ingress.listen;
+    match (e.kind(), cfg.keys.name("ingress.listen")) {
+        (std::io::ErrorKind::PermissionDenied, key) => {
+            let message = format!(
+                "cannot listen on {listen}: {e}: a port below 1024 needs a privilege udp-ingress does not have (CAP_NET_BIND_SERVICE); use a port of 1024 or more"
+            );
+            anyhow::Error::new(match key {
+                KeyName::File(k) => ConfigError::Invalid { key: k, message },
+                KeyName::Option(o) => ConfigError::Usage(format!("{o} {listen}: {message}")),
+            })
+        }
+        _ => anyhow::Error::new(e).context(format!(
+            "cannot listen on {listen} (another udp-ingress there? set ingress.listen or --listen)"
+        )),
+    }
+}
+
 /// Sets SO_RCVBUF and returns what the kernel granted (it doubles the
 /// request and caps it at net.core.rmem_max).
 fn set_receive_buffer(socket: &std::net::UdpSocket, bytes: u32) -> Result<usize> {
@@ -550,6 +596,13 @@ impl Server {
     /// and CPU (it is the receive thread). Says what it set up in the log.
     pub fn open(shared: &Shared, cfg: OutputPlan) -> Result<Server> {
         cfg.check_busy_poll_cpu(sched::resolve_rt_cpu(shared.rt.cpu))?;
+        // What the configuration names, checked before anything is opened:
+        // the receive thread's CPU, the key files, the files kept across
+        // restarts, the ipc root. Their faults stop udp-ingress with exit
+        // status 78, naming the key.
+        if let (Some(cpu), false) = (cfg.ingress.cpu.index(), shared.rt.allow_degraded) {
+            sched::check_online(cpu, &cfg.keys.name("ingress.cpu"))?;
+        }
         let model = cfg.model.clone();
         let allow = cfg.allow.clone();
         let status_allow = cfg.status_allow.clone();
@@ -557,22 +610,47 @@ impl Server {
             .ingress
             .auth_key
             .as_deref()
-            .map(AuthKey::load)
+            .map(|path| load_key(&cfg.keys.name("ingress.auth_key"), path))
             .transpose()?;
         let (seq_file, floor) = match &key {
             Some(_) => {
-                let (file, floor) = SeqFile::open(&cfg.seq_file, SEQ_SAVE_EVERY)?;
+                let (file, floor) = SeqFile::open_named(
+                    seqfile::SEQ,
+                    &cfg.keys.name("ingress.seq_file"),
+                    &cfg.seq_file,
+                    SEQ_SAVE_EVERY,
+                )?;
                 (Some(file), floor)
             }
             None => (None, None),
         };
+        let mavlink_signing = match &cfg.mavlink.key_file {
+            Some(path) => {
+                let key = load_key(&cfg.keys.name("mavlink.key_file"), path)?;
+                let ts_path = cfg
+                    .mavlink
+                    .timestamp_file
+                    .clone()
+                    .context("mavlink.timestamp_file is not resolved")?;
+                let (file, floor) = SeqFile::open_named(
+                    seqfile::MAVLINK_TIMESTAMP,
+                    &cfg.keys.name("mavlink.timestamp_file"),
+                    &ts_path,
+                    SEQ_SAVE_EVERY,
+                )?;
+                Some((path, key, ts_path, file, floor))
+            }
+            None => None,
+        };
+        fault::ensure_dir(
+            &shared.keys.name("ipc.root"),
+            "the ipc root",
+            &shared.ipc.root,
+            "set ipc.root to a directory udp-ingress and ppmd (the same user) may create files in; under systemd /run/ppm, the units' RuntimeDirectory",
+        )?;
         let listen = cfg.ingress.listen;
 
-        let std_socket = std::net::UdpSocket::bind(listen).with_context(|| {
-            format!(
-                "cannot listen on {listen} (another udp-ingress there? set ingress.listen or --listen)"
-            )
-        })?;
+        let std_socket = std::net::UdpSocket::bind(listen).map_err(|e| bind_error(&cfg, e))?;
         std_socket.set_nonblocking(true)?;
         let rcvbuf = set_receive_buffer(&std_socket, cfg.ingress.recv_buffer_bytes)?;
         nix::sys::socket::setsockopt(
@@ -650,15 +728,7 @@ impl Server {
         .with_mavlink(cfg.mavlink.clone())
         .with_status_allow(status_allow.clone());
         let mut mavlink_ts_file = None;
-        if let Some(path) = &cfg.mavlink.key_file {
-            let key = AuthKey::load(path)?;
-            let ts_path = cfg
-                .mavlink
-                .timestamp_file
-                .clone()
-                .context("mavlink.timestamp_file is not resolved")?;
-            let (file, floor) =
-                SeqFile::open_as(seqfile::MAVLINK_TIMESTAMP, &ts_path, SEQ_SAVE_EVERY)?;
+        if let Some((path, key, ts_path, file, floor)) = mavlink_signing {
             intake = intake.with_mavlink_signing(key, floor);
             log::info!(
                 "MAVLink frames must be signed (MAVLink 2) with the key in {}; replies are signed; {} (the newest is kept in {})",
@@ -762,5 +832,56 @@ impl Server {
         }
         self.finish();
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ppm_shared::config::{Config, Plan};
+    use ppm_shared::daemon::{exit_status, EXIT_CONFIG, EXIT_FAILURE};
+
+    fn plan(text: &str) -> OutputPlan {
+        Plan::resolve_one(&Config::parse(text).unwrap()).unwrap().1
+    }
+
+    /// A port this user may not take is the configuration's fault (78);
+    /// one still held by another process may pass (1).
+    #[test]
+    fn a_privileged_port_is_a_configuration_error_a_busy_one_is_not() {
+        let cfg = plan("[ingress]\nlisten = \"0.0.0.0:80\"");
+        let e = bind_error(&cfg, std::io::Error::from(nix::errno::Errno::EACCES));
+        assert_eq!(exit_status(&e, |_| false), EXIT_CONFIG);
+        let text = e.to_string();
+        assert!(
+            text.starts_with("config key `ingress.listen`: cannot listen on 0.0.0.0:80")
+                && text.contains("use a port of 1024 or more"),
+            "{text}"
+        );
+        let e = bind_error(&cfg, std::io::Error::from(nix::errno::Errno::EADDRINUSE));
+        assert_eq!(exit_status(&e, |_| false), EXIT_FAILURE);
+        let mut cfg = cfg;
+        cfg.keys.note_option("ingress.listen", "--listen");
+        let e = bind_error(&cfg, std::io::Error::from(nix::errno::Errno::EACCES));
+        assert!(e.to_string().starts_with("--listen 0.0.0.0:80: "), "{e}");
+    }
+
+    /// A key file from the configuration is named by its key, with where
+    /// to point it; one given with --auth-key keeps the key file's message.
+    #[test]
+    fn a_key_file_from_the_configuration_names_its_key() {
+        let missing = std::path::Path::new("/nonexistent-ppm-test/k.key");
+        let e = load_key(&KeyName::File("mavlink.key_file".into()), missing).unwrap_err();
+        assert_eq!(exit_status(&e, |_| false), EXIT_CONFIG);
+        assert_eq!(
+            e.to_string(),
+            "config key `mavlink.key_file`: cannot read auth key file /nonexistent-ppm-test/k.key: No such file or directory (os error 2): point mavlink.key_file at the key file, a regular file this user may read holding 64 hex characters, mode 600 (`openssl rand -hex 32 > FILE; chmod 600 FILE`)"
+        );
+        let e = load_key(&KeyName::Option("--auth-key"), missing).unwrap_err();
+        assert_eq!(exit_status(&e, |_| false), EXIT_CONFIG);
+        assert_eq!(
+            format!("{e:#}"),
+            "cannot read auth key file /nonexistent-ppm-test/k.key: No such file or directory (os error 2)"
+        );
     }
 }

@@ -400,7 +400,7 @@ impl FrameLine for WholeFrames {
     }
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         match frame {
-            WholeFrame::Ppm(edges) => self.frames.push(edges.to_vec()),
+            WholeFrame::Ppm { edges, .. } => self.frames.push(edges.to_vec()),
             WholeFrame::Sbus { bytes, due_ns } => self.sbus.push((*bytes, due_ns)),
         }
         if let Some(sim) = &self.sim {

@@ -370,7 +370,11 @@ impl PpmFrame {
                 level,
             };
         }
-        (WholeFrame::Ppm(&buf[..n]), n)
+        let frame = WholeFrame::Ppm {
+            edges: &buf[..n],
+            due_ns: due,
+        };
+        (frame, n)
     }
 
     /// The last timed edge of the rest: a whole-frame line's bits are

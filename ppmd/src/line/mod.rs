@@ -58,8 +58,13 @@ pub struct FrameEdge {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WholeFrame<'a> {
     /// A PPM frame: every edge (the lead-in pulse's included), timed from
-    /// the first.
-    Ppm(&'a [FrameEdge]),
+    /// the first, which was due at `due_ns`.
+    Ppm {
+        /// The edges.
+        edges: &'a [FrameEdge],
+        /// When the first was due (CLOCK_MONOTONIC ns).
+        due_ns: u64,
+    },
     /// An SBUS frame: its 25 bytes, sent back to back from the write, which
     /// was due at `due_ns`.
     Sbus {
@@ -219,25 +224,69 @@ impl FrameLine for SimSbusLine {
             return Err(LineError::WrongProtocol);
         };
         let now = (self.now_ns)();
-        let mut full = false;
-        for (at, level) in ppm_shared::sbus::uart::edges(bytes, 0, self.idle) {
-            full |= self
-                .sim
-                .write(&TraceEdge {
-                    scheduled_ns: due_ns + at,
-                    actual_ns: now + at,
-                    level,
-                })
-                .is_err();
-        }
-        if full {
-            Err(LineError::BufferFull)
-        } else {
-            Ok(())
-        }
+        let edges = ppm_shared::sbus::uart::edges(bytes, 0, self.idle);
+        write_whole(&mut self.sim, due_ns, now, edges)
     }
 
     fn park(&mut self, _level: Level) -> Result<(), LineError> {
+        Ok(())
+    }
+}
+
+/// The simulated line of a PPM output sent whole (`sim-spi`): each frame is
+/// handed over at its first edge and leaves timed by the line's own clock,
+/// as through SPI: every edge at its offset from the write (actual) and
+/// from when the frame was due (scheduled). So an edge's lateness is the
+/// frame's start's, whatever the timing thread does during the frame.
+pub struct SimWholeLine {
+    sim: SimLine,
+    now_ns: fn() -> u64,
+}
+
+impl SimWholeLine {
+    /// A whole-frame PPM line on `sim`, reading the write's time from
+    /// `now_ns` (CLOCK_MONOTONIC in ppmd).
+    pub fn new(sim: SimLine, now_ns: fn() -> u64) -> SimWholeLine {
+        SimWholeLine { sim, now_ns }
+    }
+}
+
+impl FrameLine for SimWholeLine {
+    fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
+        let WholeFrame::Ppm { edges, due_ns } = frame else {
+            return Err(LineError::WrongProtocol);
+        };
+        let now = (self.now_ns)();
+        let edges = edges.iter().map(|e| (e.at_ns, e.level));
+        write_whole(&mut self.sim, due_ns, now, edges)
+    }
+
+    fn park(&mut self, _level: Level) -> Result<(), LineError> {
+        Ok(())
+    }
+}
+
+/// Writes a whole frame's `edges` (offset from its start, level) to `sim`:
+/// scheduled from `due_ns`, actual from `now`.
+fn write_whole(
+    sim: &mut SimLine,
+    due_ns: u64,
+    now: u64,
+    edges: impl Iterator<Item = (u64, Level)>,
+) -> Result<(), LineError> {
+    let mut full = false;
+    for (at, level) in edges {
+        full |= sim
+            .write(&TraceEdge {
+                scheduled_ns: due_ns + at,
+                actual_ns: now + at,
+                level,
+            })
+            .is_err();
+    }
+    if full {
+        Err(LineError::BufferFull)
+    } else {
         Ok(())
     }
 }

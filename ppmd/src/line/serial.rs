@@ -82,7 +82,10 @@ pub enum SerialError {
 /// The fix for the usual causes of a failed step, or nothing.
 fn hint(err: &io::Error) -> &'static str {
     match err.raw_os_error() {
-        Some(libc::EACCES | libc::EPERM) => ": add the user to the dialout group",
+        Some(libc::EACCES) => ": add the user to the dialout group",
+        Some(libc::EPERM) => {
+            ": the unit's device policy refuses it (DevicePolicy=closed): add its DeviceAllow= line, one of the commented ones in ppmd.service (`sudo systemctl edit ppmd`)"
+        }
         Some(libc::ENOENT) => {
             ": no such device; is the UART enabled (enable_uart=1 or a dtoverlay on a Raspberry Pi)?"
         }
@@ -324,7 +327,7 @@ impl FrameLine for SerialLine {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         match frame {
             WholeFrame::Sbus { bytes, .. } => SerialLine::write_frame(self, bytes),
-            WholeFrame::Ppm(_) => Err(LineError::WrongProtocol),
+            WholeFrame::Ppm { .. } => Err(LineError::WrongProtocol),
         }
     }
 

@@ -226,7 +226,7 @@ impl SpiLine {
 impl FrameLine for SpiLine {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         let len = match frame {
-            WholeFrame::Ppm(edges) => encode(edges, self.hz, &mut self.buf),
+            WholeFrame::Ppm { edges, .. } => encode(edges, self.hz, &mut self.buf),
             WholeFrame::Sbus { bytes, .. } if self.hz == SBUS_HZ => {
                 encode_sbus(bytes, &mut self.buf)
             }

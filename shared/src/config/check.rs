@@ -237,6 +237,15 @@ impl Config {
                     ),
                 ))
             }
+            OutputSpec::Sim { whole: true, .. } if self.ppm.idle_level() == Level::High => {
+                Err(ConfigError::invalid(
+                    "ppm.idle_level",
+                    format!(
+                        "\"high\" cannot be sent through `{}`, which simulates an SPI output (MOSI rests low between transfers): use idle_level = \"low\", or a sim: output",
+                        self.ppmd.output
+                    ),
+                ))
+            }
             OutputSpec::Serial { .. } => Err(ConfigError::invalid(
                 "ppmd.output",
                 format!(
@@ -253,6 +262,12 @@ impl Config {
     fn check_sbus_output(&self, output: &OutputSpec) -> Result<(), ConfigError> {
         let out = &self.ppmd.output;
         match (output, self.ppm.idle_level) {
+            (OutputSpec::Sim { whole: true, .. }, _) => Err(ConfigError::invalid(
+                "ppmd.output",
+                format!(
+                    "`{out}` simulates a PPM output sent whole through SPI; an SBUS output's simulated line (sim or sim:PATH) already takes each frame whole"
+                ),
+            )),
             (OutputSpec::Gpio { .. }, _) => Err(ConfigError::invalid(
                 "ppmd.output",
                 format!(

@@ -59,12 +59,8 @@ impl OutputEntry {
                         || key.starts_with(&format!("{k}."))
                 });
                 if own {
-                    let shown = key
-                        .strip_prefix("ppmd.")
-                        .filter(|k| *k == "output" || *k == "frame_log")
-                        .unwrap_or(&key);
                     ConfigError::Invalid {
-                        key: format!("outputs[{i}].{shown}"),
+                        key: entry_key(i, &key),
                         message,
                     }
                 } else if !["ppm.", "ingress.", "failsafe."]
@@ -108,6 +104,13 @@ impl Config {
         let mut cfg: Config = toml::Value::Table(table.clone())
             .try_into()
             .map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
+        for (k, v) in &table {
+            let mut keys = Vec::new();
+            collect_keys(k, v, &mut keys);
+            for key in keys {
+                cfg.set.note(key.clone(), key);
+            }
+        }
         if entries.is_empty() {
             return Ok(cfg);
         }
@@ -160,9 +163,13 @@ impl Config {
                     "every output needs a name (udp-ingress --name NAME picks it)",
                 ));
             }
-            let out: Config = toml::Value::Table(merged)
+            let mut out: Config = toml::Value::Table(merged)
                 .try_into()
                 .map_err(|e: toml::de::Error| parse_error(format!("outputs[{i}]: {e}")))?;
+            out.set = cfg.set.clone();
+            for key in &keys {
+                out.set.note(key.clone(), entry_key(i, key));
+            }
             cfg.outputs.push(OutputEntry {
                 config: out,
                 origin: Origin::Entry(keys),
@@ -232,6 +239,16 @@ impl Config {
             origin: Origin::CommandLine,
         });
     }
+}
+
+/// Key `key` as entry `i` of `[[outputs]]` writes it: `outputs[1].ppm.channels`,
+/// and `outputs[1].output` for `ppmd.output` (likewise `frame_log`).
+fn entry_key(i: usize, key: &str) -> String {
+    let shown = key
+        .strip_prefix("ppmd.")
+        .filter(|k| *k == "output" || *k == "frame_log")
+        .unwrap_or(key);
+    format!("outputs[{i}].{shown}")
 }
 
 /// Most outputs one ppmd drives.

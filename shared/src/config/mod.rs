@@ -12,11 +12,18 @@
 //! - [`check`]: the checks of one output's keys ([`Config::validate`]); the
 //!   `[ppm]` section is checked by the frame module, which builds the
 //!   [`FrameModel`](crate::frame::FrameModel) ([`FrameModel::build`](crate::frame::FrameModel::build)).
+//! - [`keys`]: which keys the file set, and how messages name them;
+//!   [`inert`]: the keys set that do nothing where they are (a warning at
+//!   start); [`fault`]: the files and devices keys name, and which of their
+//!   faults stop a program as the configuration's (exit status 78).
 //! - [`plan`]: the lowering: a file with the command line applied resolves
 //!   once into a [`Plan`] (shared settings, one [`OutputPlan`] per output),
 //!   which both programs run.
 
 pub mod check;
+pub mod fault;
+pub mod inert;
+pub mod keys;
 pub mod merge;
 pub mod plan;
 pub mod schema;
@@ -30,6 +37,8 @@ pub use crate::frame::{
 pub use crate::signal::Timing;
 pub use crate::signal::{CHANNEL_MAX_US, CHANNEL_MIN_US, SYNC_MAX_US, SYNC_MIN_US};
 pub use check::{parse_net, validate_name};
+pub use inert::{Inert, Program};
+pub use keys::{KeyName, SetKeys};
 pub use merge::{OutputEntry, MAX_OUTPUTS};
 pub use plan::{OutputPlan, Plan, Shared};
 pub use schema::{

@@ -3,6 +3,7 @@
 //! run the plan; nothing after it reads the file's sections for settings an
 //! output could set differently.
 
+use super::keys::SetKeys;
 use super::merge::{OutputEntry, MAX_OUTPUTS};
 use super::schema::{Config, FailsafeSection, IngressSection, IpcSection, OutputSpec, RtSection};
 use super::ConfigError;
@@ -34,6 +35,8 @@ pub struct Shared {
     pub trace_max_mb: u64,
     /// `ppmd.spi_hz`: the bit rate of an `spi:` output, Hz.
     pub spi_hz: u32,
+    /// The top-level keys the file set, to name them in messages.
+    pub keys: SetKeys,
 }
 
 /// One output, resolved: its name, frame model, line, and its ingress and
@@ -61,6 +64,9 @@ pub struct OutputPlan {
     pub failsafe: FailsafeSection,
     /// Its `[mavlink]`, resolved against its channels.
     pub mavlink: crate::mavlink::Settings,
+    /// The keys its file (or a command-line option) set, to name them in
+    /// messages: `plan.keys.name("ppmd.frame_log")`.
+    pub keys: SetKeys,
 }
 
 impl Plan {
@@ -109,6 +115,7 @@ impl Plan {
                 frame_log_max_mb: cfg.ppmd.frame_log_max_mb,
                 trace_max_mb: cfg.ppmd.trace_max_mb,
                 spi_hz: cfg.ppmd.spi_hz,
+                keys: cfg.set.clone(),
             },
             outputs,
         })
@@ -177,8 +184,10 @@ fn clash(entry: &OutputEntry, other: &OutputEntry, j: usize) -> Result<(), Confi
 /// What output `c` writes to, to find two outputs on one line or file.
 fn output_target(c: &Config) -> Option<OutputSpec> {
     match c.output().ok()? {
-        OutputSpec::Sim { path: None } => Some(OutputSpec::Sim {
-            path: Some(PathBuf::from(format!("ppm-{}.trace", c.name))),
+        // One trace file however its frames are written.
+        OutputSpec::Sim { path, .. } => Some(OutputSpec::Sim {
+            path: Some(path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", c.name)))),
+            whole: false,
         }),
         spec => Some(spec),
     }
@@ -198,6 +207,7 @@ impl OutputPlan {
             status_allow: c.status_allow()?,
             seq_file: c.seq_file(),
             failsafe: c.failsafe.clone(),
+            keys: c.set.clone(),
         })
     }
 

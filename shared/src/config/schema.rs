@@ -2,6 +2,7 @@
 //! every default. [`Config::load`] reads a file; [`Config::parse`] (in
 //! [`merge`](super::merge)) parses its text.
 
+use super::keys::SetKeys;
 use super::merge::OutputEntry;
 use super::ConfigError;
 use crate::frame::PpmSection;
@@ -40,6 +41,10 @@ pub struct Config {
     /// no `[[outputs]]`: the file then describes one output.
     #[serde(skip)]
     pub outputs: Vec<OutputEntry>,
+    /// The keys the file set, and the keys a command-line option gave
+    /// (not a setting: ignored by `==`).
+    #[serde(skip)]
+    pub set: SetKeys,
 }
 
 impl Default for Config {
@@ -54,6 +59,7 @@ impl Default for Config {
             ipc: IpcSection::default(),
             mavlink: MavlinkSection::default(),
             outputs: Vec::new(),
+            set: SetKeys::default(),
         }
     }
 }
@@ -123,7 +129,9 @@ impl Default for IngressSection {
 #[serde(deny_unknown_fields, default)]
 pub struct PpmdSection {
     /// Where the signal goes: `"sim"` (simulated line, trace in
-    /// `ppm-NAME.trace`), `"sim:PATH"`, `"gpio:CHIP:LINE"`, or
+    /// `ppm-NAME.trace`), `"sim:PATH"`, `"sim-spi:PATH"` (the simulated
+    /// line written whole frame by frame, as an SPI output sends),
+    /// `"gpio:CHIP:LINE"`, or
     /// `"spi:DEVICE"` (a spidev device, e.g. `/dev/spidev0.0`: each frame
     /// one transfer on MOSI, its edges exact to the bit clock). Default `"sim"`.
     pub output: String,
@@ -428,8 +436,13 @@ impl Default for IpcSection {
 /// Where ppmd sends the signal.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum OutputSpec {
-    /// The simulated line: every edge is written to a trace file.
-    Sim { path: Option<PathBuf> },
+    /// The simulated line: every edge is written to a trace file. `whole`
+    /// (`sim-spi`): each PPM frame is handed to the line whole at its
+    /// start and leaves timed by the line's own clock, as an SPI output
+    /// sends it, so no edge inside a frame waits on the timing thread;
+    /// else (`sim`) edge by edge, each at its time as the loop keeps it, as
+    /// a GPIO line.
+    Sim { path: Option<PathBuf>, whole: bool },
     /// A GPIO line through the GPIO character device; an empty `chip`
     /// (`gpio:LINE`): the chip that has a line named `line`.
     Gpio { chip: String, line: String },
@@ -445,9 +458,13 @@ impl std::str::FromStr for OutputSpec {
 
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s.split_once(':') {
-            None if s == "sim" => Ok(OutputSpec::Sim { path: None }),
-            Some(("sim", path)) if !path.is_empty() => Ok(OutputSpec::Sim {
+            None if s == "sim" || s == "sim-spi" => Ok(OutputSpec::Sim {
+                path: None,
+                whole: s == "sim-spi",
+            }),
+            Some((kind @ ("sim" | "sim-spi"), path)) if !path.is_empty() => Ok(OutputSpec::Sim {
                 path: Some(PathBuf::from(path)),
+                whole: kind == "sim-spi",
             }),
             Some(("spi", device)) if !device.is_empty() => Ok(OutputSpec::Spi {
                 device: PathBuf::from(device),
@@ -478,7 +495,7 @@ impl std::str::FromStr for OutputSpec {
                 )),
             },
             _ => Err(format!(
-                "`{s}` is not an output: use sim, sim:PATH, gpio:CHIP:LINE, spi:DEVICE or serial:DEVICE"
+                "`{s}` is not an output: use sim, sim:PATH, sim-spi:PATH, gpio:CHIP:LINE, spi:DEVICE or serial:DEVICE"
             )),
         }
     }

@@ -125,7 +125,14 @@ impl Header {
                 .unwrap_or_else(|| format!("ch{}", i + 1));
             s += &format!(" {name} {:7.1}", *ns as f64 / 1e3);
         }
-        if !complete {
+        // A frame cut short (at a late edge, or by a gap no receiver takes)
+        // has fewer channels than the trace's header names; a frame with
+        // all of them is whole, whatever gap follows it (the trainer inputs
+        // use each channel as it arrives).
+        let want = self.names.len();
+        if want > 0 && channels_ns.len() < want {
+            s += &format!("  (cut short: {} of {want} channels)", channels_ns.len());
+        } else if want == 0 && !complete {
             s += "  (incomplete)";
         }
         s

@@ -264,7 +264,7 @@ fn main() -> Result<()> {
             let obtained = setup.apply()?;
             let mut summary = obtained.summary();
             for s in &obtained.shortfalls {
-                summary += &format!("\nDEGRADED: {s}");
+                summary += &format!("\nDEGRADED: {}", s.degraded());
             }
             let [mut spin, mut sleep, mut two, mut fol] =
                 [Totals::new(), Totals::new(), Totals::new(), Totals::new()];

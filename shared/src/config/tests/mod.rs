@@ -32,7 +32,10 @@ fn example_file_lists_the_defaults() {
     assert_eq!(ppm.protocol, crate::signal::Protocol::Ppm);
     use crate::frame::section::ppm_defaults;
     assert_eq!(ppm.channels.take(), Some(ppm_defaults::CHANNELS));
-    assert_eq!(ppm.frame_us.take(), Some(ppm_defaults::FRAME_US));
+    // frame_us is commented out: the example's timing is follow, where it
+    // does nothing (a warning at start, were it set).
+    assert_eq!(ppm.frame_us.take(), None);
+    assert!(text.contains(&format!("# frame_us = {:.1}\n", ppm_defaults::FRAME_US)));
     assert_eq!(ppm.idle_level.take(), Some(crate::signal::Level::Low));
     assert_eq!(
         ppm.follow_sync_min_us.take(),
@@ -383,11 +386,32 @@ fn orders() {
 
 #[test]
 fn output_specs() {
-    assert_eq!("sim".parse(), Ok(OutputSpec::Sim { path: None }));
+    assert_eq!(
+        "sim".parse(),
+        Ok(OutputSpec::Sim {
+            path: None,
+            whole: false
+        })
+    );
     assert_eq!(
         "sim:/tmp/x.trace".parse(),
         Ok(OutputSpec::Sim {
-            path: Some("/tmp/x.trace".into())
+            path: Some("/tmp/x.trace".into()),
+            whole: false
+        })
+    );
+    assert_eq!(
+        "sim-spi".parse(),
+        Ok(OutputSpec::Sim {
+            path: None,
+            whole: true
+        })
+    );
+    assert_eq!(
+        "sim-spi:q/line.trace".parse(),
+        Ok(OutputSpec::Sim {
+            path: Some("q/line.trace".into()),
+            whole: true
         })
     );
     assert_eq!(
