@@ -480,7 +480,9 @@ impl HdrLog {
     /// first output's: what HdrHistogram's log processor reads without
     /// `-tag`, written even when empty so that every interval has one), and
     /// `[NAME.]edge_error`, `[NAME.]write`, `[NAME.]aborted` and
-    /// `[NAME.]glitched` tagged when not empty. The
+    /// `[NAME.]glitched` tagged, every one in every interval, empty ones
+    /// too (a silent line's, a run without a late edge's), so a reader
+    /// picking a tag finds every interval. The
     /// first write of a run starts with the headers Java's reader expects:
     /// the format version, start and base time, and the column legend (also
     /// the header of any file a rotation would start). An interval that
@@ -524,11 +526,9 @@ impl HdrLog {
             (&iv.aborted, "aborted"),
             (&iv.glitched, "glitched"),
         ] {
-            if !h.is_empty() {
-                let tag = format!("{prefix}{tag}");
-                w.write_histogram(h, from, length, Tag::new(&tag))
-                    .with_context(|| format!("serializing {tag}"))?;
-            }
+            let tag = format!("{prefix}{tag}");
+            w.write_histogram(h, from, length, Tag::new(&tag))
+                .with_context(|| format!("serializing {tag}"))?;
         }
         self.file
             .write(&self.buf)

@@ -18,6 +18,8 @@ const SECOND: Duration = Duration::from_secs(1);
 /// histograms' counts over all intervals.
 struct Intervals {
     edges: Vec<(u64, u64)>,
+    /// Each interval's tags, in the file's order.
+    tags: Vec<Vec<String>>,
     all: Vec<u64>,
     aborted: u64,
     glitched: u64,
@@ -26,6 +28,7 @@ struct Intervals {
 fn intervals(text: &str) -> Intervals {
     let mut d = Deserializer::new();
     let mut out: Vec<(u64, u64)> = Vec::new();
+    let mut tags: Vec<Vec<String>> = Vec::new();
     let mut all = Vec::new();
     let (mut aborted, mut glitched) = (0, 0);
     let mut start = None;
@@ -37,9 +40,15 @@ fn intervals(text: &str) -> Intervals {
                     .unwrap();
                 let count = h.len();
                 all.push(count);
+                if let Some(t) = iv.tag() {
+                    tags.last_mut()
+                        .expect("untagged first")
+                        .push(t.as_str().to_string());
+                }
                 match iv.tag().map(|t| t.as_str().to_string()) {
                     None => {
                         out.push((count, 0));
+                        tags.push(Vec::new());
                         start = Some(iv.start_timestamp());
                     }
                     Some(t) if t == "edge_error" => {
@@ -58,6 +67,7 @@ fn intervals(text: &str) -> Intervals {
     }
     Intervals {
         edges: out,
+        tags,
         all,
         aborted,
         glitched,
@@ -105,6 +115,9 @@ fn the_hdr_log_is_read_by_rust_python_and_java_readers() {
     let _ingress = sb.start_ingress(&cfg, &[]);
     let s = Sender::new(sb.addr());
     at_50hz(150, |_| s.send(b"[1100, 1900, 1500, 1500]"));
+    // A silent line for over an interval: its histograms are empty, and
+    // there all the same.
+    std::thread::sleep(5 * SECOND / 2);
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
     let text = std::fs::read_to_string(&log).unwrap();
 
@@ -122,12 +135,25 @@ fn the_hdr_log_is_read_by_rust_python_and_java_readers() {
     // Every interval has an untagged histogram, the same as its edge_error.
     let Intervals {
         edges: iv,
+        tags,
         all,
         aborted,
         glitched,
     } = intervals(&text);
     assert!(iv.len() >= 2, "{iv:?}");
     assert!(iv.iter().all(|(u, t)| u == t), "{iv:?}");
+    // And every tag, in every interval, the silent ones (no edge) too.
+    for t in &tags {
+        assert_eq!(
+            t,
+            &["edge_error", "write", "aborted", "glitched"],
+            "{tags:?}"
+        );
+    }
+    assert!(
+        iv.iter().any(|(u, _)| *u == 0),
+        "no silent interval: {iv:?}"
+    );
     // About 150 frames of 9 edges; fewer on a loaded machine, which cuts
     // frames short at a late edge. The readers below must agree on the
     // counts, whatever they are: one edge is what they need to read.
