@@ -284,3 +284,60 @@ fn signed_sending_and_status_of_each_target() {
     assert!(String::from_utf8_lossy(&out.stdout).contains(&format!("udp-ingress `{}`", a.sb.name)));
     assert!(String::from_utf8_lossy(&out.stderr).contains("no reply from"));
 }
+
+/// ppm-send checks a command as udp-ingress reads it under any
+/// configuration: one every udp-ingress refuses stops it before anything is
+/// sent (exit 1, the reason the ingress would count), and from standard
+/// input such a line is skipped and said while the good ones go out.
+#[test]
+fn ppm_send_refuses_what_every_ingress_refuses() {
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    socket
+        .set_read_timeout(Some(std::time::Duration::from_millis(300)))
+        .unwrap();
+    let to = socket.local_addr().unwrap().to_string();
+    for (command, reason) in [
+        ("[3000]", "out_of_range"),
+        (r#"[1500,"x"]"#, "not_a_number"),
+        (r#"{"thr":1000,"thr":2000}"#, "duplicate_key"),
+        (r#"{"yaw":1500}"#, "unknown_channel"),
+        ("[1500, 1500", "invalid_json"),
+    ] {
+        let out = std::process::Command::new(ppm_tests::bin("ppm-send"))
+            .args(["--to", &to, "--count", "3", command])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{command}: {err}");
+        assert!(err.contains(reason), "{command}: {err}");
+        let mut buf = [0u8; 512];
+        assert!(socket.recv(&mut buf).is_err(), "{command} was sent");
+    }
+    // Standard input: the bad lines are skipped, the good ones sent.
+    let mut child = std::process::Command::new(ppm_tests::bin("ppm-send"))
+        .args(["--to", &to])
+        .stdin(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    use std::io::Write;
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(b"[1100]\n[3000]\n{\"ail\":1,\"ail\":2}\n{\"ch\":[1200]}\n")
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("out_of_range") && err.contains("duplicate_key"),
+        "{err}"
+    );
+    let mut got = Vec::new();
+    let mut buf = [0u8; 512];
+    while let Ok(n) = socket.recv(&mut buf) {
+        got.push(String::from_utf8_lossy(&buf[..n]).to_string());
+    }
+    assert_eq!(got, ["[1100]", r#"{"ch":[1200]}"#], "{err}");
+}

@@ -2,8 +2,9 @@
 
 use crate::parse_duration;
 use anyhow::{bail, Context, Result};
-use ppm_shared::config::channel_names;
-use ppm_shared::protocol::{VALUE_MAX_US, VALUE_MIN_US};
+use ppm_shared::config::{channel_names, Config};
+use ppm_shared::frame::FrameModel;
+use ppm_shared::protocol::{parse_for, To, VALUE_MAX_US, VALUE_MIN_US};
 use ppm_shared::MAX_CHANNELS;
 use serde_json::{json, Value};
 use std::time::Duration;
@@ -96,9 +97,14 @@ impl Template {
     /// the number is named through `order` (the ingress's `ppm.order`).
     pub fn new(command: Option<&str>, sweeps: &[Sweep], order: &str) -> Result<Template> {
         let base: Value = match command {
-            Some(text) => {
-                serde_json::from_str(text).with_context(|| format!("`{text}` is not JSON"))?
-            }
+            // Read as udp-ingress reads it: a key given twice is refused.
+            Some(text) => ppm_shared::protocol::json(text.as_bytes()).map_err(|r| {
+                anyhow::anyhow!(
+                    "`{text}` would be refused by udp-ingress ({}): {}",
+                    r.reason.as_str(),
+                    r.detail
+                )
+            })?,
             None => json!({}),
         };
         if sweeps.is_empty() {
@@ -180,9 +186,72 @@ impl Template {
     }
 }
 
+/// The widest configuration a udp-ingress may have: 16 channels (ail, ele,
+/// thr, rud, aux1..aux12, in any order the same names), each with a unit
+/// range. A command it refuses, every udp-ingress refuses.
+fn widest() -> &'static FrameModel {
+    static MODEL: std::sync::OnceLock<FrameModel> = std::sync::OnceLock::new();
+    MODEL.get_or_init(|| {
+        let names = channel_names("AETR", MAX_CHANNELS).expect("the widest order");
+        let mut text = format!(
+            "[ppm]\ntiming = \"follow\"\nreceiver = \"edgetx\"\nchannels = {MAX_CHANNELS}\n"
+        );
+        for n in &names {
+            text += &format!("[ppm.channel.{n}]\nunit_min = -1.0\nunit_max = 1.0\n");
+        }
+        Config::parse(&text)
+            .and_then(|c| c.validate())
+            .expect("the widest configuration is valid")
+    })
+}
+
+/// Checks `command` as udp-ingress reads it, refusing what every
+/// configuration refuses, with the reason the ingress would count: not UTF-8
+/// or not JSON, a key twice, a value that is not a number or lies outside
+/// 500..=2500 us, more than 16 values, a channel no configuration has, a
+/// shape that is no command. What depends on the ingress's configuration
+/// (its channel count and names, unit ranges, output name) is left to it.
+pub fn check_command(command: &str) -> Result<()> {
+    match parse_for(command.as_bytes(), widest(), To::Any) {
+        Ok(_) => Ok(()),
+        Err(r) => bail!(
+            "`{command}` would be refused by udp-ingress ({}): {}",
+            r.reason.as_str(),
+            r.detail
+        ),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_command_every_ingress_refuses_is_refused_with_its_reason() {
+        for (command, reason) in [
+            ("[3000]", "out_of_range"),
+            (r#"[1500,"x"]"#, "not_a_number"),
+            (r#"{"norm":{"thr":0,"thr":1}}"#, "duplicate_key"),
+            (r#"{"yaw":1500}"#, "unknown_channel"),
+            ("[1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500]", "too_many_values"),
+            ("1500", "bad_shape"),
+            ("{}", "bad_shape"),
+        ] {
+            let e = check_command(command).unwrap_err().to_string();
+            assert!(e.contains(reason), "{command}: {e}");
+        }
+        // What some configuration takes is left to the ingress: 16
+        // channels, aux12, any unit range, any output name.
+        for command in [
+            "[1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500,1500]",
+            r#"{"aux12": 1800, "seq": 3}"#,
+            r#"{"units": {"ail": 300.0}}"#,
+            r#"{"norm": {"thr": -1}, "to": "rover"}"#,
+            r#"{"ch": [1000, 2000]}"#,
+        ] {
+            check_command(command).unwrap_or_else(|e| panic!("{command}: {e}"));
+        }
+    }
 
     fn sweep(s: &str) -> Sweep {
         Sweep::parse(s).unwrap()

@@ -6,7 +6,7 @@
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use ppm_shared::auth::AuthKey;
-use ppm_tools::send::{Sweep, Template};
+use ppm_tools::send::{check_command, Sweep, Template};
 use ppm_tools::status::{parse, query, readable, resolve};
 use ppm_tools::{parse_duration, with_seq, with_to};
 use std::io::BufRead;
@@ -66,7 +66,9 @@ struct Cli {
     /// How long --status waits for each reply.
     #[arg(long, default_value = "1s", value_parser = parse_duration, value_name = "TIME", requires = "status")]
     timeout: Duration,
-    /// Send COMMAND (or each line) as it is, without checking that it is JSON (for tests).
+    /// Send COMMAND (or each line) as it is, without checking it (for tests:
+    /// otherwise a command udp-ingress would refuse under any configuration
+    /// stops ppm-send, or a line is skipped, with the reason).
     #[arg(long, conflicts_with_all = ["seq", "auth_key", "name", "sweep"])]
     raw: bool,
     /// The command, e.g. '[1500, 1500, 1000, 1500]' or '{"thr": 1200}'.
@@ -204,6 +206,7 @@ impl Cli {
             };
             if let Some(t) = template.as_ref() {
                 let first = t.at(0.0);
+                check_command(&first.to_string())?;
                 if finish.numbered {
                     with_seq(&first, 0)?;
                 }
@@ -241,7 +244,13 @@ impl Cli {
                     None
                 } else {
                     match serde_json::from_str::<serde_json::Value>(&line) {
-                        Ok(v) => Some(v),
+                        Ok(v) => match check_command(&line) {
+                            Ok(()) => Some(v),
+                            Err(e) => {
+                                eprintln!("ppm-send: skipped: {e:#}");
+                                continue;
+                            }
+                        },
                         Err(e) => {
                             eprintln!("ppm-send: skipped: `{line}` is not JSON: {e}");
                             continue;
