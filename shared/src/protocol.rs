@@ -298,7 +298,7 @@ pub fn parse_for(datagram: &[u8], model: &FrameModel, to: To) -> Result<Command,
 /// counts (serde_json, like Python's, takes the last; others the first, or
 /// refuse): such a datagram has no one meaning, and ppm takes none.
 ///
-/// serde_json has no setting for it: the value is built by [`Strict`], which
+/// serde_json has no setting for it: the value is built by `Strict`, which
 /// is serde_json's own `Value` visitor with the check where a key is
 /// inserted (one map lookup the insertion does anyway), so the text is read
 /// once, as fast as before.
