@@ -72,7 +72,9 @@ pub mod watchdog;
 /// [`EXIT_CONFIG`](ppm_shared::daemon::EXIT_CONFIG), as for a bad key.
 ///
 /// Left to a restart (exit status 1): a line or device another process
-/// holds (EBUSY), and a device file this user may not open (EACCES): at
+/// holds (EBUSY), a device node without its hardware (ENXIO, ENODEV: a
+/// USB adaptor enumerating or just unplugged), and a device file this user
+/// may not open (EACCES): at
 /// boot udev gives a device its group (`60-ppm.rules`) only after the
 /// kernel made it, so a ppmd started in between is cured by its restart a
 /// second later. A device that appears late (a USB serial adaptor) is
@@ -94,9 +96,16 @@ pub fn output_fault(e: &(dyn std::error::Error + 'static)) -> bool {
                 | GpioError::OffsetWithoutChip { .. }
         );
     }
-    // Opening the device: what path_at_fault says, but for EACCES.
+    // Opening the device: what path_at_fault says, but for EACCES (udev
+    // gives the device its group at boot, maybe after ppmd started) and
+    // ENXIO or ENODEV (the node is there but its hardware is not yet, or no
+    // more: a USB adaptor enumerating or just unplugged). A restart may
+    // cure those.
     let open_fault = |io: &std::io::Error| {
-        io.raw_os_error() != Some(libc::EACCES) && ppm_shared::config::fault::path_at_fault(io)
+        !matches!(
+            io.raw_os_error(),
+            Some(libc::EACCES | libc::ENXIO | libc::ENODEV)
+        ) && ppm_shared::config::fault::path_at_fault(io)
     };
     if let Some(s) = e.downcast_ref::<SerialError>() {
         return match s {
@@ -143,6 +152,8 @@ mod tests {
             (serial(SerialStep::Open, libc::EPERM), true),
             (serial(SerialStep::Open, libc::EACCES), false),
             (serial(SerialStep::Open, libc::EBUSY), false),
+            (serial(SerialStep::Open, libc::ENXIO), false),
+            (serial(SerialStep::Open, libc::ENODEV), false),
             (serial(SerialStep::Configure, libc::EINVAL), false),
         ] {
             assert_eq!(output_fault(&e), fault, "{e}");
@@ -154,6 +165,7 @@ mod tests {
             (spi("opening", libc::ENOENT), true),
             (spi("opening", libc::EPERM), true),
             (spi("opening", libc::EACCES), false),
+            (spi("opening", libc::ENODEV), false),
             (spi("not a spidev device", libc::EINVAL), true),
             (spi("a first transfer", libc::EIO), false),
         ] {

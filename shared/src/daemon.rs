@@ -43,9 +43,10 @@ pub const EXIT_FAILURE: i32 = 1;
 /// The exit status for a daemon's fatal error `e`: [`EXIT_CONFIG`] when
 /// the configuration is at fault (a [`ConfigError`](crate::config::ConfigError),
 /// a key file's [`KeyError`](crate::auth::KeyError) or a real-time
-/// [`Shortfall`](crate::sched::Shortfall), which `rt.allow_degraded` would
-/// have let run, anywhere in its chain, or a cause that `is_config` says is
-/// one), else [`EXIT_FAILURE`].
+/// [`Shortfall`](crate::sched::Shortfall) that a restart meets again
+/// ([`Shortfall::is_config`](crate::sched::Shortfall::is_config)), anywhere
+/// in its chain, or a cause that `is_config` says is one), else
+/// [`EXIT_FAILURE`].
 pub fn exit_status(
     e: &anyhow::Error,
     is_config: impl Fn(&(dyn std::error::Error + 'static)) -> bool,
@@ -53,7 +54,8 @@ pub fn exit_status(
     let config = e.chain().any(|c| {
         c.is::<crate::config::ConfigError>()
             || c.is::<crate::auth::KeyError>()
-            || c.is::<crate::sched::Shortfall>()
+            || c.downcast_ref::<crate::sched::Shortfall>()
+                .is_some_and(|s| s.is_config())
             || is_config(c)
     });
     if config {
@@ -84,6 +86,12 @@ mod tests {
         ))
         .context("config key `rt.priority`");
         assert_eq!(exit_status(&rt, |_| false), EXIT_CONFIG);
+        // What a restart may get: locked memory (memory pressure), the
+        // latency device (its group comes from udev at boot).
+        for what in ["mlockall", "cpu_dma_latency", "timer slack"] {
+            let rt = anyhow::Error::new(crate::sched::Shortfall::new(what, "refused".into(), ""));
+            assert_eq!(exit_status(&rt, |_| false), EXIT_FAILURE, "{what}");
+        }
     }
 
     #[derive(Parser)]

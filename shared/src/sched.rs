@@ -37,6 +37,16 @@ impl Shortfall {
         Degraded(self)
     }
 
+    /// Whether a restart meets it again, so it is the configuration's
+    /// (exit status 78): SCHED_FIFO or a CPU refused (the user's rights and
+    /// limits, the unit's settings). Locked memory (refused under memory
+    /// pressure too), `/dev/cpu_dma_latency` (whose group udev gives it at
+    /// boot, maybe after ppmd started) and the timer slack may be had on a
+    /// restart: exit status 1.
+    pub fn is_config(&self) -> bool {
+        !matches!(self.what, "mlockall" | "cpu_dma_latency" | "timer slack")
+    }
+
     fn what_and_fix(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "{}: {}", self.what, self.detail)?;
         if !self.fix.is_empty() {
