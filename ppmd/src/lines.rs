@@ -4,7 +4,7 @@
 use crate::emitter::{self, LineRef};
 use crate::line::serial::SerialLine;
 use crate::line::spi::{self, SpiLine};
-use crate::line::{FrameLine, Line, SimLine, SimSbusLine, SimWholeLine};
+use crate::line::{FrameLine, Line, SimFrameLine, SimLine};
 use anyhow::{Context, Result};
 use ppm_shared::config::{fault, ConfigError, KeyName, OutputPlan, OutputSpec, Shared, Timing};
 use ppm_shared::frame::{Level, Protocol};
@@ -69,7 +69,7 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
         match cfg.output.clone() {
             OutputSpec::Sim { path, .. } if model.protocol() == Protocol::Sbus => {
                 let sim = create_sim(cfg, shared.trace_max_mb, path)?;
-                let line = SimSbusLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
+                let line = SimFrameLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
                 each[i] = Some(OpenLine::Whole(Box::new(line)));
             }
             OutputSpec::Sim { path, whole: true } => {
@@ -78,7 +78,7 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                     "output `{}`: each frame handed to the simulated line whole at its start, timed by the line's own clock, as an spi: output sends it",
                     cfg.name
                 );
-                let line = SimWholeLine::new(sim, ppm_shared::time::now_ns);
+                let line = SimFrameLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
                 each[i] = Some(OpenLine::Whole(Box::new(line)));
             }
             OutputSpec::Sim { path, .. } => {

@@ -10,7 +10,7 @@ use ppm_shared::ipc::{self, CommandSample};
 use ppm_shared::protocol::parse;
 use ppmd::clock::{self, Margin};
 use ppmd::emitter::{self, EmitterConfig, LineRef, Output, Recording, Stats};
-use ppmd::line::{spi, Bank, FrameLine, LineError, SimLine, SimSbusLine, WholeFrame};
+use ppmd::line::{spi, Bank, FrameLine, LineError, SimFrameLine, SimLine, WholeFrame};
 use ppmd::source::{CommandSource, IpcSource};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -230,7 +230,7 @@ fn run_with(timing: Timing, every_ms: u64, whole_frames: bool, protocol: Protoco
                 .then(|| SimLine::create(&trace, &["idle_level 0".into()], u64::MAX).unwrap());
             let mut sim_sbus = (!whole_frames && protocol == Protocol::Sbus).then(|| {
                 let sim = SimLine::create(&trace, &["idle_level 1".into()], u64::MAX).unwrap();
-                SimSbusLine::new(sim, Level::High, clock::now_ns)
+                SimFrameLine::new(sim, Level::High, clock::now_ns)
             });
             let line = match (&mut spi, &mut sim, &mut sim_sbus) {
                 (Some(spi), _, _) => LineRef::Whole(spi),

@@ -98,13 +98,9 @@ impl Template {
     pub fn new(command: Option<&str>, sweeps: &[Sweep], order: &str) -> Result<Template> {
         let base: Value = match command {
             // Read as udp-ingress reads it: a key given twice is refused.
-            Some(text) => ppm_shared::protocol::json(text.as_bytes()).map_err(|r| {
-                anyhow::anyhow!(
-                    "`{text}` would be refused by udp-ingress ({}): {}",
-                    r.reason.as_str(),
-                    r.detail
-                )
-            })?,
+            Some(text) => {
+                ppm_shared::protocol::json(text.as_bytes()).map_err(|r| refusal(text, &r))?
+            }
             None => json!({}),
         };
         if sweeps.is_empty() {
@@ -222,14 +218,18 @@ pub fn check_command(command: &str) -> Result<()> {
             return check_command(msg);
         }
     }
-    match parse_for(command.as_bytes(), widest(), To::Any) {
-        Ok(_) => Ok(()),
-        Err(r) => bail!(
-            "`{command}` would be refused by udp-ingress ({}): {}",
-            r.reason.as_str(),
-            r.detail
-        ),
-    }
+    parse_for(command.as_bytes(), widest(), To::Any)
+        .map(|_| ())
+        .map_err(|r| refusal(command, &r))
+}
+
+/// `command` would be refused, for reason `r`, as udp-ingress counts it.
+fn refusal(command: &str, r: &ppm_shared::protocol::Reject) -> anyhow::Error {
+    anyhow::anyhow!(
+        "`{command}` would be refused by udp-ingress ({}): {}",
+        r.reason.as_str(),
+        r.detail
+    )
 }
 
 #[cfg(test)]

@@ -195,21 +195,23 @@ impl Drop for SimLine {
     }
 }
 
-/// The simulated line of an SBUS output: each frame's bytes are written
-/// to the trace as the UART waveform a line idling at `idle` carries, every
-/// bit edge at its time from the write (actual) and from when it was due
-/// (scheduled).
-pub struct SimSbusLine {
+/// The simulated line taking whole frames, each written to the trace from
+/// the write, every edge at its time from the write (actual) and from when
+/// the frame was due (scheduled): an SBUS frame's bytes as the UART
+/// waveform a line idling at `idle` carries; a PPM frame (`sim-spi`) with
+/// its edges at their offsets, as SPI sends it, so an edge's lateness is
+/// the frame's start's whatever the timing thread does during the frame.
+pub struct SimFrameLine {
     sim: SimLine,
     idle: Level,
     now_ns: fn() -> u64,
 }
 
-impl SimSbusLine {
-    /// An SBUS line on `sim`, idling at `idle`, reading the write's time from
-    /// `now_ns` (CLOCK_MONOTONIC in ppmd).
-    pub fn new(sim: SimLine, idle: Level, now_ns: fn() -> u64) -> SimSbusLine {
-        SimSbusLine { sim, idle, now_ns }
+impl SimFrameLine {
+    /// A whole-frame line on `sim`, idling at `idle`, reading the write's
+    /// time from `now_ns` (CLOCK_MONOTONIC in ppmd).
+    pub fn new(sim: SimLine, idle: Level, now_ns: fn() -> u64) -> SimFrameLine {
+        SimFrameLine { sim, idle, now_ns }
     }
 
     /// The simulated line under it.
@@ -218,47 +220,19 @@ impl SimSbusLine {
     }
 }
 
-impl FrameLine for SimSbusLine {
+impl FrameLine for SimFrameLine {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
-        let WholeFrame::Sbus { bytes, due_ns } = frame else {
-            return Err(LineError::WrongProtocol);
-        };
         let now = (self.now_ns)();
-        let edges = ppm_shared::sbus::uart::edges(bytes, 0, self.idle);
-        write_whole(&mut self.sim, due_ns, now, edges)
-    }
-
-    fn park(&mut self, _level: Level) -> Result<(), LineError> {
-        Ok(())
-    }
-}
-
-/// The simulated line of a PPM output sent whole (`sim-spi`): each frame is
-/// handed over at its first edge and leaves timed by the line's own clock,
-/// as through SPI: every edge at its offset from the write (actual) and
-/// from when the frame was due (scheduled). So an edge's lateness is the
-/// frame's start's, whatever the timing thread does during the frame.
-pub struct SimWholeLine {
-    sim: SimLine,
-    now_ns: fn() -> u64,
-}
-
-impl SimWholeLine {
-    /// A whole-frame PPM line on `sim`, reading the write's time from
-    /// `now_ns` (CLOCK_MONOTONIC in ppmd).
-    pub fn new(sim: SimLine, now_ns: fn() -> u64) -> SimWholeLine {
-        SimWholeLine { sim, now_ns }
-    }
-}
-
-impl FrameLine for SimWholeLine {
-    fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
-        let WholeFrame::Ppm { edges, due_ns } = frame else {
-            return Err(LineError::WrongProtocol);
-        };
-        let now = (self.now_ns)();
-        let edges = edges.iter().map(|e| (e.at_ns, e.level));
-        write_whole(&mut self.sim, due_ns, now, edges)
+        match frame {
+            WholeFrame::Sbus { bytes, due_ns } => {
+                let edges = ppm_shared::sbus::uart::edges(bytes, 0, self.idle);
+                write_whole(&mut self.sim, due_ns, now, edges)
+            }
+            WholeFrame::Ppm { edges, due_ns } => {
+                let edges = edges.iter().map(|e| (e.at_ns, e.level));
+                write_whole(&mut self.sim, due_ns, now, edges)
+            }
+        }
     }
 
     fn park(&mut self, _level: Level) -> Result<(), LineError> {
