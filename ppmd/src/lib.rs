@@ -34,10 +34,14 @@
 //!   emission of a due step, the recording, and what a frame is on the wire
 //!   (the protocol seam).
 //! - [`source`]: where commands come from (iceoryx2 in the daemon).
+//! - [`input`]: where read-back gets an input line's edges (a GPIO line
+//!   with kernel timestamps, or a sim trace followed as it grows).
 //! - [`framelog`]: the JSON-lines log of every frame sent.
 //! - [`lines`]: opening every output's line, handed back with its output.
 //! - [`monitor`]: the main thread's view of the loop: logs, snapshots, HdrHistogram log.
 //! - [`meter`]: histograms of the loop's timing, handed over lock-free.
+//! - [`readback`]: the read-back thread: what the radio transmits, compared
+//!   with what the line carried.
 //! - [`rotating`]: the log files' type: rotated at a size cap, fed by a
 //!   lock-free ring and a writer thread.
 //! - [`startup`]: what the main thread holds of each output around the
@@ -51,11 +55,13 @@ pub mod cli;
 pub mod clock;
 pub mod emitter;
 pub mod framelog;
+pub mod input;
 pub mod instance;
 pub mod line;
 pub mod lines;
 pub mod meter;
 pub mod monitor;
+pub mod readback;
 pub mod rotating;
 pub mod rt;
 pub mod source;
@@ -84,7 +90,10 @@ pub fn output_fault(e: &(dyn std::error::Error + 'static)) -> bool {
     use line::gpio::GpioError;
     use line::serial::{SerialError, SerialStep};
     use line::spi::SpiError;
-    if let Some(g) = e.downcast_ref::<GpioError>() {
+    let gpio = e
+        .downcast_ref::<GpioError>()
+        .or_else(|| e.downcast_ref::<input::InputError>()?.gpio());
+    if let Some(g) = gpio {
         return matches!(
             g,
             GpioError::NoSuchChip { .. }

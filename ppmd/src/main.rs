@@ -11,6 +11,7 @@ use ppm_shared::config::{fault, CpuChoice, KeyName, Plan};
 use ppmd::cli::Cli;
 use ppmd::lines::{describe, open_lines, Lines};
 use ppmd::monitor::HdrLog;
+use ppmd::readback::Opened;
 use ppmd::rt::RtSetup;
 use ppmd::startup::{self, Output, Watched};
 use ppmd::watchdog::Systemd;
@@ -72,6 +73,25 @@ fn run(cli: Cli) -> Result<()> {
         .into_iter()
         .unzip();
 
+    // Read-back inputs and logs open before the line moves: a fault stops
+    // ppmd at start.
+    let opened = outputs
+        .iter()
+        .filter_map(|o| {
+            let plan = o.plan.readback.as_ref()?;
+            Some(
+                Opened::open(
+                    &o.plan.name,
+                    &o.tag,
+                    plan,
+                    &o.plan.keys,
+                    shared.frame_log_max_mb << 20,
+                )
+                .map(|r| (r, o.stats.clone())),
+            )
+        })
+        .collect::<Result<Vec<_>>>()?;
+
     let (ready_tx, ready_rx) = std::sync::mpsc::channel();
     let timing = ppmd::timing::spawn(
         timed,
@@ -97,6 +117,18 @@ fn run(cli: Cli) -> Result<()> {
         log::info!("{}{}", o.tag, describe(&shared, &o.plan));
     }
 
+    let mut readbacks = Vec::new();
+    for (r, stats) in opened {
+        match r.start(&shared.ipc.root, stats, obtained.cpu) {
+            Ok(r) => readbacks.push(r),
+            Err(e) => {
+                stop.store(true, Relaxed);
+                let _ = timing.join();
+                return Err(e);
+            }
+        }
+    }
+
     let mut watched = startup::watch_all(outputs, &obtained);
     let progress = |watched: &[Watched]| -> u64 {
         watched
@@ -116,6 +148,9 @@ fn run(cli: Cli) -> Result<()> {
     timing
         .join()
         .map_err(|_| anyhow!("the timing thread panicked"))??;
+    for r in &mut readbacks {
+        r.finish();
+    }
     for w in &mut watched {
         w.finish(hdr.as_mut());
     }

@@ -161,6 +161,70 @@ pub fn open_line_service(node: &Node, name: &str) -> Result<LineService, IpcErro
     open_newest_only(node, &line_service_name(name))
 }
 
+/// The iceoryx2 service carrying output `name`'s read-back: what the radio
+/// transmits, read from ppmd's `readback` input, and whether it is ppm's.
+pub fn readback_service_name(name: &str) -> String {
+    format!("ppm/{name}/readback")
+}
+
+/// Refusal reasons a [`ReadbackSample`] counts, in
+/// [`crate::capture::CaptureCounts::reasons`]' order.
+pub const READBACK_REASONS: usize = 8;
+
+/// Output `name`'s read-back, published by ppmd's read-back thread at every
+/// frame it reads and every state change (and every tenth of a second
+/// while nothing is read), on [`readback_service_name`]: what udp-ingress
+/// reports in status replies, to JSON senders and to MAVLink peers.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[type_name("ppm::ReadbackSample")]
+#[repr(C)]
+pub struct ReadbackSample {
+    /// CLOCK_MONOTONIC time of publication, ns.
+    pub published_mono_ns: u64,
+    /// The state: a [`crate::capture::ReadbackState`] code (0 `no_input`,
+    /// 1 `following`, 2 `overridden`).
+    pub state: u32,
+    /// Channels in the newest frame read (valid entries of `values_ns`).
+    pub channels: u32,
+    /// State changes so far (a reader that sees this grow knows the state
+    /// changed, even between two samples it read).
+    pub changes: u64,
+    /// CLOCK_MONOTONIC time of the newest state change, ns (0: none yet).
+    pub changed_mono_ns: u64,
+    /// Edges read from the input.
+    pub edges: u64,
+    /// Whole frames read.
+    pub frames: u64,
+    /// Frames read that carried ppm's values (within the tolerance).
+    pub matched: u64,
+    /// Frames read that carried something else.
+    pub mismatched: u64,
+    /// Frames refused, by reason ([`READBACK_REASONS`]; names from
+    /// [`crate::capture::CaptureCounts::reasons`]).
+    pub refused: [u64; READBACK_REASONS],
+    /// CLOCK_MONOTONIC time the newest frame read began, ns (0: none yet).
+    pub start_mono_ns: u64,
+    /// The newest frame read, ns per channel, in the order read.
+    pub values_ns: [u32; MAX_CHANNELS],
+    /// Largest difference between the newest frame read and the nearest
+    /// value ppm's line carried, per channel, ns.
+    pub max_diff_ns: u32,
+    /// Padding (0).
+    pub reserved: u32,
+}
+
+/// The read-back service.
+pub type ReadbackService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+    iceoryx2::service::ipc::Service,
+    ReadbackSample,
+    (),
+>;
+
+/// Opens (or creates) the newest-only read-back service of output `name`.
+pub fn open_readback_service(node: &Node, name: &str) -> Result<ReadbackService, IpcError> {
+    open_newest_only(node, &readback_service_name(name))
+}
+
 /// Buckets of [`TimingSnapshot::hist_us`]: edge error 0..1000 us in 1 us steps.
 pub const HIST_BUCKETS: usize = 1_000;
 

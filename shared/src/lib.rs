@@ -9,6 +9,7 @@
 //!   section ([`FrameModel::build`]), and the encoder that turns channel
 //!   values into one frame's edge schedule.
 //! - [`decode`]: a decoder with transmitter semantics that reads any waveform back.
+//! - [`capture`]: reading PPM back from an input line: where, its edges, and the capture decoder.
 //! - [`receiver`]: PPM input as EdgeTX, OpenTX, Betaflight and ArduPilot
 //!   decode it, each modelled on its firmware.
 //! - [`sbus`]: the SBUS frame, its encoder, and SBUS input as EdgeTX,
@@ -29,6 +30,7 @@
 //!   timing thread, udp-ingress's receive thread).
 
 pub mod auth;
+pub mod capture;
 pub mod config;
 pub mod daemon;
 pub mod decode;

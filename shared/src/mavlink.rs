@@ -34,9 +34,15 @@
 //!
 //! Any other message id is `mavlink_unknown_message`: its CRC cannot be
 //! checked without its CRC_EXTRA, so it is no more trusted than junk.
+//!
+//! What ppm sends back beside HEARTBEAT, RC_CHANNELS and the answers to
+//! requests (SERVO_OUTPUT_RAW, STATUSTEXT) is encoded in [`telemetry`].
 
 use crate::frame::{Channels, FrameModel, MAX_CHANNELS};
 use crate::protocol::{reject, Command, Reject, RejectReason, VALUE_MAX_US, VALUE_MIN_US};
+
+pub mod telemetry;
+pub use telemetry::{servo_output_raw_payload, statustext_payloads, SERVO_OUTPUT_RAW, STATUSTEXT};
 
 /// MAVLink 1's start byte.
 pub const STX_V1: u8 = 0xFE;
@@ -107,7 +113,8 @@ pub const HEARTBEAT: Spec = Spec {
     v1_len: 9,
     max_len: 9,
 };
-/// `RC_CHANNELS`: what ppm sends back (the values on the line).
+/// `RC_CHANNELS`: what ppm sends back (what the radio transmits, read
+/// back, with a read-back; the values on the line without one).
 pub const RC_CHANNELS: Spec = Spec {
     id: 65,
     name: "RC_CHANNELS",
@@ -185,7 +192,7 @@ pub const PROTOCOL_VERSION: Spec = Spec {
 };
 
 /// Every message ppm reads or writes.
-pub const SPECS: [Spec; 10] = [
+pub const SPECS: [Spec; 12] = [
     HEARTBEAT,
     PARAM_REQUEST_LIST,
     PARAM_VALUE,
@@ -196,6 +203,8 @@ pub const SPECS: [Spec; 10] = [
     COMMAND_LONG,
     COMMAND_ACK,
     PROTOCOL_VERSION,
+    SERVO_OUTPUT_RAW,
+    STATUSTEXT,
 ];
 
 /// Messages a groundstation sends any vehicle that ppm reads, checks (its

@@ -54,6 +54,44 @@ pub struct StatusReply {
     pub ppmd: Option<PpmdStatus>,
     /// True when ppmd's newest snapshot is too old to be reported.
     pub ppmd_stale: bool,
+    /// What the radio transmits, read back from the output's `readback`
+    /// input; absent when none is configured (or from an older udp-ingress).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub readback: Option<ReadbackStatus>,
+}
+
+/// The `readback` member of a status reply: whether the radio transmits
+/// ppm's values (see docs/readback.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReadbackStatus {
+    /// `following` (the radio transmits ppm's values, within the
+    /// tolerance), `overridden` (it transmits something else: the
+    /// instructor has control), `no_input` (no whole frame read for 1 s),
+    /// or `stale` (ppmd has published nothing for a second).
+    pub state: String,
+    /// The input read (`ppmd.readback`).
+    pub input: String,
+    /// Time since the state last changed, ms; `null` before the first change.
+    pub since_ms: Option<f64>,
+    /// State changes since ppmd started.
+    pub changes: u64,
+    /// Edges read.
+    pub edges: u64,
+    /// Whole frames read.
+    pub frames: u64,
+    /// Frames read that carried ppm's values.
+    pub matched: u64,
+    /// Frames read that carried something else.
+    pub mismatched: u64,
+    /// Frames refused, by reason (`runts`, `noise`, `out_of_window`, ...).
+    pub refused: BTreeMap<String, u64>,
+    /// The newest frame read, us per channel.
+    pub ch_us: Vec<f64>,
+    /// Largest difference between it and the nearest value ppm's line
+    /// carried, us.
+    pub max_diff_us: f64,
+    /// Age of the newest read-back sample, ms.
+    pub age_ms: f64,
 }
 
 impl StatusReply {

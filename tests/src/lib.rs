@@ -503,12 +503,13 @@ pub fn unit_directives(unit: &str) -> Vec<(String, String)> {
 
 /// Every program the workspace builds, in the order the docs list them
 /// (and the package ships them).
-pub const PROGRAMS: [&str; 9] = [
+pub const PROGRAMS: [&str; 10] = [
     "ppmd",
     "udp-ingress",
     "ppm-send",
     "ppm-status",
     "ppm-watch",
+    "ppm-capture",
     "jitter",
     "timing-bench",
     "ppm-bench",

@@ -307,7 +307,7 @@ fn status_without_ppmd_and_ppm_status_errors() {
         "{err}"
     );
     assert!(started.elapsed() >= Duration::from_millis(300));
-    let mut buf = [0u8; 1024];
+    let mut buf = [0u8; 4096];
     let (n, _) = silent.recv_from(&mut buf).unwrap();
     assert_eq!(n, ppm_shared::protocol::STATUS_QUERY_PADDED_LEN, "padded");
     assert_eq!(buf[..n].trim_ascii_end(), br#"{"get":"status"}"#);

@@ -21,19 +21,23 @@
 //!   read it back with.
 //! - [`cli`]: the command line, lowered with the file into what runs.
 //! - [`server`]: the receive loop around it: socket, publisher, replies.
+//! - [`peers`]: the MAVLink groundstations it answers, and what they get.
+//! - [`readback`]: ppmd's read-back (what the radio transmits) as status
+//!   replies, JSON events and STATUSTEXTs report it.
 //! - [`seqfile`]: the last accepted `seq`, kept across restarts.
 //!
 //! Its unit tests are in `src/tests.rs`.
 
 pub mod cli;
 pub mod peers;
+pub mod readback;
 pub mod seqfile;
 pub mod server;
 
 use ipnet::IpNet;
 use ppm_shared::auth::{self, AuthKey};
 use ppm_shared::frame::{FrameModel, MAX_CHANNELS};
-use ppm_shared::ipc::{LineSample, TimingSnapshot};
+use ppm_shared::ipc::{LineSample, ReadbackSample, TimingSnapshot};
 use ppm_shared::line::LineState;
 use ppm_shared::mavlink;
 use ppm_shared::protocol::{
@@ -286,6 +290,8 @@ pub struct Intake {
     counters: Counters,
     log: RejectLog,
     latency: hdrhistogram::Histogram<u64>,
+    /// The read-back (`ppmd.readback`), if any.
+    readback: Option<readback::Readback>,
 }
 
 impl Intake {
@@ -313,7 +319,17 @@ impl Intake {
             log: RejectLog::new(log_interval),
             latency: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000_000, 3)
                 .expect("valid histogram bounds"),
+            readback: None,
         }
+    }
+
+    /// The output has a read-back of `input` (`ppmd.readback`, as the
+    /// configuration names it): status replies carry it, its state changes
+    /// go to the groundstation ([`Intake::readback`]), and RC_CHANNELS
+    /// carry what the radio transmits.
+    pub fn with_readback(mut self, input: String) -> Intake {
+        self.readback = Some(readback::Readback::new(input));
+        self
     }
 
     /// Applies only commands signed with `key` ([`auth`]) for this output
@@ -385,6 +401,35 @@ impl Intake {
         self
     }
 
+    /// Takes `sample`, the newest read-back ppmd published (without a
+    /// read-back configured, nothing): the state change it carries, if its
+    /// `changes` counter (or state) moved ([`readback::Readback::seen`]),
+    /// with the JSON event for the sender of the newest accepted JSON
+    /// command and where it goes, if it has earned it. Every MAVLink peer
+    /// gets the change's STATUSTEXT at the next [`Intake::mavlink_due`].
+    pub fn readback(
+        &mut self,
+        sample: ReadbackSample,
+    ) -> Option<(readback::Change, Option<(SocketAddr, String)>)> {
+        let rb = self.readback.as_mut()?;
+        let change = rb.seen(sample)?;
+        let (severity, text) = readback::statustext(&self.name, &change);
+        self.peers.announce(severity, &text);
+        Some((change, rb.event(&self.name, &change)))
+    }
+
+    /// An event [`Intake::readback`] gave could not be sent.
+    pub fn readback_event_not_sent(&mut self) {
+        if let Some(rb) = &mut self.readback {
+            rb.event_not_sent();
+        }
+    }
+
+    /// The read-back, if the output has one.
+    pub fn readback_state(&self) -> Option<&readback::Readback> {
+        self.readback.as_ref()
+    }
+
     /// Drops datagrams from sources outside `nets` (`not_allowed`) before
     /// parsing them; status queries too. Empty: any source.
     pub fn with_allowlist(mut self, nets: Vec<IpNet>) -> Intake {
@@ -409,12 +454,13 @@ impl Intake {
         real_ns: u64,
         now: Instant,
     ) -> Outcome {
+        let is_mavlink = mavlink::is_mavlink(datagram);
         let parsed = if !allowed(&self.allow, from.ip()) {
             Err(Reject {
                 reason: RejectReason::NotAllowed,
                 detail: format!("source {} is not in ingress.allow", from.ip()),
             })
-        } else if mavlink::is_mavlink(datagram) {
+        } else if is_mavlink {
             match self.mavlink_command(datagram, from, real_ns, now) {
                 Ok(Some(command)) => Ok(command),
                 Ok(None) => {
@@ -466,6 +512,10 @@ impl Intake {
             }
             Ok(command) => {
                 self.last_accepted = Some(now);
+                if let (Some(rb), false) = (&mut self.readback, is_mavlink) {
+                    let exempt = in_blocks(&self.status_allow, from.ip());
+                    rb.commanded_by(from, datagram.len(), exempt);
+                }
                 if command.seq.is_some() {
                     self.last_seq = command.seq;
                     self.newest_seq = command.seq;
@@ -631,8 +681,10 @@ impl Intake {
     /// snapshot, unless it is stale at CLOCK_MONOTONIC `now_mono_ns`, and
     /// its values from `line`, the newest frame ppmd's line carried, unless
     /// it started more than [`LINE_STALE_AFTER_NS`] ago
-    /// ([`peers::Peers::due`]). `real_ns` is CLOCK_REALTIME now, for the
-    /// signatures' timestamps.
+    /// ([`peers::Peers::due`]): SERVO_OUTPUT_RAW carries them, and so does
+    /// RC_CHANNELS without a read-back; with one, RC_CHANNELS carries the
+    /// newest frame read back ([`readback::Readback::frame_us`]).
+    /// `real_ns` is CLOCK_REALTIME now, for the signatures' timestamps.
     pub fn mavlink_due(
         &mut self,
         (now, now_mono_ns, real_ns): (Instant, u64, u64),
@@ -651,10 +703,25 @@ impl Intake {
             }
         }
         let at_ns = line.map_or(now_mono_ns, |l| l.start_mono_ns);
+        let radio = self.readback.as_ref().map(|r| r.frame_us(now_mono_ns));
+        let radio_frame = match &radio {
+            Some(Some((us, n, at_us))) => Some(peers::Frame {
+                values_us: &us[..*n],
+                at_us: *at_us,
+            }),
+            Some(None) => Some(peers::Frame {
+                values_us: &[],
+                at_us: now_mono_ns / 1_000,
+            }),
+            None => None,
+        };
         let now_line = peers::LineNow {
             state: peers::mav_state(state),
-            values_us: &values_us[..n],
-            boot_ms: (at_ns / 1_000_000) as u32,
+            line: peers::Frame {
+                values_us: &values_us[..n],
+                at_us: at_ns / 1_000,
+            },
+            radio: radio_frame,
         };
         self.peers
             .due(now, now_line, self.signing.as_mut(), ts, out);
@@ -706,7 +773,9 @@ impl Intake {
     /// receive thread runs, `now_mono_ns` the
     /// CLOCK_MONOTONIC time of the reply, `ppmd` the newest timing snapshot
     /// received from ppmd, if any; one older than [`PPMD_STALE_AFTER_NS`]
-    /// gives `"ppmd": null` and `"ppmd_stale": true`.
+    /// gives `"ppmd": null` and `"ppmd_stale": true`. With a read-back, its
+    /// `readback` member is [`readback::Readback::status`] of the newest
+    /// sample given to [`Intake::readback`].
     pub fn status(
         &self,
         uptime: Duration,
@@ -751,6 +820,10 @@ impl Intake {
             },
             ppmd: fresh.map(|s| ppmd_status(s, age_ns(s.mono_ns))),
             ppmd_stale: ppmd.is_some() && fresh.is_none(),
+            readback: self
+                .readback
+                .as_ref()
+                .map(|r| r.status(now_mono_ns, uptime.as_nanos() as u64)),
         }
     }
 }

@@ -1,17 +1,22 @@
 //! The MAVLink groundstations udp-ingress talks back to: after a peer's
 //! first good MAVLink datagram, a HEARTBEAT a second in the peer's MAVLink
-//! version, so that a groundstation sees ppm as a vehicle; RC_CHANNELS,
-//! the values on the line, at `mavlink.rc_channels_hz` or the rate the peer
-//! asks for (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM); a
-//! COMMAND_ACK to each COMMAND_LONG; and to a PARAM_REQUEST_LIST, ppm's one
-//! parameter, `PPM_CHANNELS` (the channel count), which QGroundControl
-//! waits for before it offers its joystick.
+//! version, so that a groundstation sees ppm as a vehicle; RC_CHANNELS
+//! (what the radio transmits, read back, with a read-back; the values on
+//! the line without one) and SERVO_OUTPUT_RAW (the values on the line),
+//! each at `mavlink.rc_channels_hz` or the rate the peer asks for
+//! (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM); a STATUSTEXT for
+//! each read-back state change ([`Peers::announce`]); a COMMAND_ACK to
+//! each COMMAND_LONG; and to a PARAM_REQUEST_LIST, ppm's one parameter,
+//! `PPM_CHANNELS` (the channel count), which QGroundControl waits for
+//! before it offers its joystick.
 //!
 //! No peer gets more than [`REPLY_MAX_RATIO`] times the bytes it sent (a
 //! credit, capped at [`CREDIT_MAX`] bytes), unless it lies in
 //! `ingress.status_allow`: a forged source address earns its victim at most
-//! three times what the forger sent, as status replies do. RC_CHANNELS
-//! leave [`HEARTBEATS_KEPT`] HEARTBEATs' worth of the credit unspent, so a
+//! three times what the forger sent, as status replies do. RC_CHANNELS and
+//! SERVO_OUTPUT_RAW leave [`HEARTBEATS_KEPT`] HEARTBEATs' worth of the
+//! credit unspent (a STATUSTEXT one HEARTBEAT's, and waits for the credit
+//! it needs), so a
 //! groundstation that sends little (its own HEARTBEAT a second) gets ppm's
 //! every second, whatever the phase of its datagrams against ppm's timers.
 //! A peer silent
@@ -22,8 +27,9 @@
 
 use ppm_shared::mavlink::{
     self, CommandLong, Header, Message, COMMAND_ACK, HEARTBEAT, PARAM_VALUE, PROTOCOL_VERSION,
-    RC_CHANNELS,
+    RC_CHANNELS, SERVO_OUTPUT_RAW, STATUSTEXT,
 };
+use std::collections::VecDeque;
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
@@ -44,9 +50,12 @@ pub const REPLY_MAX_RATIO: usize = 3;
 pub const HEARTBEATS_KEPT: usize = 2;
 /// Most reply bytes a peer can have earned and not used.
 pub const CREDIT_MAX: usize = 4_096;
+/// Most STATUSTEXT chunks kept for a peer that has not earned them yet;
+/// the oldest makes room (counted as held).
+pub const TEXTS_KEPT: usize = 8;
 
-/// The shortest RC_CHANNELS interval a peer can ask for (ppmd publishes its
-/// line every tenth of a second).
+/// The shortest RC_CHANNELS (or SERVO_OUTPUT_RAW) interval a peer can ask
+/// for (ppmd publishes its line every tenth of a second).
 pub const RC_CHANNELS_MIN_EVERY: Duration =
     Duration::from_millis(1_000 / mavlink::RC_CHANNELS_MAX_HZ as u64);
 /// MAV_RESULT_ACCEPTED.
@@ -83,16 +92,49 @@ struct Peer {
     /// COMMAND_ACKs due: command, result, and the sender (system,
     /// component).
     acks: Vec<(u16, u8, (u8, u8))>,
-    /// Its RC_CHANNELS interval (`None`: none), and when the next is due.
-    rc_every: Option<Duration>,
-    next_rc: Instant,
-    /// It asked for one RC_CHANNELS now (MAV_CMD_REQUEST_MESSAGE).
-    rc_now: bool,
+    /// Its RC_CHANNELS.
+    rc: Stream,
+    /// Its SERVO_OUTPUT_RAW.
+    servo: Stream,
+    /// STATUSTEXT payloads not sent yet (not yet earned), oldest first.
+    texts: VecDeque<[u8; 54]>,
     /// It asked for PROTOCOL_VERSION.
     protocol_now: bool,
     /// The sequence number of the next frame it gets (counted per peer,
     /// and only for frames sent, so that it sees no gap).
     seq: u8,
+}
+
+/// A message a peer gets at an interval (RC_CHANNELS, SERVO_OUTPUT_RAW).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Stream {
+    /// Its interval (`None`: none).
+    every: Option<Duration>,
+    /// When the next is due.
+    next: Instant,
+    /// It asked for one now (MAV_CMD_REQUEST_MESSAGE).
+    now: bool,
+}
+
+impl Stream {
+    fn new(every: Option<Duration>, now: Instant) -> Stream {
+        Stream {
+            every,
+            next: now,
+            now: false,
+        }
+    }
+
+    /// Whether one is due at `now`, and whether it was asked for (an
+    /// answer, earned by its request); moves the schedule on.
+    fn due(&mut self, now: Instant) -> Option<bool> {
+        let scheduled = self.every.filter(|_| now >= self.next);
+        if let Some(every) = scheduled {
+            self.next = later(self.next, every, now);
+        }
+        let asked = std::mem::take(&mut self.now);
+        (asked || scheduled.is_some()).then_some(asked)
+    }
 }
 
 /// Counters of the replies.
@@ -119,19 +161,33 @@ pub struct Peers {
     /// The HEARTBEAT's MAV_TYPE (`mavlink.vehicle_type`; by default
     /// MAV_TYPE_GENERIC, 0: a vehicle of no particular kind).
     mav_type: u8,
+    /// The `id` of the next STATUSTEXT sent in chunks (never 0).
+    text_id: u16,
     counters: ReplyCounters,
 }
 
-/// What the line carries now, for the replies.
+/// Channel values of one frame, for the replies.
+#[derive(Debug, Clone, Copy)]
+pub struct Frame<'a> {
+    /// The values, us (empty: no frame).
+    pub values_us: &'a [u16],
+    /// The frame's start on CLOCK_MONOTONIC, us (RC_CHANNELS'
+    /// `time_boot_ms` in ms, SERVO_OUTPUT_RAW's `time_usec`).
+    pub at_us: u64,
+}
+
+/// What the line carries now (and what the radio transmits), for the
+/// replies.
 #[derive(Debug, Clone, Copy)]
 pub struct LineNow<'a> {
     /// The line's MAV_STATE ([`mav_state`]).
     pub state: u8,
-    /// The values on the line, us (empty: no frame goes out).
-    pub values_us: &'a [u16],
-    /// The frame's start on CLOCK_MONOTONIC, ms (RC_CHANNELS'
-    /// `time_boot_ms`).
-    pub boot_ms: u32,
+    /// The newest frame on the line (SERVO_OUTPUT_RAW; and RC_CHANNELS
+    /// without a read-back).
+    pub line: Frame<'a>,
+    /// With a read-back: the newest frame the radio transmits
+    /// (RC_CHANNELS); `None` without one.
+    pub radio: Option<Frame<'a>>,
 }
 
 /// The interval of `hz` messages a second (`None` for 0), no shorter than
@@ -160,6 +216,7 @@ impl Peers {
             next_heartbeat: None,
             rc_default: every_of_hz(rc_hz as f64),
             mav_type: 0,
+            text_id: 1,
             counters: ReplyCounters::default(),
         }
     }
@@ -189,9 +246,9 @@ impl Peers {
             exempt,
             params_due: false,
             acks: Vec::new(),
-            rc_every: self.rc_default,
-            next_rc: now,
-            rc_now: false,
+            rc: Stream::new(self.rc_default, now),
+            servo: Stream::new(self.rc_default, now),
+            texts: VecDeque::new(),
             protocol_now: false,
             seq: 0,
         });
@@ -232,11 +289,13 @@ impl Peers {
                     && (r.stream == mavlink::MAV_DATA_STREAM_ALL
                         || r.stream == mavlink::MAV_DATA_STREAM_RC_CHANNELS) =>
             {
-                p.rc_every = if r.start {
+                let every = if r.start {
                     every_of_hz(r.rate_hz as f64)
                 } else {
                     None
                 };
+                p.rc.every = every;
+                p.servo.every = every;
             }
             Message::CommandLong(c) if ours(c.target_system, c.target_component) => {
                 let result = command_result(&c, p, rc_default);
@@ -248,15 +307,39 @@ impl Peers {
         }
     }
 
+    /// A STATUSTEXT of `text` at `severity` (a MAV_SEVERITY) for every
+    /// peer, in chunks if it is longer than one carries
+    /// ([`mavlink::statustext_payloads`]): the next [`Peers::due`] sends
+    /// it to each that has earned it; one that has not gets it once it has
+    /// (at most [`TEXTS_KEPT`] chunks wait, the oldest making room).
+    pub fn announce(&mut self, severity: u8, text: &str) {
+        let payloads = mavlink::statustext_payloads(severity, text, self.text_id);
+        if payloads.len() > 1 {
+            self.text_id = self.text_id.checked_add(1).unwrap_or(1);
+        }
+        for p in &mut self.peers {
+            for payload in &payloads {
+                if p.texts.len() == TEXTS_KEPT {
+                    p.texts.pop_front();
+                    self.counters.held += 1;
+                }
+                p.texts.push_back(*payload);
+            }
+        }
+    }
+
     /// The frames due at `now` and where they go (appended to `out`), to
     /// each live peer with the credit for it: answers to its requests first
-    /// (PARAM_VALUE, COMMAND_ACK, PROTOCOL_VERSION, an RC_CHANNELS asked
-    /// for: each request earns three times its size, more than its answer),
-    /// then a HEARTBEAT once per [`HEARTBEAT_EVERY`], then its RC_CHANNELS
-    /// when due, from what is left beyond [`HEARTBEATS_KEPT`] HEARTBEATs: a
-    /// groundstation that earns little keeps getting the HEARTBEAT, even
-    /// when its datagrams come just after ppm's beat and an RC_CHANNELS is
-    /// due before the next. `line` is what the line carries.
+    /// (PARAM_VALUE, COMMAND_ACK, PROTOCOL_VERSION, an RC_CHANNELS or
+    /// SERVO_OUTPUT_RAW asked for: each request earns three times its
+    /// size, more than its answer), then the STATUSTEXTs announced, from
+    /// what is left beyond one HEARTBEAT (one not earned yet waits), then a
+    /// HEARTBEAT once per [`HEARTBEAT_EVERY`], then its RC_CHANNELS and
+    /// SERVO_OUTPUT_RAW when due, from what is left beyond
+    /// [`HEARTBEATS_KEPT`] HEARTBEATs: a groundstation that earns little
+    /// keeps getting the HEARTBEAT, even when its datagrams come just after
+    /// ppm's beat and an RC_CHANNELS is due before the next. `line` is what
+    /// the line carries (and the radio transmits).
     ///
     /// With `signing` (`mavlink.key_file`), every frame is signed, at the
     /// clock's signature timestamp `ts` or after.
@@ -268,10 +351,20 @@ impl Peers {
         ts: u64,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
     ) {
-        self.peers
-            .retain(|p| now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT);
+        let mut dropped = 0;
+        self.peers.retain(|p| {
+            let live = now.saturating_duration_since(p.last_heard) < PEER_TIMEOUT;
+            if !live {
+                dropped += p.texts.len() as u64;
+            }
+            live
+        });
+        self.counters.held += dropped;
         let param = self.param_value;
-        let rc = mavlink::rc_channels_payload(line.boot_ms, line.values_us);
+        let radio = line.radio.unwrap_or(line.line);
+        let rc = mavlink::rc_channels_payload((radio.at_us / 1_000) as u32, radio.values_us);
+        let servo =
+            mavlink::servo_output_raw_payload(line.line.at_us as u32, 0, line.line.values_us);
         for i in 0..self.peers.len() {
             if std::mem::take(&mut self.peers[i].params_due) {
                 self.reply(i, &PARAM_VALUE, &param, signing.as_deref_mut(), ts, out);
@@ -284,24 +377,35 @@ impl Peers {
                 let v = mavlink::protocol_version_payload();
                 self.reply(i, &PROTOCOL_VERSION, &v, signing.as_deref_mut(), ts, out);
             }
+            let keep = heartbeat_len(self.peers[i].version, signing.is_some());
+            while let Some(text) = self.peers[i].texts.front().copied() {
+                let frame = self.build(i, &STATUSTEXT, &text, signing.as_deref_mut(), ts);
+                if !self.earned(i, frame.len() + keep) {
+                    break;
+                }
+                self.peers[i].texts.pop_front();
+                self.send(i, frame, out);
+            }
         }
         self.heartbeats(now, line.state, signing.as_deref_mut(), ts, out);
         for i in 0..self.peers.len() {
-            let p = &mut self.peers[i];
-            let scheduled = p.rc_every.filter(|_| now >= p.next_rc);
-            if let Some(every) = scheduled {
-                p.next_rc = later(p.next_rc, every, now);
-            }
-            let asked = std::mem::take(&mut p.rc_now);
-            if asked || scheduled.is_some() {
-                // One asked for is an answer, earned by its request; the
-                // stream's leave the HEARTBEATs' bytes.
-                let keep = if asked {
-                    0
-                } else {
-                    HEARTBEATS_KEPT * heartbeat_len(p.version, signing.is_some())
-                };
+            let kept = HEARTBEATS_KEPT * heartbeat_len(self.peers[i].version, signing.is_some());
+            // One asked for is an answer, earned by its request; the
+            // stream's leave the HEARTBEATs' bytes, and SERVO_OUTPUT_RAW
+            // those of the peer's next RC_CHANNELS too.
+            if let Some(asked) = self.peers[i].rc.due(now) {
+                let keep = if asked { 0 } else { kept };
                 self.reply_keeping(i, &RC_CHANNELS, &rc, keep, signing.as_deref_mut(), ts, out);
+            }
+            let p = &self.peers[i];
+            let rc_next = match p.rc.every {
+                Some(_) => rc_channels_len(p.version, signing.is_some()),
+                None => 0,
+            };
+            if let Some(asked) = self.peers[i].servo.due(now) {
+                let keep = if asked { 0 } else { kept + rc_next };
+                let s = signing.as_deref_mut();
+                self.reply_keeping(i, &SERVO_OUTPUT_RAW, &servo, keep, s, ts, out);
             }
         }
     }
@@ -346,11 +450,12 @@ impl Peers {
         ts: u64,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
     ) {
-        self.reply_keeping(i, spec, payload, 0, signing, ts, out)
+        self.reply_keeping(i, spec, payload, 0, signing, ts, out);
     }
 
     /// [`Peers::reply`], handed on only if the peer earned it and `keep`
-    /// bytes more (kept for its HEARTBEATs: see [`HEARTBEATS_KEPT`]).
+    /// bytes more (kept for its HEARTBEATs: see [`HEARTBEATS_KEPT`]): true
+    /// when it was.
     #[allow(clippy::too_many_arguments)]
     fn reply_keeping(
         &mut self,
@@ -361,21 +466,49 @@ impl Peers {
         signing: Option<&mut mavlink::Signing>,
         ts: u64,
         out: &mut Vec<(SocketAddr, Vec<u8>)>,
-    ) {
+    ) -> bool {
+        let frame = self.build(i, spec, payload, signing, ts);
+        let earned = self.earned(i, frame.len() + keep);
+        if earned {
+            self.send(i, frame, out);
+        } else {
+            self.counters.held += 1;
+        }
+        earned
+    }
+
+    /// One frame from ppm to peer `i`, with its next number, in its version
+    /// (MAVLink 2 for a message MAVLink 1 cannot carry) or signed with
+    /// `signing` if given.
+    fn build(
+        &mut self,
+        i: usize,
+        spec: &mavlink::Spec,
+        payload: &[u8],
+        signing: Option<&mut mavlink::Signing>,
+        ts: u64,
+    ) -> Vec<u8> {
         let header = (self.peers[i].seq, self.system_id, self.component_id);
-        let frame = match signing {
+        match signing {
             Some(s) => s.frame(header, spec, payload, ts),
             // MAVLink 1 carries no extension fields.
             None if self.peers[i].version == 1 && spec.id <= 255 => {
                 mavlink::frame(1, header, spec, &payload[..spec.v1_len as usize])
             }
             None => mavlink::frame(2, header, spec, payload),
-        };
-        let p = &mut self.peers[i];
-        if !p.exempt && p.credit < frame.len() + keep {
-            self.counters.held += 1;
-            return;
         }
+    }
+
+    /// Whether peer `i` has earned `bytes` of replies.
+    fn earned(&self, i: usize, bytes: usize) -> bool {
+        let p = &self.peers[i];
+        p.exempt || p.credit >= bytes
+    }
+
+    /// Hands `frame` to peer `i` on (to `out`): spends its credit, numbers
+    /// its next frame, counts it sent.
+    fn send(&mut self, i: usize, frame: Vec<u8>, out: &mut Vec<(SocketAddr, Vec<u8>)>) {
+        let p = &mut self.peers[i];
         if !p.exempt {
             p.credit -= frame.len();
         }
@@ -408,6 +541,18 @@ pub fn heartbeat_len(version: u8, signed: bool) -> usize {
     }
 }
 
+/// The length of ppm's RC_CHANNELS to a peer of MAVLink `version`,
+/// `signed` or not: 50 bytes in MAVLink 1, 54 in MAVLink 2 (its last
+/// payload byte, RSSI 255, is never trimmed), 67 signed.
+pub fn rc_channels_len(version: u8, signed: bool) -> usize {
+    let payload = RC_CHANNELS.max_len as usize;
+    match (version, signed) {
+        (_, true) => 10 + payload + 2 + mavlink::SIGNATURE_LEN,
+        (1, false) => 6 + payload + 2,
+        _ => 10 + payload + 2,
+    }
+}
+
 /// The next time of something every `every`, last due `at`: a whole
 /// interval after `at`, or after `now` when the loop fell behind by more
 /// than an interval.
@@ -420,29 +565,36 @@ fn later(at: Instant, every: Duration, now: Instant) -> Instant {
     }
 }
 
-/// The longest RC_CHANNELS interval a peer can ask for (as ArduPilot
-/// clamps its message intervals).
+/// The longest RC_CHANNELS (or SERVO_OUTPUT_RAW) interval a peer can ask
+/// for (as ArduPilot clamps its message intervals).
 pub const RC_CHANNELS_MAX_EVERY: Duration = Duration::from_secs(60);
 
 /// The MAV_RESULT of COMMAND_LONG `c` from peer `p`, which it changes:
-/// MAV_CMD_SET_MESSAGE_INTERVAL of RC_CHANNELS sets the peer's interval
-/// (param2 in us: -1 none, 0 `rc_default`, any other positive, infinity
-/// included, clamped to [`RC_CHANNELS_MIN_EVERY`]..=[`RC_CHANNELS_MAX_EVERY`];
-/// any other negative, or a value that is not a number, is denied);
-/// MAV_CMD_REQUEST_MESSAGE of RC_CHANNELS or PROTOCOL_VERSION, and
+/// MAV_CMD_SET_MESSAGE_INTERVAL of RC_CHANNELS or SERVO_OUTPUT_RAW sets the
+/// peer's interval of that message (param2 in us: -1 none, 0 `rc_default`,
+/// any other positive, infinity included, clamped to
+/// [`RC_CHANNELS_MIN_EVERY`]..=[`RC_CHANNELS_MAX_EVERY`]; any other
+/// negative, or a value that is not a number, is denied);
+/// MAV_CMD_REQUEST_MESSAGE of either or of PROTOCOL_VERSION, and
 /// MAV_CMD_REQUEST_PROTOCOL_VERSION, send one at once. Both are denied for
 /// another message; every other command is unsupported.
 fn command_result(c: &CommandLong, p: &mut Peer, rc_default: Option<Duration>) -> u8 {
     let [message, param2, ..] = c.params;
-    let rc = message == RC_CHANNELS.id as f32;
-    match c.command {
-        mavlink::MAV_CMD_SET_MESSAGE_INTERVAL if rc => match param2 {
+    let stream = if message == RC_CHANNELS.id as f32 {
+        Some(&mut p.rc)
+    } else if message == SERVO_OUTPUT_RAW.id as f32 {
+        Some(&mut p.servo)
+    } else {
+        None
+    };
+    match (c.command, stream) {
+        (mavlink::MAV_CMD_SET_MESSAGE_INTERVAL, Some(stream)) => match param2 {
             -1.0 => {
-                p.rc_every = None;
+                stream.every = None;
                 MAV_RESULT_ACCEPTED
             }
             0.0 => {
-                p.rc_every = rc_default;
+                stream.every = rc_default;
                 MAV_RESULT_ACCEPTED
             }
             // Infinity too: over 60 s, so 60 s, as the docs say and as
@@ -450,24 +602,24 @@ fn command_result(c: &CommandLong, p: &mut Peer, rc_default: Option<Duration>) -
             // saturates, and it clamps what is over 60 s).
             us if us > 0.0 => {
                 let every = Duration::from_micros(us.min(1e12) as u64);
-                p.rc_every = Some(every.clamp(RC_CHANNELS_MIN_EVERY, RC_CHANNELS_MAX_EVERY));
+                stream.every = Some(every.clamp(RC_CHANNELS_MIN_EVERY, RC_CHANNELS_MAX_EVERY));
                 MAV_RESULT_ACCEPTED
             }
             _ => MAV_RESULT_DENIED,
         },
-        mavlink::MAV_CMD_REQUEST_MESSAGE if rc => {
-            p.rc_now = true;
+        (mavlink::MAV_CMD_REQUEST_MESSAGE, Some(stream)) => {
+            stream.now = true;
             MAV_RESULT_ACCEPTED
         }
-        mavlink::MAV_CMD_REQUEST_MESSAGE if message == PROTOCOL_VERSION.id as f32 => {
+        (mavlink::MAV_CMD_REQUEST_MESSAGE, None) if message == PROTOCOL_VERSION.id as f32 => {
             p.protocol_now = true;
             MAV_RESULT_ACCEPTED
         }
-        mavlink::MAV_CMD_REQUEST_PROTOCOL_VERSION => {
+        (mavlink::MAV_CMD_REQUEST_PROTOCOL_VERSION, _) => {
             p.protocol_now = true;
             MAV_RESULT_ACCEPTED
         }
-        mavlink::MAV_CMD_SET_MESSAGE_INTERVAL | mavlink::MAV_CMD_REQUEST_MESSAGE => {
+        (mavlink::MAV_CMD_SET_MESSAGE_INTERVAL | mavlink::MAV_CMD_REQUEST_MESSAGE, _) => {
             MAV_RESULT_DENIED
         }
         _ => MAV_RESULT_UNSUPPORTED,
@@ -482,8 +634,11 @@ mod tests {
     fn state(s: u8) -> LineNow<'static> {
         LineNow {
             state: s,
-            values_us: &[],
-            boot_ms: 0,
+            line: Frame {
+                values_us: &[],
+                at_us: 0,
+            },
+            radio: None,
         }
     }
 
@@ -688,8 +843,11 @@ mod tests {
         let values = [1100, 1200, 1300, 1400, 1500, 1600, 1700, 1800];
         let line = LineNow {
             state: 4,
-            values_us: &values,
-            boot_ms: 12_345,
+            line: Frame {
+                values_us: &values,
+                at_us: 12_345_000,
+            },
+            radio: None,
         };
         p.heard(addr(1), 2, 4_000, false, t);
         p.heard(addr(2), 2, 4_000, false, t);
@@ -765,6 +923,78 @@ mod tests {
         assert_eq!(rate(&mut p, &command_long(1, 512, 65.0, 0.0), s(7)), 1);
     }
 
+    /// SERVO_OUTPUT_RAW: the line's values (RC_CHANNELS the radio's, with
+    /// a read-back) at the default rate, its own interval, or one asked
+    /// for; REQUEST_DATA_STREAM sets both.
+    #[test]
+    fn servo_output_raw_carries_the_line_at_its_own_rate() {
+        let t = Instant::now();
+        let ms = Duration::from_millis;
+        let mut p = Peers::new(1, 1, 8, 4);
+        let values = [1100, 1200, 1300, 1400];
+        let radio = [1900, 1900];
+        let line = LineNow {
+            state: 4,
+            line: Frame {
+                values_us: &values,
+                at_us: 5_000_123,
+            },
+            radio: Some(Frame {
+                values_us: &radio,
+                at_us: 6_000_000,
+            }),
+        };
+        let second = |p: &mut Peers, from: Instant| {
+            p.heard(addr(1), 2, 4_000, false, from);
+            let mut out = vec![];
+            for k in 0..100 {
+                p.due(from + ms(10 * k), line, None, 0, &mut out);
+            }
+            out
+        };
+        let servo = |out: &[(SocketAddr, Vec<u8>)]| -> Vec<(u32, u8, Vec<u16>)> {
+            out.iter()
+                .filter(|(_, f)| id_and_payload(f).0 == SERVO_OUTPUT_RAW.id as u8)
+                .map(|(_, f)| {
+                    let mut w = id_and_payload(f).1.to_vec();
+                    w.resize(37, 0);
+                    let u = |at: usize| u16::from_le_bytes([w[at], w[at + 1]]);
+                    let mut s: Vec<u16> = (0..8).map(|i| u(4 + 2 * i)).collect();
+                    s.extend((0..8).map(|i| u(21 + 2 * i)));
+                    (u32::from_le_bytes([w[0], w[1], w[2], w[3]]), w[20], s)
+                })
+                .collect()
+        };
+        let out = second(&mut p, t);
+        let mut want = values.to_vec();
+        want.resize(16, 0);
+        assert_eq!(servo(&out), vec![(5_000_123, 0, want); 4]);
+        let rc = rc_channels(&out);
+        assert_eq!(rc.len(), 4);
+        assert_eq!(rc[0], (1, 6_000, 2, vec![1900, 1900]), "the radio's");
+        // Its own interval: 10 Hz; RC_CHANNELS keep theirs.
+        p.request(addr(1), &GCS, &command_long(1, 511, 36.0, 100_000.0));
+        let out = second(&mut p, t + ms(1_000));
+        assert_eq!(acks(&out), [(1, 511, MAV_RESULT_ACCEPTED, 255, 190)]);
+        assert_eq!((servo(&out).len(), rc_channels(&out).len()), (10, 4));
+        // None, and one asked for.
+        p.request(addr(1), &GCS, &command_long(1, 511, 36.0, -1.0));
+        assert_eq!(servo(&second(&mut p, t + ms(2_000))).len(), 0);
+        p.request(addr(1), &GCS, &command_long(1, 512, 36.0, 0.0));
+        assert_eq!(servo(&second(&mut p, t + ms(3_000))).len(), 1);
+        // REQUEST_DATA_STREAM of the RC channels: both at 2 Hz.
+        let stream = Message::RequestDataStream(mavlink::RequestDataStream {
+            target_system: 1,
+            target_component: 1,
+            stream: mavlink::MAV_DATA_STREAM_RC_CHANNELS,
+            rate_hz: 2,
+            start: true,
+        });
+        p.request(addr(1), &GCS, &stream);
+        let out = second(&mut p, t + ms(4_000));
+        assert_eq!((servo(&out).len(), rc_channels(&out).len()), (2, 2));
+    }
+
     #[test]
     fn no_frame_on_the_line_is_a_count_of_zero() {
         let t = Instant::now();
@@ -823,12 +1053,16 @@ mod tests {
         let values = [1500; 8];
         let line = LineNow {
             state: 4,
-            values_us: &values,
-            boot_ms: 0,
+            line: Frame {
+                values_us: &values,
+                at_us: 0,
+            },
+            radio: None,
         };
         let mut out = vec![];
         // Its 21-byte HEARTBEAT each second earns 63 bytes: ppm's HEARTBEAT
-        // (21) every second, RC_CHANNELS (54) with what is left.
+        // (21) every second, RC_CHANNELS (54) with what is left, before
+        // SERVO_OUTPUT_RAW.
         for k in 0..1_000u64 {
             let now = t + Duration::from_millis(10 * k);
             if k % 100 == 0 {
@@ -840,6 +1074,9 @@ mod tests {
         assert_eq!(beats, 10, "one a second");
         let rc = rc_channels(&out).len();
         assert!((5..=10).contains(&rc), "{rc} RC_CHANNELS");
+        // SERVO_OUTPUT_RAW take only what is left beyond the next
+        // RC_CHANNELS: here, nothing.
+        assert_eq!(out.iter().filter(|(_, f)| f[7] == 36).count(), 0);
         let sent: usize = out.iter().map(|(_, f)| f.len()).sum();
         assert!(sent <= 10 * 63, "{sent} bytes");
         // Its frames are numbered 0, 1, 2, ... without a gap, whatever
@@ -878,8 +1115,11 @@ mod tests {
         let values = [1500; 8];
         let line = LineNow {
             state: 4,
-            values_us: &values,
-            boot_ms: 0,
+            line: Frame {
+                values_us: &values,
+                at_us: 0,
+            },
+            radio: None,
         };
         let ms = |n: u64| Duration::from_millis(n);
         let mut worst_rc = usize::MAX;
@@ -936,6 +1176,7 @@ mod tests {
                             match id {
                                 0 => beats.push(now_ms),
                                 65 => rc += 1,
+                                36 => {}
                                 other => panic!("message {other}"),
                             }
                         }
@@ -980,8 +1221,11 @@ mod tests {
         let values = [1500; 8];
         let line = LineNow {
             state: 4,
-            values_us: &values,
-            boot_ms: 0,
+            line: Frame {
+                values_us: &values,
+                at_us: 0,
+            },
+            radio: None,
         };
         let mut p = Peers::new(1, 1, 8, 0);
         // A MAVLink 2 COMMAND_LONG (trimmed) is 43 bytes: it earns 129, the
@@ -1009,6 +1253,11 @@ mod tests {
             assert_eq!(heartbeat_len(version, false), f.len());
             let f = s.frame((0, 1, 1), &HEARTBEAT, &payload, 1);
             assert_eq!(heartbeat_len(version, true), f.len());
+            let rc = mavlink::rc_channels_payload(1, &[]);
+            let f = mavlink::frame(version, (0, 1, 1), &RC_CHANNELS, &rc);
+            assert_eq!(rc_channels_len(version, false), f.len());
+            let f = s.frame((0, 1, 1), &RC_CHANNELS, &rc, 1);
+            assert_eq!(rc_channels_len(version, true), f.len());
         }
     }
 

@@ -1,5 +1,6 @@
 //! The receive loop of udp-ingress: the non-blocking socket (mio), the
-//! [`Intake`], the publisher to ppmd and the status replies.
+//! [`Intake`], the publisher to ppmd, the status replies, and with a
+//! read-back the events of its state changes ([`crate::readback`]).
 //! The binary parses its options and calls [`Server::open`] and
 //! [`Server::run`].
 
@@ -11,7 +12,9 @@ use mio::net::UdpSocket;
 use mio::{Events, Interest, Poll, Token};
 use ppm_shared::auth::{AuthKey, KeyError};
 use ppm_shared::config::{fault, ConfigError, IngressSection, KeyName, OutputPlan, Shared};
-use ppm_shared::ipc::{self, CommandSample, IpcError, LineSample, PublishError, TimingSnapshot};
+use ppm_shared::ipc::{
+    self, CommandSample, IpcError, LineSample, PublishError, ReadbackSample, TimingSnapshot,
+};
 use ppm_shared::logging::Chain;
 use ppm_shared::sched;
 use ppm_shared::time::{now_ns, realtime_ns};
@@ -23,6 +26,10 @@ const SOCKET: Token = Token(0);
 /// Longest wait for datagrams; on each wake-up the publisher also offers its
 /// last sample to subscribers that connected since (a restarted ppmd).
 const POLL_TIMEOUT: Duration = Duration::from_millis(20);
+/// Longest wait with a read-back (`ppmd.readback`): a state change ppmd
+/// publishes is seen, and told to the groundstation, at most this much
+/// later while no datagram comes (sooner when one does).
+pub const READBACK_POLL_TIMEOUT: Duration = Duration::from_millis(5);
 /// Largest UDP payload.
 const MAX_DATAGRAM: usize = 65_536;
 /// Longest a drain goes on before the newest command so far is published.
@@ -159,6 +166,12 @@ pub struct Server {
     /// ppmd's newest line samples (RC_CHANNELS), and the newest.
     line: Option<Subscriber<LineSample>>,
     line_sample: Option<LineSample>,
+    /// ppmd's read-back samples, with a read-back (the intake keeps the
+    /// newest).
+    readback: Option<Subscriber<ReadbackSample>>,
+    /// How long the loop waits for datagrams at most: [`POLL_TIMEOUT`], or
+    /// [`READBACK_POLL_TIMEOUT`] with a read-back.
+    idle_every: Duration,
     /// Set while ppmd runs (it had published the snapshot service when this
     /// ingress started) but no snapshot of it has come yet: until then, at
     /// most until this time, status queries wait, so that a restarted
@@ -195,6 +208,10 @@ impl Server {
                     &mut self.ingress_seq,
                     &mut self.publish_errors,
                 );
+                // A flood does not hold back a read-back change either.
+                if self.readback_changes() {
+                    self.mavlink_replies();
+                }
                 drain_started = Instant::now();
             }
             let (n, from, kernel_real) = match receive(&self.socket, &mut self.buf, &mut self.cmsg)
@@ -258,6 +275,7 @@ impl Server {
                 );
             }
         }
+        self.readback_changes();
         // Answered after publishing, so the counters add up.
         if !self.status_to.is_empty() && self.awaiting_ppmd.is_none() {
             if let Some(sub) = &self.stats {
@@ -319,6 +337,47 @@ impl Server {
         }
     }
 
+    /// Takes ppmd's read-back samples published since (with a read-back)
+    /// and sends the JSON event of each state change they carry to the
+    /// sender of the newest accepted JSON command; the STATUSTEXTs wait in
+    /// the intake for [`Server::mavlink_replies`]. True when a state
+    /// changed.
+    fn readback_changes(&mut self) -> bool {
+        let Some(sub) = &self.readback else {
+            return false;
+        };
+        let mut changed = false;
+        loop {
+            let sample = match sub.receive() {
+                Ok(Some(sample)) => *sample.payload(),
+                Ok(None) => break,
+                Err(e) => {
+                    log::debug!("receiving ppmd's read-back sample: {e}");
+                    break;
+                }
+            };
+            let Some((change, event)) = self.intake.readback(sample) else {
+                continue;
+            };
+            changed = true;
+            // Debug only: a flapping radio changes state at its frame rate;
+            // ppmd's read-back log keeps every change.
+            log::debug!(
+                "read-back: {} (was {}; {} changes)",
+                crate::readback::state_name(change.sample.state),
+                crate::readback::state_name(change.from),
+                change.sample.changes
+            );
+            if let Some((to, text)) = event {
+                if let Err(e) = self.socket.send_to(text.as_bytes(), to) {
+                    log::debug!("read-back event to {to}: {e}");
+                    self.intake.readback_event_not_sent();
+                }
+            }
+        }
+        changed
+    }
+
     /// Sends the MAVLink replies due (HEARTBEATs and parameters to the
     /// groundstations heard from), with ppmd's newest snapshot.
     fn mavlink_replies(&mut self) {
@@ -364,6 +423,15 @@ impl Server {
             self.intake.counters().summary(),
             self.publish_errors
         );
+        if let Some(rb) = self.intake.readback_state() {
+            let c = rb.counters();
+            log::info!("read-back events: sent {}, held {}", c.sent, c.held);
+        }
+    }
+
+    /// The address the socket is bound to.
+    pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        self.socket.local_addr()
     }
 }
 
@@ -427,6 +495,28 @@ fn subscribe_line(node: &ipc::Node, name: &str) -> Option<Subscriber<LineSample>
             log::warn!(
                 "RC_CHANNELS will carry no channels: subscribing to `{}` failed: {}",
                 ipc::line_service_name(name),
+                Chain(&e)
+            )
+        })
+        .ok()
+}
+
+/// Subscribes to ppmd's read-back samples (`ppmd.readback`). Not worth
+/// stopping for: on failure, status replies say its state is `stale`, and
+/// no change is told.
+fn subscribe_readback(node: &ipc::Node, name: &str) -> Option<Subscriber<ReadbackSample>> {
+    let subscribed = ipc::open_readback_service(node, name).and_then(|service| {
+        service
+            .subscriber_builder()
+            .buffer_size(1)
+            .create()
+            .map_err(|e| IpcError::new("creating the subscriber", e))
+    });
+    subscribed
+        .map_err(|e| {
+            log::warn!(
+                "the read-back will be reported `stale` and its changes not told: subscribing to `{}` failed: {}",
+                ipc::readback_service_name(name),
                 Chain(&e)
             )
         })
@@ -693,6 +783,14 @@ impl Server {
             .then(|| Instant::now() + Duration::from_nanos(crate::PPMD_STALE_AFTER_NS));
         let stats = stats.map(|(sub, _)| sub);
         let line = subscribe_line(&node, &cfg.name);
+        let readback = cfg
+            .readback
+            .as_ref()
+            .and_then(|_| subscribe_readback(&node, &cfg.name));
+        let idle_every = match &cfg.readback {
+            Some(_) => READBACK_POLL_TIMEOUT,
+            None => POLL_TIMEOUT,
+        };
 
         // The busy-polling loop never waits: it needs no poll.
         let poll = if cfg.ingress.busy_poll {
@@ -727,6 +825,14 @@ impl Server {
         .forget_seq_after(Duration::from_millis(cfg.failsafe.after_ms))
         .with_mavlink(cfg.mavlink.clone())
         .with_status_allow(status_allow.clone());
+        if let Some(r) = &cfg.readback {
+            log::info!(
+                "read-back of {}: in status replies; each state change goes at once (within {} ms) to the sender of the newest JSON command and as STATUSTEXT to MAVLink peers; RC_CHANNELS carry what the radio transmits, SERVO_OUTPUT_RAW what the line carries",
+                r.input,
+                READBACK_POLL_TIMEOUT.as_millis()
+            );
+            intake = intake.with_readback(r.input.to_string());
+        }
         let mut mavlink_ts_file = None;
         if let Some((path, key, ts_path, file, floor)) = mavlink_signing {
             intake = intake.with_mavlink_signing(key, floor);
@@ -784,6 +890,8 @@ impl Server {
             ppmd_snapshot: None,
             line,
             line_sample: None,
+            readback,
+            idle_every,
             awaiting_ppmd,
             reply_budget: ReplyBudget::new(),
             mavlink_out: Vec::new(),
@@ -804,7 +912,7 @@ impl Server {
             Some(mut poll) => {
                 let mut events = Events::with_capacity(8);
                 while !stop.load(Relaxed) {
-                    if let Err(e) = poll.poll(&mut events, Some(POLL_TIMEOUT)) {
+                    if let Err(e) = poll.poll(&mut events, Some(rx.idle_every)) {
                         if e.kind() == std::io::ErrorKind::Interrupted {
                             continue;
                         }
@@ -817,11 +925,12 @@ impl Server {
             None => {
                 // Spin: drain, publish, repeat. What a wake-up of the sleeping
                 // loop does without datagrams (offering the last sample to a
-                // restarted ppmd, saving the seq, the counters' log line) is
-                // done every POLL_TIMEOUT while nothing arrives.
+                // restarted ppmd, saving the seq, the counters' log line, the
+                // read-back's changes) is done every `idle_every` while
+                // nothing arrives.
                 let mut settled = Instant::now();
                 while !stop.load(Relaxed) {
-                    if rx.drain() > 0 || settled.elapsed() >= POLL_TIMEOUT {
+                    if rx.drain() > 0 || settled.elapsed() >= rx.idle_every {
                         rx.settle();
                         settled = Instant::now();
                     } else {
@@ -864,6 +973,189 @@ mod tests {
         cfg.keys.note_option("ingress.listen", "--listen");
         let e = bind_error(&cfg, std::io::Error::from(nix::errno::Errno::EACCES));
         assert!(e.to_string().starts_with("--listen 0.0.0.0:80: "), "{e}");
+    }
+
+    /// A running ingress with a read-back (its receive loop, socket and
+    /// shared memory under a temporary root): it waits at most
+    /// READBACK_POLL_TIMEOUT for datagrams, so the read-back samples
+    /// published here are seen while none comes. Each change reaches the
+    /// JSON sender as one event (none for a sample without a change) and a
+    /// MAVLink peer as a STATUSTEXT; the status reply carries the newest;
+    /// RC_CHANNELS carry the radio's frame, SERVO_OUTPUT_RAW the line's (no
+    /// ppmd here: none). No time limit is asserted: the latency of the
+    /// first event is printed.
+    #[test]
+    fn a_running_ingress_tells_each_readback_change_while_no_datagram_comes() {
+        use crate::readback::tests::{decode, rc_channels, sample, servo_output_raw, statustext};
+        use ppm_shared::capture::ReadbackState::{Following, NoInput, Overridden};
+        use ppm_shared::mavlink::{self, HEARTBEAT, RC_CHANNELS, SERVO_OUTPUT_RAW, STATUSTEXT};
+        use std::net::UdpSocket as StdSocket;
+        use std::sync::{mpsc, Arc};
+
+        let root = std::env::temp_dir().join(format!("ppm-readback-server-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let cfg = format!(
+            "name = \"rb\"\n[ingress]\nlisten = \"127.0.0.1:0\"\n[ppmd]\nreadback = \"sim:{0}/radio.trace\"\n[ipc]\nroot = \"{0}\"\n",
+            root.display()
+        );
+        let (shared, out) = Plan::resolve_one(&Config::parse(&cfg).unwrap()).unwrap();
+        // Without a read-back, the loop waits as long as it always did.
+        let plain = cfg.replace("name = \"rb\"", "name = \"plain\"");
+        let plain = plain[..plain.find("[ppmd]").unwrap()].to_string()
+            + &plain[plain.find("[ipc]").unwrap()..];
+        let (plain_shared, plain) = Plan::resolve_one(&Config::parse(&plain).unwrap()).unwrap();
+        assert!(plain.readback.is_none());
+        let server = Server::open(&plain_shared, plain).unwrap();
+        assert_eq!(server.idle_every, POLL_TIMEOUT);
+        drop(server);
+        let stop = Arc::new(AtomicBool::new(false));
+        let (tx, rx) = mpsc::channel();
+        let running = {
+            let stop = stop.clone();
+            std::thread::spawn(move || {
+                let server = Server::open(&shared, out).unwrap();
+                tx.send((server.local_addr().unwrap(), server.idle_every))
+                    .unwrap();
+                server.run(&stop).unwrap();
+            })
+        };
+        let (at, idle_every) = rx.recv_timeout(Duration::from_secs(30)).unwrap();
+        assert_eq!(idle_every, READBACK_POLL_TIMEOUT);
+
+        let node = ipc::create_node(&root, "readback-test").unwrap();
+        let service = ipc::open_readback_service(&node, "rb").unwrap();
+        let publisher = service.publisher_builder().create().unwrap();
+        let socket = || {
+            let s = StdSocket::bind("127.0.0.1:0").unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+            s
+        };
+        let (json, gcs, query) = (socket(), socket(), socket());
+        let mut buf = [0u8; 4_096];
+        let mut recv = |s: &StdSocket| -> Vec<u8> {
+            let n = s.recv(&mut buf).expect("a datagram within 10 s");
+            buf[..n].to_vec()
+        };
+        // The newest readback member as a status reply has it.
+        let status = |query: &StdSocket, recv: &mut dyn FnMut(&StdSocket) -> Vec<u8>| {
+            query.send_to(br#"{"get":"status"}"#, at).unwrap();
+            let reply: serde_json::Value = serde_json::from_slice(&recv(query)).unwrap();
+            reply["readback"].clone()
+        };
+        // Waits until the ingress has taken a sample of `frames` frames.
+        let taken = |frames: u64, recv: &mut dyn FnMut(&StdSocket) -> Vec<u8>| {
+            for _ in 0..500 {
+                if status(&query, recv)["frames"] == frames {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            panic!("the ingress never took the sample of {frames} frames");
+        };
+
+        json.send_to(br#"{"ch":[1500,1500,1500,1500],"seq":1}"#, at)
+            .unwrap();
+        let hb = mavlink::frame(2, (0, 255, 190), &HEARTBEAT, &[0, 0, 0, 0, 6, 8, 0, 4, 3]);
+        gcs.send_to(&hb, at).unwrap();
+        let before = status(&query, &mut recv);
+        assert_eq!(
+            (&before["state"], &before["input"]),
+            (
+                &serde_json::json!("stale"),
+                &serde_json::json!(format!("sim:{}/radio.trace", root.display()))
+            )
+        );
+
+        let publish = |s: ppm_shared::ipc::ReadbackSample| {
+            ipc::publish(&publisher, s).unwrap();
+        };
+        let t0 = now_ns();
+        let mut first = sample(t0, NoInput, 0, 0);
+        first.frames = 1;
+        publish(first);
+        taken(1, &mut recv);
+        // The change, while nothing is sent to the ingress.
+        let t1 = now_ns();
+        publish(sample(t1, Following, 1, t1));
+        let event = recv(&json);
+        eprintln!(
+            "first event {:.3} ms after its sample",
+            (now_ns() - t1) as f64 / 1e6
+        );
+        assert_eq!(
+            String::from_utf8(event).unwrap(),
+            format!(
+                r#"{{"changed_mono_ns":{t1},"changes":1,"event":"readback","from":"no_input","name":"rb","state":"following"}}"#
+            )
+        );
+        // A sample without a change: no event (the next datagram is the
+        // next change's).
+        let mut same = sample(now_ns(), Following, 1, t1);
+        same.frames = 260;
+        publish(same);
+        taken(260, &mut recv);
+        let t2 = now_ns();
+        publish(sample(t2, Overridden, 2, t2));
+        assert_eq!(
+            String::from_utf8(recv(&json)).unwrap(),
+            format!(
+                r#"{{"changed_mono_ns":{t2},"changes":2,"event":"readback","from":"following","name":"rb","state":"overridden"}}"#
+            )
+        );
+        let r = status(&query, &mut recv);
+        assert_eq!(
+            (
+                &r["state"],
+                &r["changes"],
+                &r["frames"],
+                &r["ch_us"],
+                &r["max_diff_us"]
+            ),
+            (
+                &serde_json::json!("overridden"),
+                &serde_json::json!(2),
+                &serde_json::json!(250),
+                &serde_json::json!([1100.4, 1499.6, 1900.0, 1500.0]),
+                &serde_json::json!(12.345)
+            )
+        );
+        assert_eq!(r["refused"]["unsynced"], 8);
+
+        // The MAVLink peer: both STATUSTEXTs, in order; RC_CHANNELS carry
+        // the radio's frame; SERVO_OUTPUT_RAW the line's (none).
+        let (mut texts, mut rc, mut servo) = (vec![], None, None);
+        while texts.len() < 2 || rc.is_none() || servo.is_none() {
+            let (id, p) = decode(&recv(&gcs));
+            match id {
+                id if id == STATUSTEXT.id => texts.push(statustext(&p)),
+                id if id == RC_CHANNELS.id && texts.len() == 2 => rc = Some(rc_channels(&p)),
+                id if id == SERVO_OUTPUT_RAW.id => servo = Some(servo_output_raw(&p)),
+                _ => {}
+            }
+        }
+        assert_eq!(
+            texts,
+            [
+                (5, "ppm rb: following".to_string(), 0, 0),
+                (
+                    4,
+                    "ppm rb: overridden (instructor has control)".to_string(),
+                    0,
+                    0
+                )
+            ]
+        );
+        let (_, count, chan, rest_unused) = rc.unwrap();
+        assert_eq!(
+            (count, chan, rest_unused),
+            (4, vec![1100, 1500, 1900, 1500], true)
+        );
+        assert_eq!(servo.unwrap().2, vec![0; 16]);
+
+        stop.store(true, Relaxed);
+        running.join().unwrap();
+        drop((publisher, service, node));
+        let _ = std::fs::remove_dir_all(&root);
     }
 
     /// A key file from the configuration is named by its key, with where

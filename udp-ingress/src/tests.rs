@@ -318,6 +318,26 @@ fn the_largest_reply_fits_the_documented_bound() {
     for key in ["newest_seq", "newest_command_age_ms"] {
         assert!(!reply[key].is_null(), "{key}");
     }
+    // A read-back of 16 channels, every reason refused.
+    reply["readback"] = serde_json::to_value(ppm_shared::status::ReadbackStatus {
+        state: "overridden".into(),
+        input: format!("gpio:{}:{}", "c".repeat(40), "l".repeat(40)),
+        since_ms: Some(1.5),
+        changes: 1,
+        edges: 1,
+        frames: 1,
+        matched: 1,
+        mismatched: 1,
+        refused: ppm_shared::capture::CaptureCounts::default()
+            .reasons()
+            .iter()
+            .map(|(r, _)| (r.to_string(), 1))
+            .collect(),
+        ch_us: vec![1500.5; 16],
+        max_diff_us: 1.5,
+        age_ms: 1.5,
+    })
+    .unwrap();
     widest(&mut reply);
     let text = reply.to_string();
     assert!(
@@ -820,7 +840,7 @@ fn reject_log_is_rate_limited_per_reason() {
 
 /// An RC_CHANNELS_OVERRIDE frame for any target: `chan` on chan1.., the
 /// other channels of chan1..8 released (0), chan9..18 ignored.
-fn rc_override(version: u8, chan: &[u16]) -> Vec<u8> {
+pub(crate) fn rc_override(version: u8, chan: &[u16]) -> Vec<u8> {
     let mut payload = vec![];
     for i in 0..18 {
         let v = chan.get(i).copied().unwrap_or(0);

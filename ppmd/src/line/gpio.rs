@@ -874,6 +874,28 @@ fn request_error(
     }
 }
 
+/// The error for a failed request of `line` as an input (the read-back's,
+/// [`crate::input`]): as for an output, a busy line names its holder and
+/// permission and missing-uAPI errors get their own variants.
+pub(crate) fn input_request_error(
+    handle: &Chip,
+    summary: &ChipSummary,
+    line: &LineInfo,
+    e: &gpiocdev::Error,
+) -> GpioError {
+    match request_error(handle, summary, std::slice::from_ref(line), e) {
+        GpioError::Failed {
+            chip, line, detail, ..
+        } => GpioError::Failed {
+            chip,
+            line,
+            op: "requesting the line as an input",
+            detail,
+        },
+        other => other,
+    }
+}
+
 /// `NAME (offset N)` or `offset N` for messages.
 pub fn describe_line(info: &LineInfo) -> String {
     line_title(info)

@@ -61,6 +61,7 @@ impl Config {
             Protocol::Ppm => self.check_ppm_output(&output)?,
             Protocol::Sbus => self.check_sbus_output(&output)?,
         }
+        self.readback_plan()?;
         for (key, action) in [
             ("failsafe.action", self.failsafe.action),
             ("failsafe.startup", self.failsafe.startup),
@@ -329,6 +330,57 @@ impl Config {
     }
 
     /// The output named by `ppmd.output`.
+    /// The read-back `ppmd.readback` and `[readback]` describe, checked:
+    /// errors name the key.
+    pub fn readback_plan(&self) -> Result<Option<super::ReadbackPlan>, ConfigError> {
+        let Some(input) = &self.ppmd.readback else {
+            return Ok(None);
+        };
+        let input: crate::capture::InputSpec = input
+            .parse()
+            .map_err(|m| ConfigError::invalid("ppmd.readback", m))?;
+        if self.ppm.protocol != Protocol::Ppm {
+            return Err(ConfigError::invalid(
+                "ppmd.readback",
+                "a read-back reads PPM (a radio's module bay set to PPM), and compares it with a PPM output's frames: set ppm.protocol = \"ppm\", or remove ppmd.readback",
+            ));
+        }
+        let r = &self.readback;
+        for (key, v, lo, hi, unit) in [
+            ("readback.tolerance_us", r.tolerance_us, 1, 500, " us"),
+            ("readback.window_ms", r.window_ms, 10, 2_000, " ms"),
+            ("readback.frames", r.frames as u32, 1, 10, ""),
+            (
+                "readback.channels",
+                r.channels.unwrap_or(1) as u32,
+                1,
+                16,
+                "",
+            ),
+        ] {
+            if !(lo..=hi).contains(&v) {
+                return Err(ConfigError::invalid(
+                    key,
+                    format!("{v}{unit} is outside {lo}..={hi}"),
+                ));
+            }
+        }
+        Ok(Some(super::ReadbackPlan {
+            input,
+            log: self.ppmd.readback_log.clone(),
+            capture: crate::capture::CaptureSettings {
+                idle: r.idle_level,
+                channels: r.channels,
+            },
+            matching: crate::capture::MatchSettings {
+                tolerance_ns: r.tolerance_us * 1_000,
+                window_ns: r.window_ms as u64 * 1_000_000,
+                frames: r.frames,
+            },
+        }))
+    }
+
+    /// `ppmd.output`, parsed.
     pub fn output(&self) -> Result<OutputSpec, ConfigError> {
         self.ppmd
             .output

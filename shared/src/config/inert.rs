@@ -165,7 +165,8 @@ impl Config {
             .iter()
             .filter_map(|e| {
                 let c = &e.config;
-                Some((c.output().ok()?, c.ppm.protocol, c.ppmd.frame_log.is_some()))
+                let logs = c.ppmd.frame_log.is_some() || c.ppmd.readback_log.is_some();
+                Some((c.output().ok()?, c.ppm.protocol, logs))
             })
             .collect();
         let lines = entries
@@ -198,7 +199,34 @@ impl Config {
         if set("ppmd.frame_log_max_mb") && !outputs.iter().any(|(_, _, log)| *log) {
             out.push((
                 "ppmd.frame_log_max_mb",
-                "it rotates the frame log, and no frame log is written (ppmd.frame_log, ppmd --frame-log)".into(),
+                "it rotates the frame log and the read-back log, and neither is written (ppmd.frame_log, ppmd --frame-log, ppmd.readback_log)".into(),
+            ));
+        }
+        if !entries.iter().any(|e| e.config.ppmd.readback.is_some()) {
+            for key in [
+                "readback.tolerance_us",
+                "readback.window_ms",
+                "readback.frames",
+                "readback.idle_level",
+                "readback.channels",
+            ] {
+                if set(key) {
+                    out.push((
+                        key,
+                        "it sets how frames read back are read and judged, and no output has a read-back (ppmd.readback)".into(),
+                    ));
+                }
+            }
+        }
+        if entries
+            .iter()
+            .any(|e| e.config.ppmd.readback_log.is_some() && e.config.ppmd.readback.is_none())
+            && set("ppmd.readback_log")
+        {
+            out.push((
+                "ppmd.readback_log",
+                "it logs the frames read back, and the output has no read-back (ppmd.readback)"
+                    .into(),
             ));
         }
         if let SpinMargin::Fixed(us) = self.rt.spin_margin_us {
@@ -257,6 +285,25 @@ mod tests {
         let mut c = Config::parse("[ppm]\nframe_us = 20500.0").unwrap();
         c.ppm.timing = Timing::Grid;
         assert!(c.inert_keys(Program::Ppmd).is_empty());
+    }
+
+    #[test]
+    fn readback_keys_without_a_readback_are_named() {
+        let k = |t: &str| keys(t, Program::Ppmd);
+        assert_eq!(
+            k("[readback]\ntolerance_us = 20\nframes = 3\n[ppmd]\nreadback_log = 'rb.jsonl'"),
+            [
+                "readback.tolerance_us",
+                "readback.frames",
+                "ppmd.readback_log"
+            ]
+        );
+        assert!(k("[readback]\ntolerance_us = 20\n[ppmd]\nreadback = 'gpio:GPIO17'\nreadback_log = 'rb.jsonl'").is_empty());
+        // The read-back log is rotated at frame_log_max_mb too.
+        assert!(k(
+            "[ppmd]\nframe_log_max_mb = 8\nreadback = 'gpio:GPIO17'\nreadback_log = 'rb.jsonl'"
+        )
+        .is_empty());
     }
 
     #[test]

@@ -51,6 +51,8 @@ pub struct OutputPlan {
     pub output: OutputSpec,
     /// Its frame log (`ppmd.frame_log`), if any.
     pub frame_log: Option<PathBuf>,
+    /// Its read-back (`ppmd.readback`), if any.
+    pub readback: Option<ReadbackPlan>,
     /// Its `[ingress]`.
     pub ingress: IngressSection,
     /// `ingress.allow`, parsed.
@@ -193,6 +195,20 @@ fn output_target(c: &Config) -> Option<OutputSpec> {
     }
 }
 
+/// An output's read-back: `ppmd.readback`, `ppmd.readback_log` and
+/// `[readback]`, checked.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReadbackPlan {
+    /// The input read.
+    pub input: crate::capture::InputSpec,
+    /// The read-back log, if any.
+    pub log: Option<PathBuf>,
+    /// What the decoder is told.
+    pub capture: crate::capture::CaptureSettings,
+    /// How frames read are judged.
+    pub matching: crate::capture::MatchSettings,
+}
+
 impl OutputPlan {
     /// The plan of validated output `c`, whose frame model is `model`.
     fn new(c: &Config, model: FrameModel) -> Result<OutputPlan, ConfigError> {
@@ -202,6 +218,7 @@ impl OutputPlan {
             model,
             output: c.output()?,
             frame_log: c.ppmd.frame_log.clone(),
+            readback: c.readback_plan()?,
             ingress: c.ingress.clone(),
             allow: c.allow()?,
             status_allow: c.status_allow()?,

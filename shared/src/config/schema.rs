@@ -28,6 +28,8 @@ pub struct Config {
     pub ingress: IngressSection,
     /// The PPM daemon.
     pub ppmd: PpmdSection,
+    /// How frames read back from the radio are read and judged.
+    pub readback: ReadbackSection,
     /// Real-time setup of ppmd's timing thread.
     pub rt: RtSection,
     /// What ppmd does when commands stop.
@@ -54,6 +56,7 @@ impl Default for Config {
             ppm: PpmSection::default(),
             ingress: IngressSection::default(),
             ppmd: PpmdSection::default(),
+            readback: ReadbackSection::default(),
             rt: RtSection::default(),
             failsafe: FailsafeSection::default(),
             ipc: IpcSection::default(),
@@ -148,6 +151,14 @@ pub struct PpmdSection {
     /// resolution of every edge inside a frame (1 us at the default
     /// 1000000, 0.5 us at 2000000, EdgeTX's capture tick).
     pub spi_hz: u32,
+    /// The read-back of this output: an input carrying what the radio
+    /// this output feeds transmits (its module bay set to PPM):
+    /// `"gpio:CHIP:LINE"`, `"gpio:LINE"` or `"sim:PATH"` (a trace in the
+    /// simulated line's format, read while it grows). Default: none.
+    pub readback: Option<String>,
+    /// Read-back log: one JSON line per frame read and per read-back state
+    /// change, appended to this file. Default: none.
+    pub readback_log: Option<PathBuf>,
 }
 
 impl Default for PpmdSection {
@@ -158,6 +169,42 @@ impl Default for PpmdSection {
             frame_log_max_mb: 64,
             trace_max_mb: 256,
             spi_hz: 1_000_000,
+            readback: None,
+            readback_log: None,
+        }
+    }
+}
+
+/// `[readback]`: how the frames read from `ppmd.readback` are read and
+/// compared with what the line carried (see docs/readback.md).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReadbackSection {
+    /// Largest difference per channel, us, 1..=500, between a value read
+    /// and one the line carried that still counts as the radio following
+    /// ppm. Default 10.
+    pub tolerance_us: u32,
+    /// How long after ppm's line carried a frame the radio may still be
+    /// transmitting it, ms, 10..=2000. Default 100.
+    pub window_ms: u32,
+    /// Frames read in a row that must agree before the state changes,
+    /// 1..=10. Default 2.
+    pub frames: u8,
+    /// The input's idle level, `"low"` or `"high"`. Default: found from
+    /// the signal.
+    pub idle_level: Option<crate::signal::Level>,
+    /// Channels in a frame read, 1..=16. Default: found from the signal.
+    pub channels: Option<u8>,
+}
+
+impl Default for ReadbackSection {
+    fn default() -> Self {
+        ReadbackSection {
+            tolerance_us: 10,
+            window_ms: 100,
+            frames: 2,
+            idle_level: None,
+            channels: None,
         }
     }
 }

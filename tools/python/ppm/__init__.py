@@ -52,6 +52,8 @@ __all__ = [
     "sign",
     "envelope",
     "status_query",
+    "read_log",
+    "joined",
     "VALUE_MIN_US",
     "VALUE_MAX_US",
 ]
@@ -67,9 +69,9 @@ MAX_CHANNELS = 16
 #: The status query as udp-ingress recognises it.
 STATUS_QUERY = b'{"get":"status"}'
 #: The size status queries are padded to, as ppm's other tools pad theirs: a
-#: third of the largest reply (2100 bytes), which is never more than 3 times
+#: third of the largest reply (3600 bytes), which is never more than 3 times
 #: the query, so any source gets it.
-STATUS_QUERY_PADDED_LEN = 800
+STATUS_QUERY_PADDED_LEN = 1200
 #: The largest key file read, like udp-ingress (64 hex characters and whitespace).
 KEY_MAX_BYTES = 4096
 
@@ -178,7 +180,7 @@ def status_query(size: int = STATUS_QUERY_PADDED_LEN) -> bytes:
     """``{"get":"status"}`` padded with trailing spaces to ``size`` bytes.
 
     >>> len(status_query()), status_query().rstrip()
-    (800, b'{"get":"status"}')
+    (1200, b'{"get":"status"}')
     """
     return STATUS_QUERY.ljust(size, b" ")
 
@@ -350,7 +352,7 @@ class Sender:
         """Asks udp-ingress for its status and returns the reply (a dict with
         ``datagrams``, ``ppmd``, ...: see docs/status.md, "Status queries").
 
-        The query is padded to 800 bytes, so any source gets the reply (no
+        The query is padded to 1200 bytes, so any source gets the reply (no
         reply is more than 3 times its query, unless the source is in
         ``ingress.status_allow``); when the answer is ``{"pad_to": N}`` the
         query is sent once more, padded to N. Raises :class:`StatusTimeout`
@@ -410,3 +412,71 @@ class Sender:
         signed = ", signed" if self._key is not None else ""
         name = f", name={self.name!r}" if self.name is not None else ""
         return f"Sender({self.target!r}{name}{signed}, seq={self._numbered})"
+
+
+def read_log(path: Union[str, "os.PathLike[str]"]) -> List[Dict[str, Any]]:
+    """The rows of a JSON-lines log of ppmd (its frame log, ``ppmd.frame_log``,
+    or its read-back log, ``ppmd.readback_log``), in file order. A last line
+    cut short by a writer still running is left out; any other line that is
+    not JSON raises :class:`PpmError` naming the file and the line."""
+    rows: List[Dict[str, Any]] = []
+    with open(path, encoding="utf-8") as f:
+        lines = f.read().split("\n")
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            rows.append(json.loads(line))
+        except ValueError as e:
+            if i == len(lines) - 1:
+                break
+            raise PpmError(f"{os.fspath(path)} line {i + 1}: not a JSON row ({e})") from None
+    return rows
+
+
+def joined(
+    frame_log: Union[str, "os.PathLike[str]", None],
+    readback_log: Union[str, "os.PathLike[str]"],
+) -> Iterable[Dict[str, Any]]:
+    """Joins the three streams, one row per frame read back from the radio:
+    ``read`` (the read-back log's row: what the radio transmitted, ``ch_us``,
+    its ``match`` and ``state``), ``line`` (the frame log's newest row of a
+    frame the line carried that began before the read frame did: what ppm
+    sent) and ``command`` (that frame's command: ``seq``, ``ingress_seq``,
+    ``recv_mono_ns``, ``recv_real_ns``; ``None`` for a failsafe frame), and
+    ``lag_ms``, the read frame's start after the line frame's. All times are
+    CLOCK_MONOTONIC ns (``mono_ns``) with the wall time beside them
+    (``real_ns``), as both logs write them. Without a frame log (``None``: a
+    pilot's radio recorded with ``ppm-capture``) ``line`` and ``command`` are
+    ``None``.
+
+    >>> import tempfile, os.path
+    >>> d = tempfile.mkdtemp()
+    >>> f, r = os.path.join(d, "f.jsonl"), os.path.join(d, "r.jsonl")
+    >>> _ = open(f, "w").write('{"type":"frame","mono_ns":100,"seq":7,"ingress_seq":1,'
+    ...     '"recv_mono_ns":90,"recv_real_ns":5,"ch_us":[1300.0]}\\n')
+    >>> _ = open(r, "w").write('{"type":"read","mono_ns":50,"ch_us":[1500.0]}\\n'
+    ...     '{"type":"readback","mono_ns":60,"from":"no_input","to":"following"}\\n'
+    ...     '{"type":"read","mono_ns":2000100,"ch_us":[1300.0],"match":true}\\n')
+    >>> [(j["read"]["ch_us"], j["line"] and j["line"]["ch_us"], j["command"] and j["command"]["seq"], j["lag_ms"])
+    ...  for j in joined(f, r)]
+    [([1500.0], None, None, None), ([1300.0], [1300.0], 7, 2.0)]
+    """
+    frames = [] if frame_log is None else [r for r in read_log(frame_log) if r.get("type") == "frame"]
+    frames.sort(key=lambda r: r["mono_ns"])
+    i = -1
+    for row in read_log(readback_log):
+        if row.get("type") != "read":
+            continue
+        while i + 1 < len(frames) and frames[i + 1]["mono_ns"] <= row["mono_ns"]:
+            i += 1
+        line = frames[i] if i >= 0 else None
+        command = None
+        if line is not None and line.get("ingress_seq") is not None:
+            command = {k: line.get(k) for k in ("seq", "ingress_seq", "recv_mono_ns", "recv_real_ns")}
+        yield {
+            "read": row,
+            "line": line,
+            "command": command,
+            "lag_ms": None if line is None else (row["mono_ns"] - line["mono_ns"]) / 1e6,
+        }

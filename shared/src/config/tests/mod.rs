@@ -488,6 +488,40 @@ fn invalid_keys_are_named() {
         ("name = 'a b'", "name"),
         ("[ppm]\nchannels = 0", "ppm.channels"),
         ("[ppm]\nchannels = 17", "ppm.channels"),
+        ("[ppmd]\nreadback = 'spi:/dev/spidev0.0'", "ppmd.readback"),
+        ("[ppmd]\nreadback = 'gpio:'", "ppmd.readback"),
+        (
+            "[ppm]\nprotocol = 'sbus'\n[ppmd]\nreadback = 'gpio:GPIO17'",
+            "ppmd.readback",
+        ),
+        (
+            "[ppmd]\nreadback = 'gpio:GPIO17'\n[readback]\ntolerance_us = 0",
+            "readback.tolerance_us",
+        ),
+        (
+            "[ppmd]\nreadback = 'gpio:GPIO17'\n[readback]\ntolerance_us = 501",
+            "readback.tolerance_us",
+        ),
+        (
+            "[ppmd]\nreadback = 'gpio:GPIO17'\n[readback]\nwindow_ms = 9",
+            "readback.window_ms",
+        ),
+        (
+            "[ppmd]\nreadback = 'gpio:GPIO17'\n[readback]\nframes = 0",
+            "readback.frames",
+        ),
+        (
+            "[ppmd]\nreadback = 'gpio:GPIO17'\n[readback]\nframes = 11",
+            "readback.frames",
+        ),
+        (
+            "[ppmd]\nreadback = 'gpio:GPIO17'\n[readback]\nchannels = 0",
+            "readback.channels",
+        ),
+        (
+            "[ppmd]\nreadback = 'gpio:GPIO17'\n[readback]\nchannels = 17",
+            "readback.channels",
+        ),
         ("[ppm]\nmin_us = 700", "ppm.min_us"),
         ("[ppm]\nmax_us = 2300", "ppm.max_us"),
         (
@@ -650,4 +684,46 @@ fn mavlink_keys_resolve_against_the_channels_or_name_the_key() {
     let p = Plan::resolve(&c).unwrap();
     let ids: Vec<u8> = p.outputs.iter().map(|o| o.mavlink.system_id).collect();
     assert_eq!(ids, [2, 1]);
+}
+
+#[test]
+fn a_readback_resolves_into_its_plan() {
+    use crate::capture::{CaptureSettings, InputSpec, MatchSettings};
+    let c = Config::parse(
+        "[ppmd]\nreadback = 'gpio:GPIO17'\nreadback_log = 'rb.jsonl'\n[readback]\ntolerance_us = 25\nwindow_ms = 60\nframes = 3\nidle_level = 'high'\nchannels = 8",
+    )
+    .unwrap();
+    let (_, plan) = crate::config::Plan::resolve_one(&c).unwrap();
+    let rb = plan.readback.expect("a read-back");
+    assert_eq!(
+        rb.input,
+        InputSpec::Gpio {
+            chip: String::new(),
+            line: "GPIO17".into()
+        }
+    );
+    assert_eq!(rb.log, Some(std::path::PathBuf::from("rb.jsonl")));
+    assert_eq!(
+        rb.capture,
+        CaptureSettings {
+            idle: Some(crate::signal::Level::High),
+            channels: Some(8)
+        }
+    );
+    assert_eq!(
+        rb.matching,
+        MatchSettings {
+            tolerance_ns: 25_000,
+            window_ns: 60_000_000,
+            frames: 3
+        }
+    );
+    // Found from the signal unless set; none without ppmd.readback.
+    let c = Config::parse("[ppmd]\nreadback = 'sim:radio.trace'").unwrap();
+    let (_, plan) = crate::config::Plan::resolve_one(&c).unwrap();
+    let rb = plan.readback.unwrap();
+    assert_eq!(rb.capture, CaptureSettings::default());
+    assert_eq!(rb.matching, MatchSettings::default());
+    let (_, plan) = crate::config::Plan::resolve_one(&Config::default()).unwrap();
+    assert_eq!(plan.readback, None);
 }

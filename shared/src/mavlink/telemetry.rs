@@ -1,0 +1,94 @@
+//! What ppm tells a groundstation beside its HEARTBEAT and RC_CHANNELS:
+//! SERVO_OUTPUT_RAW (36), the values on ppm's line, and STATUSTEXT (253),
+//! a line of text such as a read-back state change ("ppm pi: overridden
+//! (instructor has control)").
+//!
+//! Payload encoders only, as [`super::rc_channels_payload`]: framing,
+//! numbering and signing are [`super::frame`]'s and [`super::Signing`]'s.
+//! CRC_EXTRA values were computed from each message's fields in the common
+//! dialect and match pymavlink's; the tests compare whole frames with
+//! pymavlink's.
+
+use super::Spec;
+
+/// `SERVO_OUTPUT_RAW`: what ppm's line carried (ArduPilot sends its outputs
+/// in it). servo9..16 are MAVLink 2 extensions.
+pub const SERVO_OUTPUT_RAW: Spec = Spec {
+    id: 36,
+    name: "SERVO_OUTPUT_RAW",
+    crc_extra: 222,
+    v1_len: 21,
+    max_len: 37,
+};
+
+/// `STATUSTEXT`: severity and up to [`STATUSTEXT_LEN`] bytes of text; `id`
+/// and `chunk_seq` (MAVLink 2 extensions) join the chunks of a longer one.
+pub const STATUSTEXT: Spec = Spec {
+    id: 253,
+    name: "STATUSTEXT",
+    crc_extra: 83,
+    v1_len: 51,
+    max_len: 54,
+};
+
+/// The most text bytes one STATUSTEXT carries.
+pub const STATUSTEXT_LEN: usize = 50;
+
+/// MAV_SEVERITY_WARNING: something to act on, not yet an error.
+pub const MAV_SEVERITY_WARNING: u8 = 4;
+/// MAV_SEVERITY_NOTICE: normal but significant.
+pub const MAV_SEVERITY_NOTICE: u8 = 5;
+/// MAV_SEVERITY_INFO: for information.
+pub const MAV_SEVERITY_INFO: u8 = 6;
+
+/// SERVO_OUTPUT_RAW's payload: `values_us` on servo1.. (at most 16; those
+/// past them 0, "not used", as ArduPilot sends an output it does not
+/// drive), output `port`, at `time_usec` (us since boot, wrapping at 2^32 as
+/// ArduPilot's does).
+pub fn servo_output_raw_payload(time_usec: u32, port: u8, values_us: &[u16]) -> [u8; 37] {
+    let mut p = [0u8; 37];
+    p[..4].copy_from_slice(&time_usec.to_le_bytes());
+    let servo = |i: usize| values_us.get(i).copied().unwrap_or(0).to_le_bytes();
+    for i in 0..8 {
+        p[4 + 2 * i..6 + 2 * i].copy_from_slice(&servo(i));
+    }
+    p[20] = port;
+    for i in 8..16 {
+        p[21 + 2 * (i - 8)..23 + 2 * (i - 8)].copy_from_slice(&servo(i));
+    }
+    p
+}
+
+/// STATUSTEXT payloads of `text` at `severity` (a MAV_SEVERITY): one, with
+/// `id` 0, when it fits in [`STATUSTEXT_LEN`] bytes; otherwise chunks of
+/// exactly that many bytes numbered by `chunk_seq` 0, 1, ... under `id`
+/// (not 0), the last shorter, so that it holds a NUL (an empty chunk
+/// follows one that ends exactly at the limit): the common dialect's
+/// reader joins the chunks' bytes up to that NUL. A chunk may so end inside
+/// a character of a non-ASCII text; the joined text is whole. A MAVLink 1
+/// frame carries no `id` and `chunk_seq`: its reader shows each chunk as a
+/// line. At most 256 chunks.
+pub fn statustext_payloads(severity: u8, text: &str, id: u16) -> Vec<[u8; 54]> {
+    let payload = |chunk: &[u8], id: u16, seq: u8| {
+        let mut p = [0u8; 54];
+        p[0] = severity;
+        p[1..1 + chunk.len()].copy_from_slice(chunk);
+        p[51..53].copy_from_slice(&id.to_le_bytes());
+        p[53] = seq;
+        p
+    };
+    let bytes = &text.as_bytes()[..text.len().min(256 * STATUSTEXT_LEN - 1)];
+    if bytes.len() <= STATUSTEXT_LEN {
+        return vec![payload(bytes, 0, 0)];
+    }
+    let id = id.max(1);
+    let mut chunks: Vec<&[u8]> = bytes.chunks(STATUSTEXT_LEN).collect();
+    if bytes.len().is_multiple_of(STATUSTEXT_LEN) {
+        chunks.push(&[]);
+    }
+    chunks
+        .iter()
+        .enumerate()
+        .map(|(seq, c)| payload(c, id, seq as u8))
+        .collect()
+}
