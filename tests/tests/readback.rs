@@ -7,7 +7,7 @@
 //! trainer switch flips to the instructor, `overridden` must reach the
 //! command's sender as a JSON event, decided on the second frame that
 //! differs (`readback.frames = 2`), and back to `following` after the
-//! switch flips back.
+//! switch flips back, and `no_input` a second after the radio goes quiet.
 
 use ppm_shared::capture::ReadbackState;
 use ppm_shared::receiver::{Receiver, ReceiverDecoder};
@@ -243,8 +243,15 @@ fn the_sender_hears_overridden_when_the_instructor_takes_over_and_following_when
         (Some("following"), Some("overridden")),
         "{back}"
     );
+    // The radio goes quiet: no_input a second after its last frame.
     stop.store(true, SeqCst);
     radio.join().unwrap();
+    let (lost, _) = event(&socket, sb.addr(), Duration::from_secs(5)).expect("no_input");
+    assert_eq!(
+        (lost["state"].as_str(), lost["from"].as_str()),
+        (Some("no_input"), Some("following")),
+        "{lost}"
+    );
     std::thread::sleep(Duration::from_millis(300));
 
     // The log: every change, each decided on the second frame that agreed.
@@ -266,6 +273,7 @@ fn the_sender_hears_overridden_when_the_instructor_takes_over_and_following_when
             names(ReadbackState::NoInput, ReadbackState::Following),
             names(ReadbackState::Following, ReadbackState::Overridden),
             names(ReadbackState::Overridden, ReadbackState::Following),
+            names(ReadbackState::Following, ReadbackState::NoInput),
         ]
     );
     // Frames read before the flip all matched ppm's values; the change to

@@ -435,7 +435,7 @@ pub enum GpioError {
 fn no_such_chip(chip: &str, available: &[ChipSummary]) -> String {
     if available.is_empty() {
         format!(
-            "no GPIO chip `{chip}`: no GPIO chips found (no /dev/gpiochip*): this board has no GPIO driver loaded or the kernel lacks the GPIO character device (needs CONFIG_GPIO_CDEV); without GPIO hardware use --output sim"
+            "no GPIO chip `{chip}`: no GPIO chips found (no /dev/gpiochip*): this board has no GPIO driver loaded or the kernel lacks the GPIO character device (needs CONFIG_GPIO_CDEV); without GPIO hardware use sim (--output sim; for a read-back, readback = \"sim:PATH\")"
         )
     } else {
         format!(
@@ -448,7 +448,7 @@ fn no_such_chip(chip: &str, available: &[ChipSummary]) -> String {
 fn no_line_anywhere(line: &str, chips: &[(ChipSummary, Vec<String>)]) -> String {
     if chips.is_empty() {
         return format!(
-            "no GPIO line `{line}`: no GPIO chips found (no /dev/gpiochip*): this board has no GPIO driver loaded or the kernel lacks the GPIO character device (needs CONFIG_GPIO_CDEV); set ppmd.output to this board's line (gpio:CHIP:LINE), or sim without GPIO hardware"
+            "no GPIO line `{line}`: no GPIO chips found (no /dev/gpiochip*): this board has no GPIO driver loaded or the kernel lacks the GPIO character device (needs CONFIG_GPIO_CDEV); set ppmd.output (or ppmd.readback) to this board's line (gpio:CHIP:LINE), or sim without GPIO hardware"
         );
     }
     let each: Vec<String> = chips
@@ -468,7 +468,7 @@ fn no_line_anywhere(line: &str, chips: &[(ChipSummary, Vec<String>)]) -> String 
         })
         .collect();
     format!(
-        "no GPIO chip here has a line named `{line}` (a Raspberry Pi 4 or 5 has GPIO18 on pinctrl-bcm2711 or pinctrl-rp1): set ppmd.output to this board's line, gpio:CHIP:LINE or gpio:LINE with one of these names (`gpioinfo` lists them all):\n{}",
+        "no GPIO chip here has a line named `{line}` (a Raspberry Pi 4 or 5 has GPIO18 on pinctrl-bcm2711 or pinctrl-rp1): set ppmd.output (or ppmd.readback) to this board's line, gpio:CHIP:LINE or gpio:LINE with one of these names (`gpioinfo` lists them all):\n{}",
         each.join("\n")
     )
 }
