@@ -27,7 +27,7 @@ fn ppm_capture_logs_every_whole_frame_of_a_growing_trace() {
     let trace = dir.join("pilot.trace");
     let log = dir.join("pilot.jsonl");
     std::fs::write(&trace, "# idle_level 0\n").unwrap();
-    let mut child = Command::new(bin("ppm-capture"))
+    let child = Command::new(bin("ppm-capture"))
         .args([
             "--input",
             &format!("sim:{}", trace.display()),

@@ -13,6 +13,9 @@
 # Results in /out: gpio_trace.txt, *.log, chip.txt, ppmd_exit.txt,
 # debug_gpio_after.txt, frames.jsonl, two_trace.txt, two_ppmd_exit.txt,
 # follow_trace.txt, follow_frames.jsonl, follow_ppmd_exit.txt.
+#   - ppm-capture reading GPIO17 while pull-timed drives it through
+#     gpio-sim's pull attribute: readback_frames.jsonl, readback_capture.log,
+#     readback_pull.txt, readback_pull.log.
 #   - ppmd's spi output on the kernel's spi-gpio master (bit-banging three
 #     lines of a second gpio-sim chip, "ppm-spi") through spidev, commands
 #     from ppm-send at 50 Hz: spi_trace.txt (the gpio_value events of SCK,
@@ -189,6 +192,26 @@ capture=$!
 sleep 0.3
 pull-ppm "$(sim_attr_dir "$chip" 0)/pull" 60 1000,1200,1700,2000 2> /out/pull-ppm.log
 wait "$capture" || vmtest_die "jitter --capture failed: $(cat /out/capture.log)"
+
+# ppm-capture reads PPM from GPIO17 (an input with both edges and kernel
+# timestamps) while pull-timed drives it through gpio-sim's pull attribute
+# on its own clock (8 channels 1100..1800 us, 300 us pulses, 22.5 ms
+# frames), recording CLOCK_MONOTONIC before and after every write:
+# readback_frames.jsonl (the frames read), readback_capture.log (its
+# summary), readback_pull.txt (the writes), readback_pull.log.
+ppm-capture --input "gpio:$chip:GPIO17" --log /out/readback_frames.jsonl --duration 4s \
+    --quiet --channels 8 --idle-level low 2> /out/readback_capture.log &
+rcap=$!
+# The driver starts once the line is requested (ppm-capture says so).
+_i=0
+while ! grep -q "reading" /out/readback_capture.log && [ $_i -lt 100 ]; do
+    sleep 0.05
+    _i=$((_i + 1))
+done
+pull-timed "$(sim_attr_dir "$chip" 0)/pull" 120 1100,1200,1300,1400,1500,1600,1700,1800 \
+    /out/readback_pull.txt 2> /out/readback_pull.log ||
+    vmtest_die "pull-timed failed: $(cat /out/readback_pull.log)"
+wait "$rcap" || vmtest_die "ppm-capture failed: $(cat /out/readback_capture.log)"
 
 # The spi output: ppmd sends each frame as one spidev transfer on MOSI of the
 # kernel's spi-gpio master, which bit-bangs SCK, MOSI and CS (lines 0, 1, 2
