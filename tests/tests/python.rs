@@ -364,7 +364,7 @@ fn the_packages_unit_tests_and_doctests_pass() {
 }
 
 /// The package pads its status queries as the Rust tools do (the size
-/// the largest reply needs: shared/src/protocol.rs).
+/// the largest reply needs: shared/src/protocol/status_query.rs).
 #[test]
 fn the_package_pads_status_queries_as_the_tools_do() {
     let out = python3(

@@ -26,7 +26,7 @@
 //!   replies, JSON events and STATUSTEXTs report it.
 //! - [`seqfile`]: the last accepted `seq`, kept across restarts.
 //!
-//! Its unit tests are in `src/tests.rs`.
+//! Its unit tests are in `src/tests/`.
 
 pub mod cli;
 pub mod peers;

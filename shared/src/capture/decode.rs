@@ -534,5 +534,5 @@ fn bump(n: &mut u64) {
 }
 
 #[cfg(test)]
-#[path = "tests.rs"]
+#[path = "tests/mod.rs"]
 mod tests;

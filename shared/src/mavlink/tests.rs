@@ -3,7 +3,8 @@
 //! back to their fields; the checks refuse each fault by its reason.
 
 use super::*;
-use crate::frame::PpmSection;
+use crate::frame::{Channels, FrameModel, PpmSection};
+use crate::protocol::{Command, RejectReason};
 
 /// rc_channels_override_send(1, 1, 1100, 1200, ..., 1800), MAVLink 1,
 /// from system 255, component 190.
