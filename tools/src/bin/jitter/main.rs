@@ -6,6 +6,9 @@
 //! - `--trace FILE`: edge error and channel-period error of a sim trace.
 //! - `--capture CHIP:LINE`: kernel-timestamped edges of an input line wired to
 //!   the output pin, decoded as a transmitter does.
+//! - `loopback`: the self-test with a jumper wire: ppmd's own loop drives
+//!   an output line with a sweep while an input line wired to it is read
+//!   with kernel timestamps (`loopback/`).
 //!
 //! The flags choose one [`Mode`]; the cyclictest-style test (plan, run,
 //! report) is in `cyclictest.rs`.
@@ -27,15 +30,26 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 mod cyclictest;
+mod loopback;
 
 /// Timing measurements for ppm: cyclictest-style tests of this machine with
-/// ppmd's own timer, a running ppmd's edge error, sim traces, captured edges.
+/// ppmd's own timer, a running ppmd's edge error, sim traces, captured edges,
+/// and the self-test with a jumper wire (`jitter loopback`).
 #[derive(Parser, Debug)]
-#[command(name = "jitter", version, disable_help_flag = true)]
+#[command(
+    name = "jitter",
+    version,
+    disable_help_flag = true,
+    disable_help_subcommand = true,
+    args_conflicts_with_subcommands = true
+)]
 struct Cli {
     /// Print help.
     #[arg(long, action = ArgAction::Help)]
     help: Option<bool>,
+    /// A command instead of the flags' measurement.
+    #[command(subcommand)]
+    command: Option<Command>,
     /// SCHED_FIFO priority of the measuring thread (0: normal scheduler).
     #[arg(
         short = 'p',
@@ -153,8 +167,22 @@ struct Cli {
     receiver: Option<Receiver>,
 }
 
+/// jitter's commands (without one, the flags choose the measurement).
+#[derive(clap::Subcommand, Debug, Clone, PartialEq)]
+enum Command {
+    /// Self-test with a jumper wire: the edge error as the line carries it,
+    /// and what receivers read of it.
+    ///
+    /// ppmd's own timing loop drives --output with a sweep of known values
+    /// while --input, wired to it, is read with the kernel's edge
+    /// timestamps; prints the edge error, what EdgeTX, Betaflight and
+    /// ArduPilot read against what was sent, and a verdict (exit status 2
+    /// on FAIL). Without hardware: --output sim:PATH --input sim:PATH.
+    Loopback(loopback::LoopbackArgs),
+}
+
 /// What jitter measures, chosen once from the flags.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 enum Mode {
     /// No target: the cyclictest-style test of this machine.
     Cyclic,
@@ -164,11 +192,16 @@ enum Mode {
     Trace(PathBuf),
     /// `--capture CHIP:LINE`: edges captured from an input line.
     Capture(String),
+    /// `loopback`: the self-test with a jumper wire.
+    Loopback(loopback::LoopbackArgs),
 }
 
 impl Mode {
     /// The mode the flags ask for (clap refuses two targets at once).
     fn of(cli: &Cli) -> Mode {
+        if let Some(Command::Loopback(args)) = &cli.command {
+            return Mode::Loopback(args.clone());
+        }
         match (&cli.attach, &cli.trace, &cli.capture) {
             (Some(name), _, _) => Mode::Attach(name.clone()),
             (None, Some(path), _) => Mode::Trace(path.clone()),
@@ -185,6 +218,10 @@ fn main() {
         Mode::Trace(path) => trace(&path, cli.receiver, cli.plot.as_deref()),
         Mode::Capture(spec) => capture(&cli, &spec),
         Mode::Cyclic => cyclictest::cyclic(&cli),
+        Mode::Loopback(args) => match loopback::run(&args) {
+            Ok(false) => std::process::exit(2),
+            other => other.map(drop),
+        },
     };
     if let Err(e) = r {
         eprintln!("jitter: {e:#}");
@@ -608,5 +645,12 @@ mod tests {
         ] {
             assert!(parse(&two).is_err(), "{two:?}");
         }
+        // The loopback command, with its own options (-h is its help) and
+        // none of the flags' measurement.
+        let loopback = ["loopback", "--output", "sim:a", "--input", "sim:a"];
+        assert!(matches!(mode(&loopback), Mode::Loopback(a) if a.channels == 8));
+        assert!(parse(&["-p", "80", "loopback", "--output", "sim:a", "--input", "sim:a"]).is_err());
+        let help = parse(&["loopback", "-h"]).unwrap_err();
+        assert_eq!(help.kind(), clap::error::ErrorKind::DisplayHelp);
     }
 }
