@@ -144,17 +144,11 @@ impl Proc {
     pub fn cpu_s(&self) -> f64 {
         let stat =
             std::fs::read_to_string(format!("/proc/{}/stat", self.pid())).unwrap_or_default();
-        let after = stat.rsplit(')').next().unwrap_or("");
-        let f: Vec<u64> = after
-            .split_whitespace()
-            .filter_map(|x| x.parse().ok())
-            .collect();
         let ticks = nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)
             .ok()
             .flatten()
             .unwrap_or(100) as f64;
-        // Fields 14 and 15 of /proc/PID/stat (11 and 12 after the state).
-        (f.get(10).unwrap_or(&0) + f.get(11).unwrap_or(&0)) as f64 / ticks
+        cpu_ticks(&stat) as f64 / ticks
     }
 
     /// Kills the process with SIGKILL (as a crash would).
@@ -287,9 +281,30 @@ impl Drop for Pty {
     }
 }
 
+/// User plus system time in a `/proc/PID/stat` line, in clock ticks:
+/// fields 14 and 15, counted by position after the command name's closing
+/// parenthesis (the fields before them hold non-numbers, such as the state,
+/// and -1, such as `tpgid` without a terminal); 0 when the line says none.
+pub fn cpu_ticks(stat: &str) -> u64 {
+    let after = stat.rsplit(')').next().unwrap_or("");
+    let f: Vec<&str> = after.split_whitespace().collect();
+    // After the ')': state is field 3, so utime (14) and stime (15) are 11 and 12.
+    let field = |i: usize| f.get(i).and_then(|x| x.parse::<u64>().ok()).unwrap_or(0);
+    field(11) + field(12)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cpu_time_is_read_by_field_position() {
+        // A process without a terminal (tpgid -1), a name with spaces and
+        // a parenthesis: utime 2100, stime 35.
+        let stat = "4242 (ppmd (x) y) S 1 4242 4242 0 -1 4194560 100 0 0 0 2100 35 7 8 20 0 3 0";
+        assert_eq!(cpu_ticks(stat), 2135);
+        assert_eq!(cpu_ticks(""), 0);
+    }
 
     #[test]
     fn a_scratch_is_fresh_and_removed_after() {

@@ -19,7 +19,11 @@
 //!    commands that reached the line, by the log and by decoding;
 //! 6. SBUS against PPM, both following the commands: send to the frame
 //!    whole at the receiver, and the share of commands on the line, at 50,
-//!    100, 200 and 300 Hz.
+//!    100, 200 and 300 Hz;
+//! 7. the read-back (`ppmd.readback`, a simulated radio): a frame's closing
+//!    edge to its sample published and seen by a subscriber, the read-back
+//!    thread's CPU share at 50 Hz, and the radio's switch flip to the
+//!    sender hearing `overridden`.
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
@@ -39,6 +43,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 mod plots;
+mod readback;
 mod sbus;
 use plots::{plot_dir, write_plots, Plots};
 
@@ -97,6 +102,9 @@ enum Part {
     Late,
     /// 6. SBUS against PPM, follow timing, 50 to 300 Hz.
     Sbus,
+    /// 7. the read-back: edge to published frame, CPU, switch flip to
+    ///    `overridden` heard.
+    Readback,
 }
 
 /// How udp-ingress receives in one run.
@@ -1000,6 +1008,9 @@ fn main() -> Result<()> {
     }
     if runs(Part::Sbus) {
         sbus::sbus(cli.e2e_count)?;
+    }
+    if runs(Part::Readback) {
+        readback::readback()?;
     }
     if let Some(dir) = &cli.plot {
         write_plots(dir, &plots)?;
