@@ -178,10 +178,12 @@ fn the_sender_hears_overridden_when_the_instructor_takes_over_and_following_when
     let sb = Sandbox::new("readback");
     let radio_trace = sb.dir.join("radio.trace");
     let log = sb.dir.join("readback.jsonl");
+    let frames = sb.dir.join("frames.jsonl");
     let cfg = sb.config(&format!(
-        "[ppmd]\nreadback = \"sim:{}\"\nreadback_log = {:?}\n[readback]\nframes = 2\n[ppm]\nchannels = 4\nreceiver = \"edgetx\"\n[failsafe]\nafter_ms = 500\naction = \"hold\"",
+        "[ppmd]\nreadback = \"sim:{}\"\nreadback_log = {:?}\nframe_log = {:?}\n[readback]\nframes = 2\n[ppm]\nchannels = 4\nreceiver = \"edgetx\"\n[failsafe]\nafter_ms = 500\naction = \"hold\"",
         radio_trace.display(),
-        log.to_str().unwrap()
+        log.to_str().unwrap(),
+        frames.to_str().unwrap()
     ));
     let _ppmd = sb.start_ppmd(&cfg, "line.trace");
     let _ingress = sb.start_ingress(&cfg, &[]);
@@ -309,4 +311,34 @@ fn the_sender_hears_overridden_when_the_instructor_takes_over_and_following_when
             .map(|&v| serde_json::json!(v))
             .collect::<Vec<_>>()[..]
     );
+
+    // The Python package joins the three streams: every frame read, with
+    // the line's frame before it and that frame's command.
+    let joined = ppm_tests::python3(
+        &sb.dir,
+        ppm_tests::PYTHON_PACKAGE,
+        &[
+            "-c",
+            "import json, sys, ppm\nfor j in ppm.joined(sys.argv[1], sys.argv[2]): print(json.dumps(j))",
+            frames.to_str().unwrap(),
+            log.to_str().unwrap(),
+        ],
+    );
+    let joined: Vec<serde_json::Value> = joined
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(joined.len(), reads.len());
+    for j in &joined {
+        let (read, line) = (&j["read"], &j["line"]);
+        assert!(line["mono_ns"].as_u64() <= read["mono_ns"].as_u64(), "{j}");
+        assert!(j["lag_ms"].as_f64().unwrap() >= 0.0, "{j}");
+        // The groundstation's command is in the line's frame.
+        assert_eq!(j["command"]["ingress_seq"], line["ingress_seq"], "{j}");
+        if read["match"] == true {
+            // What the radio relayed is near what the line carried then
+            // (within the window: the line's newest frame, or one before).
+            assert!(line["ch_us"].as_array().unwrap().len() == 4, "{j}");
+        }
+    }
 }
