@@ -268,12 +268,19 @@ impl Server {
         let std_socket = std::net::UdpSocket::bind(listen).map_err(|e| bind_error(&cfg, e))?;
         std_socket.set_nonblocking(true)?;
         let rcvbuf = set_receive_buffer(&std_socket, cfg.ingress.recv_buffer_bytes)?;
-        nix::sys::socket::setsockopt(
+        match nix::sys::socket::setsockopt(
             &std_socket,
             nix::sys::socket::sockopt::ReceiveTimestampns,
             &true,
-        )
-        .context("enabling SO_TIMESTAMPNS")?;
+        ) {
+            Ok(()) => {}
+            // Linux always has it; an emulator of another architecture's
+            // user space (qemu-user) may not.
+            Err(nix::errno::Errno::ENOPROTOOPT) => log::warn!(
+                "kernel receive timestamps (SO_TIMESTAMPNS) are not available here: each command is stamped when read, a little later than it arrived"
+            ),
+            Err(e) => return Err(anyhow::Error::new(e).context("enabling SO_TIMESTAMPNS")),
+        }
         let mut socket = UdpSocket::from_std(std_socket);
 
         let node = ipc::create_node(&shared.ipc.root, &format!("udp-ingress-{}", cfg.name))?;
