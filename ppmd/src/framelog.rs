@@ -6,11 +6,13 @@
 //! behind the ring fills and the loop drops rows (and counts them) instead
 //! of waiting. The file is rotated at a size cap: `FILE` becomes `FILE.1`,
 //! `FILE.1` becomes `FILE.2`, and so on, keeping [`KEEP`] old files. The
-//! ring, the writer and the file are [`crate::rotating`]'s.
+//! ring, the writer and the file are [`crate::rotating`]'s. The row's
+//! text is [`ppm_shared::framelog::Row`]'s, which the readers share.
 
 use crate::rotating::{self, RotatingFile, WriterOptions};
 use ppm_shared::config::Timing;
 use ppm_shared::frame::MAX_CHANNELS;
+use ppm_shared::framelog::{FrameRow, Row, Status, TransitionRow};
 use ppm_shared::line::LineState;
 use std::path::Path;
 use std::time::Duration;
@@ -84,13 +86,18 @@ pub enum FrameStatus {
 }
 
 impl FrameStatus {
+    /// Its `status` in the log: `whole`, `glitched` or `aborted`.
+    pub fn logged(self) -> Status {
+        match self {
+            FrameStatus::Whole => Status::Whole,
+            FrameStatus::Glitched => Status::Glitched,
+            FrameStatus::Aborted { .. } => Status::Aborted,
+        }
+    }
+
     /// Its name in the log: `whole`, `glitched` or `aborted`.
     pub fn name(self) -> &'static str {
-        match self {
-            FrameStatus::Whole => "whole",
-            FrameStatus::Glitched => "glitched",
-            FrameStatus::Aborted { .. } => "aborted",
-        }
+        self.logged().name()
     }
 
     /// Whether an edge receivers time reached the line later than the guard.
@@ -116,9 +123,9 @@ pub struct CommandInfo {
 }
 
 impl Record {
-    /// The JSON line (without the newline).
-    pub fn to_json(&self) -> String {
-        match self {
+    /// The row the writer formats ([`Row::to_json`]): values in us.
+    pub fn row(&self) -> Row {
+        match *self {
             Record::Frame {
                 frame,
                 start_mono_ns,
@@ -129,47 +136,44 @@ impl Record {
                 status,
                 channels,
                 values_ns,
-            } => {
-                let ch: Vec<serde_json::Value> = values_ns[..*channels as usize]
+            } => Row::Frame(FrameRow {
+                aborted_at: match status {
+                    FrameStatus::Aborted { at, .. } => Some(at),
+                    _ => None,
+                },
+                ch_us: values_ns[..channels as usize]
                     .iter()
-                    .map(|&ns| serde_json::json!(ns as f64 / 1_000.0))
-                    .collect();
-                let c = command.as_ref();
-                serde_json::json!({
-                    "type": "frame",
-                    "frame": frame,
-                    "mono_ns": start_mono_ns,
-                    "real_ns": start_real_ns,
-                    "state": state.name(),
-                    "timing": timing.name(),
-                    "seq": c.and_then(|c| c.seq),
-                    "ingress_seq": c.map(|c| c.ingress_seq),
-                    "recv_mono_ns": c.map(|c| c.recv_mono_ns),
-                    "recv_real_ns": c.map(|c| c.recv_real_ns),
-                    "status": status.name(),
-                    "aborted_at": match status {
-                        FrameStatus::Aborted { at, .. } => Some(*at),
-                        _ => None,
-                    },
-                    "glitched": status.glitched(),
-                    "ch_us": ch,
-                })
-                .to_string()
-            }
+                    .map(|&ns| ns as f64 / 1_000.0)
+                    .collect(),
+                frame,
+                glitched: status.glitched(),
+                ingress_seq: command.map(|c| c.ingress_seq),
+                mono_ns: start_mono_ns,
+                real_ns: start_real_ns,
+                recv_mono_ns: command.map(|c| c.recv_mono_ns),
+                recv_real_ns: command.map(|c| c.recv_real_ns),
+                seq: command.and_then(|c| c.seq),
+                state,
+                status: status.logged(),
+                timing,
+            }),
             Record::Transition {
                 mono_ns,
                 real_ns,
                 from,
                 to,
-            } => serde_json::json!({
-                "type": "transition",
-                "mono_ns": mono_ns,
-                "real_ns": real_ns,
-                "from": from.name(),
-                "to": to.name(),
-            })
-            .to_string(),
+            } => Row::Transition(TransitionRow {
+                from,
+                mono_ns,
+                real_ns,
+                to,
+            }),
         }
+    }
+
+    /// The JSON line (without the newline).
+    pub fn to_json(&self) -> String {
+        self.row().to_json()
     }
 }
 
@@ -228,15 +232,162 @@ mod tests {
         }
     }
 
+    /// The writer as it was before [`Row`]: `json!`, a sorted map.
+    fn old_json(r: &Record) -> String {
+        match r {
+            Record::Frame {
+                frame,
+                start_mono_ns,
+                start_real_ns,
+                state,
+                timing,
+                command,
+                status,
+                channels,
+                values_ns,
+            } => {
+                let ch: Vec<serde_json::Value> = values_ns[..*channels as usize]
+                    .iter()
+                    .map(|&ns| serde_json::json!(ns as f64 / 1_000.0))
+                    .collect();
+                let c = command.as_ref();
+                serde_json::json!({
+                    "type": "frame",
+                    "frame": frame,
+                    "mono_ns": start_mono_ns,
+                    "real_ns": start_real_ns,
+                    "state": state.name(),
+                    "timing": timing.name(),
+                    "seq": c.and_then(|c| c.seq),
+                    "ingress_seq": c.map(|c| c.ingress_seq),
+                    "recv_mono_ns": c.map(|c| c.recv_mono_ns),
+                    "recv_real_ns": c.map(|c| c.recv_real_ns),
+                    "status": status.name(),
+                    "aborted_at": match status {
+                        FrameStatus::Aborted { at, .. } => Some(*at),
+                        _ => None,
+                    },
+                    "glitched": status.glitched(),
+                    "ch_us": ch,
+                })
+                .to_string()
+            }
+            Record::Transition {
+                mono_ns,
+                real_ns,
+                from,
+                to,
+            } => serde_json::json!({
+                "type": "transition",
+                "mono_ns": mono_ns,
+                "real_ns": real_ns,
+                "from": from.name(),
+                "to": to.name(),
+            })
+            .to_string(),
+        }
+    }
+
+    /// Frames of every status, timing, state and command, with values of
+    /// every kind, and every transition.
+    fn records() -> Vec<Record> {
+        let mut out = Vec::new();
+        let statuses = [
+            FrameStatus::Whole,
+            FrameStatus::Glitched,
+            FrameStatus::Aborted {
+                at: 1,
+                glitched: false,
+            },
+            FrameStatus::Aborted {
+                at: 16,
+                glitched: true,
+            },
+        ];
+        let commands = [
+            None,
+            Some(CommandInfo {
+                seq: None,
+                ingress_seq: 1,
+                recv_mono_ns: u64::MAX,
+                recv_real_ns: 0,
+            }),
+            Some(CommandInfo {
+                seq: Some(u64::MAX),
+                ingress_seq: 42,
+                recv_mono_ns: 123_456_789,
+                recv_real_ns: 1_700_000_000_123_456_789,
+            }),
+        ];
+        let mut values_ns = [0; MAX_CHANNELS];
+        for (i, v) in values_ns.iter_mut().enumerate() {
+            *v = [
+                1_500_250,
+                999_999,
+                1,
+                0,
+                u32::MAX,
+                2_000_000,
+                1_234_567,
+                1_000_001,
+            ][i % 8]
+                + i as u32 % 2;
+        }
+        for (k, status) in statuses.into_iter().enumerate() {
+            for command in commands {
+                for (timing, state) in [
+                    (Timing::Grid, LineState::Active),
+                    (Timing::Follow, LineState::Failsafe),
+                ] {
+                    out.push(Record::Frame {
+                        frame: k as u64 * 1_000_003,
+                        start_mono_ns: 17 + k as u64,
+                        start_real_ns: 1_700_000_000_000_000_000,
+                        state,
+                        timing,
+                        command,
+                        status,
+                        channels: [0, 1, 8, 16][k] as u8,
+                        values_ns,
+                    });
+                }
+            }
+        }
+        for from in LineState::ALL {
+            for to in LineState::ALL {
+                out.push(Record::Transition {
+                    mono_ns: u64::MAX,
+                    real_ns: 3,
+                    from,
+                    to,
+                });
+            }
+        }
+        out
+    }
+
     #[test]
-    fn rows_are_json() {
+    fn the_text_is_the_old_writers_byte_for_byte() {
+        for r in records() {
+            assert_eq!(r.to_json(), old_json(&r), "{r:?}");
+        }
+    }
+
+    #[test]
+    fn rows_read_back_as_written() {
+        for r in records() {
+            assert_eq!(Row::parse(&r.to_json()).unwrap(), r.row(), "{r:?}");
+        }
+        let Row::Frame(f) = frame(1).row() else {
+            unreachable!()
+        };
+        assert_eq!(f.ch_us, [1500.25, 1000.0]);
+        assert_eq!((f.seq, f.frame), (Some(7), 1));
+        assert_eq!(
+            (f.timing, f.status, f.aborted_at),
+            (Timing::Follow, Status::Whole, None)
+        );
         let mut grid = frame(1);
-        let v: serde_json::Value = serde_json::from_str(&frame(1).to_json()).unwrap();
-        assert_eq!(v["ch_us"], serde_json::json!([1500.25, 1000.0]));
-        assert_eq!((v["seq"].as_u64(), v["frame"].as_u64()), (Some(7), Some(1)));
-        assert_eq!(v["timing"], "follow");
-        assert_eq!(v["status"], "whole");
-        assert_eq!(v["aborted_at"], serde_json::Value::Null);
         let Record::Frame {
             timing,
             status,
@@ -252,23 +403,14 @@ mod tests {
             glitched: false,
         };
         *channels = 1;
-        let v: serde_json::Value = serde_json::from_str(&grid.to_json()).unwrap();
-        assert_eq!(v["timing"], "grid");
-        assert_eq!(v["status"], "aborted");
-        assert_eq!(v["aborted_at"], 2);
-        assert_eq!(v["glitched"], false);
-        assert_eq!(v["ch_us"], serde_json::json!([1500.25]), "what it carried");
-        let t = Record::Transition {
-            mono_ns: 1,
-            real_ns: 2,
-            from: LineState::Active,
-            to: LineState::Silent,
+        let Row::Frame(f) = Row::parse(&grid.to_json()).unwrap() else {
+            unreachable!()
         };
-        let v: serde_json::Value = serde_json::from_str(&t.to_json()).unwrap();
         assert_eq!(
-            (v["from"].as_str(), v["to"].as_str()),
-            (Some("active"), Some("silent"))
+            (f.timing, f.status, f.aborted_at, f.glitched),
+            (Timing::Grid, Status::Aborted, Some(2), false)
         );
+        assert_eq!(f.ch_us, [1500.25], "what it carried");
     }
 
     #[test]

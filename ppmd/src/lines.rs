@@ -7,7 +7,7 @@ use crate::line::spi::{self, SpiLine};
 use crate::line::{FrameLine, Line, SimFrameLine, SimLine};
 use anyhow::{Context, Result};
 use ppm_shared::config::{fault, ConfigError, KeyName, OutputPlan, OutputSpec, Shared, Timing};
-use ppm_shared::frame::{Level, Protocol};
+use ppm_shared::frame::{FrameKind, Level};
 use std::path::PathBuf;
 
 /// One output's line, as the timing thread owns it, by the way its frames
@@ -66,8 +66,10 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
     let mut chips: Vec<Chip> = Vec::new();
     for (i, cfg) in outputs.iter().enumerate() {
         let model = &cfg.model;
+        // Frames of bytes always go whole.
+        let bytes = model.wire().kind() == FrameKind::Bytes;
         match cfg.output.clone() {
-            OutputSpec::Sim { path, .. } if model.protocol() == Protocol::Sbus => {
+            OutputSpec::Sim { path, .. } if bytes => {
                 let sim = create_sim(cfg, shared.trace_max_mb, path)?;
                 let line = SimFrameLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
                 each[i] = Some(OpenLine::Whole(Box::new(line)));
@@ -84,8 +86,10 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
             OutputSpec::Sim { path, .. } => {
                 each[i] = Some(OpenLine::Edges(open_sim(cfg, shared.trace_max_mb, path)?));
             }
-            OutputSpec::Spi { device } if model.protocol() == Protocol::Sbus => {
-                let out = SpiLine::open(&device, spi::SBUS_HZ, ppm_shared::sbus::FRAME_WIRE_NS)
+            OutputSpec::Spi { device } if bytes => {
+                // Only SBUS's bytes go through SPI (the configuration
+                // refuses others).
+                let out = SpiLine::open(&device, spi::SBUS_HZ, model.wire().frame_wire_ns())
                     .map_err(|e| line_error(cfg, e, format!("output `{}`", cfg.name)))?;
                 log::info!(
                     "output `{}`: spi {} (true SBUS, each frame one transfer, bits to 10 us)",
@@ -287,19 +291,13 @@ pub fn describe(shared: &Shared, c: &OutputPlan) -> String {
             let (min, max) = model.follow_sync_ns();
             format!(
                 "follow timing, {} {}..{} us",
-                match model.protocol() {
-                    Protocol::Ppm => "sync",
-                    Protocol::Sbus => "idle line",
-                },
+                model.wire().spec().gap,
                 min as f64 / 1e3,
                 max as f64 / 1e3
             )
         }
     };
-    let wire = match model.sbus() {
-        None => format!("pulse {} us", model.pulse_ns() as f64 / 1e3),
-        Some(s) => format!("SBUS encoded for {}", s.encode_for().name()),
-    };
+    let wire = model.wire().describe();
     format!(
         "{} channels ({}), {timing}, {wire}, idle {:?}; commands from `{}` (ipc root {}); failsafe {:?} after {} ms; spin margin {:?}",
         model.channels(),

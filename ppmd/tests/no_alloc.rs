@@ -125,7 +125,9 @@ impl FrameLine for SpiStandIn {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         let n = match frame {
             WholeFrame::Ppm { edges, .. } => spi::encode(edges, 1_000_000, &mut self.buf),
-            WholeFrame::Sbus { bytes, .. } => spi::encode_sbus(bytes, &mut self.buf),
+            WholeFrame::Bytes { bytes, .. } => {
+                spi::encode_sbus(bytes.try_into().expect("an SBUS frame"), &mut self.buf)
+            }
         }
         .ok_or(LineError::FrameTooLong)?;
         self.bytes += n as u64;

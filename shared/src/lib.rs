@@ -5,7 +5,9 @@
 //!   `[[outputs]]` entries, the checks, and the [`config::Plan`] the file and
 //!   a program's flags resolve into.
 //! - [`signal`]: line levels, channel and edge limits, frame timing.
-//! - [`frame`]: the PPM frame model, built and checked from the `[ppm]`
+//! - [`wire`]: what a frame is on the wire, per protocol (PPM, SBUS): the
+//!   seam everything that differs between protocols is asked through.
+//! - [`frame`]: the frame model, built and checked from the `[ppm]`
 //!   section ([`FrameModel::build`]), and the encoder that turns channel
 //!   values into one frame's edge schedule.
 //! - [`decode`]: a decoder with transmitter semantics that reads any waveform back.
@@ -23,6 +25,7 @@
 //! - [`daemon`]: the options both daemons take, and their logs' set-up.
 //! - [`line`](mod@line): the line's state and its names.
 //! - [`ipc`]: the fixed-size payload types carried through iceoryx2 shared memory.
+//! - [`framelog`]: a row of ppmd's frame log, written by ppmd and read by the tools and tests.
 //! - [`status`]: the reply to a status query, written by udp-ingress and read by the tools.
 //! - [`trace`]: the simulated line's trace format.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
@@ -36,6 +39,7 @@ pub mod daemon;
 pub mod decode;
 pub mod files;
 pub mod frame;
+pub mod framelog;
 pub mod ipc;
 pub mod line;
 pub mod logging;
@@ -48,6 +52,7 @@ pub mod signal;
 pub mod status;
 pub mod time;
 pub mod trace;
+pub mod wire;
 
 pub use config::{Config, ConfigError, Plan};
 pub use frame::{Channels, Edge, EdgeSchedule, FrameModel, Level, MAX_CHANNELS};

@@ -1,8 +1,12 @@
 //! What ppmd's line is doing, and its one spelling: in the frame log, in
 //! the timing snapshot (as its code), in the status reply and in the logs.
 
-/// What the line is doing.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+use serde::{Deserialize, Serialize};
+
+/// What the line is doing. Serialized as its [`name`](LineState::name)
+/// (the frame log's `state`, `from`, `to`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 #[repr(u8)]
 pub enum LineState {
     /// No pulses: no command yet, or failsafe `silence`.

@@ -2,7 +2,7 @@
 //! receiver models and the configuration: line levels, the channel and edge
 //! limits, and when frames start.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// Most channels one frame carries (the transmitters' limit).
 pub const MAX_CHANNELS: usize = 16;
@@ -54,32 +54,8 @@ impl Level {
     }
 }
 
-/// What a frame is on the wire (`ppm.protocol`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Protocol {
-    /// PPM: channel values as the periods between separator pulses, for a
-    /// trainer jack (the default).
-    #[default]
-    Ppm,
-    /// SBUS: 16 channels of 11 bits in one 25-byte frame at 100 000 baud,
-    /// 8E2, for a radio's serial trainer input, its module bay or a flight
-    /// controller (see [`crate::sbus`]).
-    Sbus,
-}
-
-impl Protocol {
-    /// `"ppm"` or `"sbus"`, as in the configuration.
-    pub fn name(self) -> &'static str {
-        match self {
-            Protocol::Ppm => "ppm",
-            Protocol::Sbus => "sbus",
-        }
-    }
-}
-
 /// When ppmd starts a frame.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Timing {
     /// On a fixed grid, one frame every `ppm.frame_us`; a command waits for

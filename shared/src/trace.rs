@@ -8,7 +8,7 @@ use crate::frame::Level;
 use crate::receiver::{Receiver, ReceiverChoice};
 use crate::sbus::uart::{self, Character};
 use crate::sbus::{Framer, SbusReceiver, Taken, BYTE_NS};
-use crate::signal::Protocol;
+use crate::wire::Protocol;
 use std::io::BufRead;
 
 /// One edge of the simulated line.
@@ -106,8 +106,8 @@ impl Trace {
             if let Some(v) = text.trim().strip_prefix("# receiver ") {
                 trace.receiver = v.trim().parse().ok();
             }
-            if text.trim() == "# protocol sbus" {
-                trace.protocol = Protocol::Sbus;
+            if let Some(p) = text.trim().strip_prefix("# protocol ") {
+                trace.protocol = p.trim().parse().unwrap_or(trace.protocol);
             }
             if let Some(v) = text.trim().strip_prefix("# channels ") {
                 trace.channels = Some(v.trim().split(',').count());

@@ -4,52 +4,29 @@
 //! and the frame log, the exit summary and the status reply say the timing. How soon a command reaches
 //! the line is measured by `ppm-bench --only e2e`, not here.
 
+use ppm_shared::framelog::{self, FrameRow, Status};
 use ppm_shared::receiver::{decode_as, Receiver};
+use ppm_shared::signal::Timing;
 use ppm_shared::trace::Trace;
 use ppm_shared::Level;
 use ppm_tests::{
     at_50hz, carries, channel_of_frames, free_udp_port, read_trace, start_outputs, status,
     stop_all, two_outputs, Sandbox, Sender, StatusReply,
 };
-use serde_json::Value;
 use std::net::SocketAddr;
 use std::path::Path;
 use std::time::Duration;
 
 const MS: u64 = 1_000_000;
 
-/// A frame in the frame log: start, values (us), ingress_seq, timing.
-#[derive(Debug)]
-struct Logged {
-    start: u64,
-    ch_us: Vec<f64>,
-    ingress_seq: Option<u64>,
-    recv: Option<u64>,
-    timing: String,
-    /// Aborted at a late edge: `ch_us` holds what it carried.
-    aborted: bool,
+/// The frames of a frame log.
+fn logged_frames(path: &Path) -> Vec<FrameRow> {
+    framelog::read_frames(path).unwrap_or_else(|e| panic!("{e}"))
 }
 
-fn logged_frames(path: &Path) -> Vec<Logged> {
-    std::fs::read_to_string(path)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-        .lines()
-        .map(|l| serde_json::from_str::<Value>(l).unwrap())
-        .filter(|r| r["type"] == "frame")
-        .map(|r| Logged {
-            start: r["mono_ns"].as_u64().unwrap(),
-            ch_us: r["ch_us"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|v| v.as_f64().unwrap())
-                .collect(),
-            ingress_seq: r["ingress_seq"].as_u64(),
-            recv: r["recv_mono_ns"].as_u64(),
-            timing: r["timing"].as_str().unwrap().to_string(),
-            aborted: r["status"] == "aborted",
-        })
-        .collect()
+/// Aborted at a late edge: `ch_us` holds what it carried.
+fn aborted(l: &FrameRow) -> bool {
+    l.status == Status::Aborted
 }
 
 /// The number before `what` in ppmd's summary line for the output (`12
@@ -87,10 +64,10 @@ fn frames_to_lock() -> usize {
 /// late edge (ppmd runs here without real-time priority) is logged with the
 /// channels it carried: the trainer inputs read it short, Betaflight drops
 /// it, ArduPilot takes it from 5 channels.
-fn assert_every_receiver_reads(trace: &Trace, logged: &[Logged], overruns: u64) {
+fn assert_every_receiver_reads(trace: &Trace, logged: &[FrameRow], overruns: u64) {
     let leading = trace.idle_level.unwrap_or(Level::Low).opposite();
     let channels = logged.iter().map(|l| l.ch_us.len()).max().unwrap_or(0);
-    let aborted = logged.iter().filter(|l| l.aborted).count();
+    let aborted = logged.iter().filter(|l| aborted(l)).count();
     for r in Receiver::ALL {
         let (read, stats) = decode_as(
             r,
@@ -104,7 +81,7 @@ fn assert_every_receiver_reads(trace: &Trace, logged: &[Logged], overruns: u64) 
             let l = logged
                 .iter()
                 .rev()
-                .find(|l| l.start <= f.start_ns)
+                .find(|l| l.mono_ns <= f.start_ns)
                 .unwrap_or_else(|| panic!("{r:?} read a frame at {} not logged", f.start_ns));
             let got = f.channels_us();
             assert_eq!(
@@ -121,7 +98,7 @@ fn assert_every_receiver_reads(trace: &Trace, logged: &[Logged], overruns: u64) 
                 );
             }
         }
-        let takes = |l: &&Logged| match r {
+        let takes = |l: &&FrameRow| match r {
             Receiver::EdgeTx | Receiver::OpenTx => !l.ch_us.is_empty(),
             Receiver::Betaflight => l.ch_us.len() == channels,
             Receiver::ArduPilot => l.ch_us.len() >= 5,
@@ -192,7 +169,7 @@ fn follow_frames_start_with_the_commands_and_every_receiver_reads_them() {
     // Enough for every receiver to lock (about 100 on an idle machine,
     // those aborted at a late edge logged too).
     assert!(logged.len() >= frames_to_lock(), "{} frames", logged.len());
-    assert!(logged.iter().all(|l| l.timing == "follow"));
+    assert!(logged.iter().all(|l| l.timing == Timing::Follow));
     let trace = read_trace(&sb.dir.join("line.trace"));
     assert_every_receiver_reads(&trace, &logged, overruns);
 
@@ -210,9 +187,9 @@ fn follow_frames_start_with_the_commands_and_every_receiver_reads_them() {
     let mut counted_repeats = 0;
     for w in logged.windows(2) {
         let (a, b) = (&w[0], &w[1]);
-        assert!(b.recv.unwrap() <= b.start, "{b:?}");
+        assert!(b.recv_mono_ns.unwrap() <= b.mono_ns, "{b:?}");
         assert!(b.ingress_seq >= a.ingress_seq, "{a:?} then {b:?}");
-        if a.aborted {
+        if aborted(a) {
             // Its command goes out again a shortest sync after the last
             // pulse it carried (an earlier frame's, when none).
             continue;
@@ -221,15 +198,15 @@ fn follow_frames_start_with_the_commands_and_every_receiver_reads_them() {
         // each moved by its edges' lateness (up to the guard), so their sum
         // is not the schedule's to the ns.
         let a_last = *leading
-            .range(a.start..)
+            .range(a.mono_ns..)
             .nth(a.ch_us.len())
             .unwrap_or_else(|| panic!("{a:?} has no last pulse in the trace"));
-        let sync = b.start - a_last;
+        let sync = b.mono_ns - a_last;
         if sync >= 18_500_000 {
             assert!(
-                leading.contains(&(b.start - 5 * MS)),
+                leading.contains(&(b.mono_ns - 5 * MS)),
                 "a long gap before {} without a lead-in pulse",
-                b.start
+                b.mono_ns
             );
             continue;
         }
@@ -301,8 +278,8 @@ fn a_follow_output_runs_beside_a_grid_output() {
     let log = ppmd.log_text();
     assert!(log.contains(&format!("{name_b}: stopped")) && log.contains("repeats)"));
     for (file, timing, trace, name) in [
-        ("a.jsonl", "grid", "a.trace", &name_a),
-        ("b.jsonl", "follow", "b.trace", &name_b),
+        ("a.jsonl", Timing::Grid, "a.trace", &name_a),
+        ("b.jsonl", Timing::Follow, "b.trace", &name_b),
     ] {
         let logged = logged_frames(&sb.dir.join(file));
         // Every receiver reads either line, grid or follow.
@@ -320,7 +297,7 @@ fn a_follow_output_runs_beside_a_grid_output() {
         // Every whole frame on the line (scheduled times, exact) is a
         // logged one, at its start.
         let trace = read_trace(&sb.dir.join(trace));
-        let whole: Vec<_> = logged.iter().filter(|l| !l.aborted).collect();
+        let whole: Vec<_> = logged.iter().filter(|l| !aborted(l)).collect();
         let frames = trace.decode(false);
         let frames: Vec<_> = frames
             .iter()
@@ -328,7 +305,7 @@ fn a_follow_output_runs_beside_a_grid_output() {
             .collect();
         assert_eq!(frames.len(), whole.len(), "{file}");
         for (f, l) in frames.iter().zip(&whole) {
-            assert_eq!(f.start_ns, l.start);
+            assert_eq!(f.start_ns, l.mono_ns);
         }
     }
     // What the lines carry, every frame that carried it (whole, or cut

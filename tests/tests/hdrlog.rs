@@ -6,6 +6,7 @@
 use hdrhistogram::serialization::interval_log::{IntervalLogIterator, LogEntry};
 use hdrhistogram::serialization::Deserializer;
 use nix::sys::signal::Signal;
+use ppm_shared::framelog::{self, Status};
 use ppm_tests::{at_50hz, Sandbox, Sender};
 use std::process::Command;
 use std::time::Duration;
@@ -162,13 +163,13 @@ fn the_hdr_log_is_read_by_rust_python_and_java_readers() {
 
     // The aborted and glitched histograms count the frames the frame log
     // calls so, and ppmd's exit summary says the same.
-    let rows = std::fs::read_to_string(&frames).unwrap();
-    let status = |s: &str| rows.matches(&format!(r#""status":"{s}""#)).count() as u64;
-    let glitched_rows = rows.matches(r#""glitched":true"#).count() as u64;
+    let rows = framelog::read_frames(&frames).unwrap_or_else(|e| panic!("{e}"));
+    let aborted_rows = rows.iter().filter(|r| r.status == Status::Aborted).count() as u64;
+    let glitched_rows = rows.iter().filter(|r| r.glitched).count() as u64;
     assert_eq!(
         (aborted, glitched),
-        (status("aborted"), glitched_rows),
-        "{rows}"
+        (aborted_rows, glitched_rows),
+        "{rows:?}"
     );
     let summary = ppmd.log_text();
     assert!(

@@ -5,6 +5,7 @@
 //! own commands, on its own frame grid; each output publishes its own
 //! timing, which its ingress's status reply shows.
 
+use ppm_shared::framelog::{self, Status};
 use ppm_tests::{
     at_50hz, bin, free_udp_port, read_trace, start_outputs, status, stop_all, two_outputs, Sandbox,
     Sender,
@@ -154,25 +155,17 @@ fn one_ppmd_drives_two_outputs_each_with_its_own_commands() {
     // The frame log belongs to output a alone, and says what a's line
     // carried: each frame it logs whole carries a's command, each value
     // moved at most by the 20 us guard (the lateness of its edges).
-    let rows = std::fs::read_to_string(sb.dir.join("a.jsonl")).unwrap();
-    let rows: Vec<serde_json::Value> = rows
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .filter(|r: &serde_json::Value| r["type"] == "frame")
-        .collect();
-    let logged_whole: Vec<Vec<f64>> = rows
+    let rows = framelog::read_frames(&sb.dir.join("a.jsonl")).unwrap_or_else(|e| panic!("{e}"));
+    let logged_whole: Vec<&Vec<f64>> = rows
         .iter()
-        .filter(|r| r["status"] == "whole")
-        .map(|r| {
-            let ch = r["ch_us"].as_array().unwrap();
-            ch.iter().map(|v| v.as_f64().unwrap()).collect()
-        })
+        .filter(|r| r.status == Status::Whole)
+        .map(|r| &r.ch_us)
         .collect();
     assert!(!logged_whole.is_empty(), "{rows:?}");
     let want_a = [
         1100.0, 1200.0, 1300.0, 1400.0, 1500.0, 1500.0, 1500.0, 1500.0,
     ];
-    let near = |ch: &Vec<f64>| {
+    let near = |ch: &&Vec<f64>| {
         ch.len() == want_a.len() && ch.iter().zip(want_a).all(|(v, w)| (v - w).abs() <= 20.0)
     };
     assert!(logged_whole.iter().all(near), "{logged_whole:?}");

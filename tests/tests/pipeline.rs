@@ -3,6 +3,8 @@
 //! trace out, decoded with transmitter semantics.
 
 use nix::sys::signal::Signal;
+use ppm_shared::framelog::{self, Row, Status};
+use ppm_shared::line::LineState;
 use ppm_shared::time::now_ns;
 use ppm_tests::{at_50hz, read_trace, stop_all, Sandbox, Sender};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -299,18 +301,20 @@ fn frame_log_rows_match_the_decoded_line() {
     std::thread::sleep(Duration::from_millis(400));
     assert!(ppmd.signal_and_wait(Signal::SIGTERM, 10 * SECOND).success());
 
-    let rows: Vec<serde_json::Value> = std::fs::read_to_string(&log_path)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).expect("a JSON line"))
-        .collect();
-    let frames: Vec<&serde_json::Value> = rows.iter().filter(|r| r["type"] == "frame").collect();
-    let transitions: Vec<(&str, &str)> = rows
+    let rows = framelog::read(&log_path).unwrap_or_else(|e| panic!("{e}"));
+    let frames: Vec<_> = rows.iter().filter_map(Row::as_frame).collect();
+    let transitions: Vec<_> = rows
         .iter()
-        .filter(|r| r["type"] == "transition")
-        .map(|r| (r["from"].as_str().unwrap(), r["to"].as_str().unwrap()))
+        .filter_map(Row::as_transition)
+        .map(|t| (t.from, t.to))
         .collect();
-    assert_eq!(transitions, [("silent", "active"), ("active", "silent")]);
+    assert_eq!(
+        transitions,
+        [
+            (LineState::Silent, LineState::Active),
+            (LineState::Active, LineState::Silent)
+        ]
+    );
     let trace = read_trace(&sb.dir.join("line.trace"));
     let decoded = trace.decode(false);
     // As the line carried them: the times the edges were written.
@@ -350,14 +354,9 @@ fn frame_log_rows_match_the_decoded_line() {
     for (f, real) in decoded.iter().zip(&carried) {
         let row = frames
             .iter()
-            .find(|r| r["mono_ns"].as_u64() == Some(f.start_ns))
+            .find(|r| r.mono_ns == f.start_ns)
             .unwrap_or_else(|| panic!("no log row for the frame at {}", f.start_ns));
-        let logged: Vec<u64> = row["ch_us"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| (v.as_f64().unwrap() * 1_000.0).round() as u64)
-            .collect();
+        let logged = row.ch_ns();
         assert_eq!(
             logged.len(),
             real.channels_ns.len(),
@@ -372,12 +371,10 @@ fn frame_log_rows_match_the_decoded_line() {
             );
         }
         if logged.len() < 8 {
-            assert_eq!(row["status"], "aborted", "{row}");
+            assert_eq!(row.status, Status::Aborted, "{row:?}");
         }
-        assert_eq!(row["state"], "active");
-        assert!(
-            row["seq"].as_u64().is_some() && row["recv_mono_ns"].as_u64().unwrap() < f.start_ns
-        );
+        assert_eq!(row.state, LineState::Active);
+        assert!(row.seq.is_some() && row.recv_mono_ns.unwrap() < f.start_ns);
     }
     // (The other way round is not checked: a frame cut short before its
     // first channel leaves a gap longer than a sync, after which the decoder
@@ -385,10 +382,7 @@ fn frame_log_rows_match_the_decoded_line() {
     // channel by channel.)
     // Frame numbers count up without gaps.
     for w in frames.windows(2) {
-        assert_eq!(
-            w[1]["frame"].as_u64().unwrap(),
-            w[0]["frame"].as_u64().unwrap() + 1
-        );
+        assert_eq!(w[1].frame, w[0].frame + 1);
     }
     // The documentation's example rows have the keys of real rows.
     let readme =
@@ -405,8 +399,13 @@ fn frame_log_rows_match_the_decoded_line() {
         k
     };
     for line in block.lines() {
-        let doc: serde_json::Value = serde_json::from_str(line).expect("README row is JSON");
-        let real = rows.iter().find(|r| r["type"] == doc["type"]).unwrap();
-        assert_eq!(keys(&doc), keys(real), "README row {line}");
+        let doc = Row::parse(line).unwrap_or_else(|e| panic!("README row {line}: {e}"));
+        let real = rows
+            .iter()
+            .find(|r| std::mem::discriminant(*r) == std::mem::discriminant(&doc))
+            .unwrap();
+        let real = serde_json::to_value(real).unwrap();
+        let doc: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(keys(&doc), keys(&real), "README row {line}");
     }
 }

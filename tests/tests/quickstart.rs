@@ -5,6 +5,7 @@
 //! inside a frame; the frame log and ppm-watch say the same; and the
 //! configuration refuses it where an SPI output would not work.
 
+use ppm_shared::framelog::{self, Status};
 use ppm_tests::{at_50hz, bin, read_trace, stop_all, Sandbox, Sender};
 use std::process::Command;
 
@@ -48,22 +49,12 @@ fn the_quick_starts_line_carries_whole_frames_of_the_command() {
         assert_eq!(f.channels_us(), want, "frame at {}", f.start_ns);
     }
     // The frame log: every frame whole, with the command's values exactly.
-    let rows: Vec<serde_json::Value> = std::fs::read_to_string(&log)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .filter(|r: &serde_json::Value| r["type"] == "frame")
-        .collect();
+    let rows = framelog::read_frames(&log).unwrap_or_else(|e| panic!("{e}"));
     assert!(!rows.is_empty());
     for r in &rows {
-        assert_eq!(r["status"], "whole", "{r}");
-        let ch: Vec<u64> = r["ch_us"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap() as u64)
-            .collect();
-        assert_eq!(ch, want, "{r}");
+        assert_eq!(r.status, Status::Whole, "{r:?}");
+        let ch: Vec<u64> = r.ch_us.iter().map(|&v| v as u64).collect();
+        assert_eq!(ch, want, "{r:?}");
     }
     // ppm-watch shows no frame cut short.
     let out = Command::new(bin("ppm-watch"))

@@ -29,7 +29,9 @@
 
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::Level;
+use ppm_shared::framelog::{self, FrameRow, Status};
 use ppm_shared::receiver::{decode_as, Receiver};
+use ppm_shared::signal::Timing;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
@@ -135,6 +137,11 @@ fn run_vm(flavor: &str) -> PathBuf {
 
 fn read(dir: &Path, file: &str) -> String {
     std::fs::read_to_string(dir.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"))
+}
+
+/// The frames of the frame log `file` in `dir`.
+fn logged_frames(dir: &Path, file: &str) -> Vec<FrameRow> {
+    framelog::read_frames(&dir.join(file)).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// An independent PPM reader: rising-edge periods; 4..19 ms is a sync,
@@ -334,10 +341,7 @@ fn check(flavor: &str) {
     );
 
     // The frame log agrees with the kernel's record of the line.
-    let logged = read(&out, "frames.jsonl")
-        .lines()
-        .filter(|l| l.contains(r#""type":"frame""#))
-        .count();
+    let logged = logged_frames(&out, "frames.jsonl").len();
     assert!(
         logged >= frames.len(),
         "{logged} logged frames, {} on the line",
@@ -487,15 +491,13 @@ fn check_follow(out: &Path, gpio18: u32, flavor: &str) {
         &read(out, "follow_trace_raw.txt"),
         gpio18,
     );
-    let logged: Vec<(u64, Vec<u64>)> = read(out, "follow_frames.jsonl")
-        .lines()
-        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-        .filter(|r| r["type"] == "frame")
+    let follow_frames = logged_frames(out, "follow_frames.jsonl");
+    let logged: Vec<(u64, Vec<u64>)> = follow_frames
+        .iter()
         .map(|r| {
-            assert_eq!(r["timing"], "follow", "{r}");
-            let ch = r["ch_us"].as_array().unwrap();
-            let ch = ch.iter().map(|v| v.as_f64().unwrap().round() as u64);
-            (r["mono_ns"].as_u64().unwrap(), ch.collect())
+            assert_eq!(r.timing, Timing::Follow, "{r:?}");
+            let ch = r.ch_us.iter().map(|v| v.round() as u64);
+            (r.mono_ns, ch.collect())
         })
         .collect();
     assert!(
@@ -515,9 +517,9 @@ fn check_follow(out: &Path, gpio18: u32, flavor: &str) {
                 .ok()
         })
         .unwrap_or_else(|| panic!("no overrun count in:\n{log}"));
-    let aborted = read(out, "follow_frames.jsonl")
-        .lines()
-        .filter(|l| l.contains(r#""status":"aborted""#))
+    let aborted = follow_frames
+        .iter()
+        .filter(|r| r.status == Status::Aborted)
         .count();
     for r in Receiver::ALL {
         let (read, stats) = decode_as(
@@ -578,21 +580,9 @@ fn check_interference(out: &Path, gpio18: u32, flavor: &str, timing: &str) {
         read(out, &format!("interfere_{timing}.txt"))
     );
     // (start, status, channels in us) of every logged frame.
-    let rows: Vec<(u64, String, Vec<f64>)> = read(out, &file("frames.jsonl"))
-        .lines()
-        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-        .filter(|r| r["type"] == "frame")
-        .map(|r| {
-            let ch = r["ch_us"].as_array().unwrap().iter();
-            (
-                r["mono_ns"].as_u64().unwrap(),
-                r["status"].as_str().unwrap().to_string(),
-                ch.map(|v| v.as_f64().unwrap()).collect(),
-            )
-        })
-        .collect();
+    let rows = logged_frames(out, &file("frames.jsonl"));
     assert!(rows.len() >= 40, "{what}: {} frames logged", rows.len());
-    let row_at = |start: u64| rows.iter().find(|r| r.0.abs_diff(start) <= 20_000);
+    let row_at = |start: u64| rows.iter().find(|r| r.mono_ns.abs_diff(start) <= 20_000);
     let sets = sets(
         &read(out, &file("trace.txt")),
         &read(out, &file("trace_raw.txt")),
@@ -615,7 +605,7 @@ fn check_interference(out: &Path, gpio18: u32, flavor: &str, timing: &str) {
             let row = row_at(f.start_ns).unwrap_or_else(|| {
                 panic!("{what}: {r:?} read a frame at {} not logged", f.start_ns)
             });
-            if row.1 == "glitched" {
+            if row.status == Status::Glitched {
                 continue;
             }
             for (c, (got, want)) in f.channels_us().iter().zip(COMMAND_US).enumerate() {
@@ -636,17 +626,17 @@ fn check_interference(out: &Path, gpio18: u32, flavor: &str, timing: &str) {
         sets.iter().map(|&(t, v)| (t, Level::from_bit(v == 1))),
         Level::High,
     );
-    let carried: Vec<_> = rows.iter().filter(|r| !r.2.is_empty()).collect();
+    let carried: Vec<_> = rows.iter().filter(|r| !r.ch_us.is_empty()).collect();
     for f in &read_edgetx {
         let row = row_at(f.start_ns).expect("checked above");
         let got = f.channels_us();
         assert_eq!(
             got.len(),
-            row.2.len(),
+            row.ch_us.len(),
             "{what}: frame at {}: {got:?}, logged {row:?}",
             f.start_ns
         );
-        for ((g, l), sent) in got.iter().zip(&row.2).zip(COMMAND_US) {
+        for ((g, l), sent) in got.iter().zip(&row.ch_us).zip(COMMAND_US) {
             let (g, sent) = (*g as f64, sent as f64);
             // The log has each edge as late as its write may have put it:
             // the reading after the write, which an interrupt between the
@@ -657,8 +647,8 @@ fn check_interference(out: &Path, gpio18: u32, flavor: &str, timing: &str) {
             // on the line is within the guard of both the value sent and the
             // value logged.
             let guard = GUARD_US as f64;
-            let (lo, hi) = match row.1.as_str() {
-                "glitched" => (l.min(sent), l.max(sent)),
+            let (lo, hi) = match row.status {
+                Status::Glitched => (l.min(sent), l.max(sent)),
                 _ => (l.max(sent) - guard, l.min(sent) + guard),
             };
             assert!(
@@ -668,7 +658,12 @@ fn check_interference(out: &Path, gpio18: u32, flavor: &str, timing: &str) {
             );
         }
         if got.len() < COMMAND_US.len() {
-            assert_eq!(row.1, "aborted", "{what}: a short frame at {}", f.start_ns);
+            assert_eq!(
+                row.status,
+                Status::Aborted,
+                "{what}: a short frame at {}",
+                f.start_ns
+            );
         }
     }
     // EdgeTX cannot close the last frame before the line falls silent.
@@ -678,8 +673,8 @@ fn check_interference(out: &Path, gpio18: u32, flavor: &str, timing: &str) {
         read_edgetx.len(),
         carried.len()
     );
-    let aborted = rows.iter().filter(|r| r.1 == "aborted").count();
-    let glitched = rows.iter().filter(|r| r.1 == "glitched").count();
+    let aborted = rows.iter().filter(|r| r.status == Status::Aborted).count();
+    let glitched = rows.iter().filter(|r| r.status == Status::Glitched).count();
     eprintln!(
         "{what} (reported): {bursts} bursts; {} frames logged, {aborted} aborted, {glitched} glitched; frames read: {}; worst channel read {worst} us off outside glitched frames",
         rows.len(),

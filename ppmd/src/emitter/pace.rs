@@ -8,7 +8,7 @@ use super::record::{add, Stats};
 use super::{Progress, LEAD_IN_NS, READY_NS, TRAINER_WRAP_NS};
 use crate::clock::Clock;
 use ppm_shared::config::{Timing, FOLLOW_SYNC_CEILING_US};
-use ppm_shared::frame::{us_to_ns, FrameModel, Protocol};
+use ppm_shared::frame::{us_to_ns, FrameKind, FrameModel};
 use std::os::fd::RawFd;
 
 /// Gaps (modulo [`TRAINER_WRAP_NS`]) a lead-in pulse keeps out of.
@@ -139,10 +139,11 @@ impl Grid {
     /// trainer input (see [`TRAINER_WRAP_NS`]). Unwrapped, that gap is over
     /// 3.8 ms (a sync plus a 4.8 ms frame, the shortest valid, less
     /// LEAD_IN_NS).
-    /// An SBUS frame needs none: its receivers find frames by the idle line
-    /// before them, which any silence is.
+    /// A frame of bytes ([`FrameKind::Bytes`], SBUS) needs none: its
+    /// receivers find frames by the idle line before them, which any
+    /// silence is.
     pub fn lead_in_ns(&self, model: &FrameModel, prev_pulse: Option<u64>) -> u64 {
-        if model.protocol() == Protocol::Sbus {
+        if model.wire().kind() == FrameKind::Bytes {
             return 0;
         }
         match (self.prev_sync_ns, self.next_start) {
@@ -275,8 +276,8 @@ pub(super) fn place_grid<C: Clock + ?Sized>(
     anchor: Option<u64>,
     sync_ns: u64,
 ) -> Option<(u64, u64)> {
-    if model.protocol() == Protocol::Sbus {
-        return Some(place_grid_sbus(
+    if model.wire().kind() == FrameKind::Bytes {
+        return Some(place_grid_bytes(
             clk, g, prev_pulse, model, stats, lead, anchor,
         ));
     }
@@ -346,13 +347,13 @@ pub(super) fn place_grid<C: Clock + ?Sized>(
     Some((start, lead_in_ns))
 }
 
-/// Grid, SBUS: the frame's start (never a lead-in, never skipped). The frame
+/// Grid, a frame of bytes (SBUS): the frame's start (never a lead-in, never skipped). The frame
 /// sits at its grid start unless that has passed, or the previous frame
 /// ends (`prev_end`, as measured after its write) less than the receivers'
 /// least idle line before it: then it starts as soon as both allow, counted
 /// as a late frame. How far the grid moves on after it is
 /// [`Grid::placed`]'s.
-fn place_grid_sbus<C: Clock + ?Sized>(
+fn place_grid_bytes<C: Clock + ?Sized>(
     clk: &C,
     g: &mut Grid,
     prev_end: Option<u64>,
@@ -378,14 +379,14 @@ fn place_grid_sbus<C: Clock + ?Sized>(
 impl Grid {
     /// After a frame from grid start `next_start` was placed at `start`,
     /// its last pulse `last_pulse` after that: the next grid start, and the
-    /// sync before it. An SBUS frame moved so late that the next grid start
+    /// sync before it. A frame of bytes (SBUS) moved so late that the next grid start
     /// would leave less than the receivers' least idle line after it skips
     /// grid starts (counted as overruns) instead of sending frames closer.
     pub fn placed(&mut self, model: &FrameModel, stats: &Stats, start: u64, last_pulse: u64) {
         let grid_start = self.next_start.expect("placed on the grid");
         let mut next = grid_start + model.frame_ns();
         let end = start + last_pulse;
-        if model.protocol() == Protocol::Sbus {
+        if model.wire().kind() == FrameKind::Bytes {
             while next < end + model.sync_window_ns().0 {
                 next += model.frame_ns();
                 add(&stats.overruns, 1);
@@ -415,8 +416,8 @@ pub(super) fn place_follow<C: Clock + ?Sized>(
 ) -> Option<(u64, u64)> {
     let (sync_min_ns, sync_max_ns) = model.follow_sync_ns();
     let ready = clk.now_ns() + READY_NS;
-    if model.protocol() == Protocol::Sbus {
-        return Some(place_follow_sbus(
+    if model.wire().kind() == FrameKind::Bytes {
+        return Some(place_follow_bytes(
             f,
             prev_pulse,
             model,
@@ -453,14 +454,14 @@ pub(super) fn place_follow<C: Clock + ?Sized>(
     Some((lone + LEAD_IN_NS, LEAD_IN_NS))
 }
 
-/// Follow, SBUS: a fresh command's frame starts as soon as the loop can
+/// Follow, a frame of bytes (SBUS): a fresh command's frame starts as soon as the loop can
 /// write it, but not before the shortest idle line after the previous
 /// frame's end; a repeat at the longest. Never a lead-in: after silence, or
 /// however late, a frame starts when it is ready (counted as a late frame
 /// when it was decided at its planned time but late), and after silence no
 /// earlier than the shortest idle line after the last frame there was
 /// (`prev_end`).
-fn place_follow_sbus(
+fn place_follow_bytes(
     f: &Follow,
     prev_end: Option<u64>,
     model: &FrameModel,

@@ -401,7 +401,9 @@ impl FrameLine for WholeFrames {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         match frame {
             WholeFrame::Ppm { edges, .. } => self.frames.push(edges.to_vec()),
-            WholeFrame::Sbus { bytes, due_ns } => self.sbus.push((*bytes, due_ns)),
+            WholeFrame::Bytes { bytes, due_ns } => self
+                .sbus
+                .push((bytes.try_into().expect("an SBUS frame"), due_ns)),
         }
         if let Some(sim) = &self.sim {
             self.started.push(sim.at());

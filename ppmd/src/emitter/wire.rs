@@ -9,19 +9,22 @@
 //!   (GPIO) or handed whole to a line timed by its own clock (SPI), after a
 //!   lead-in pulse following silence; a late rising edge would change a
 //!   channel's value, so the guard aborts the frame there.
-//! - SBUS ([`SbusFrame`]): 25 bytes handed whole to a line at the frame's
-//!   start (a UART, or SPI), which sends them back to back at 100 000 baud:
-//!   no edges of the loop's, no lead-in, no late-edge guard, since a late
-//!   write moves the frame but not the values it carries. Its "last pulse"
-//!   is its end on the wire, where the idle line before the next frame is
-//!   measured from.
+//! - Bytes ([`BytesFrame`], SBUS): the bytes the model's [`WireModel`]
+//!   encodes, handed whole to a line at the frame's start (a UART, or SPI),
+//!   which sends them back to back: no edges of the loop's, no lead-in, no
+//!   late-edge guard, since a late write moves the frame but not the values
+//!   it carries. Its "last pulse" is its end on the wire, where the idle
+//!   line before the next frame is measured from.
+//!
+//! Which of the two a frame is, is the model's [`FrameKind`]; the protocol
+//! itself is asked only through the [`WireModel`].
 
 use super::pace::alias_later;
 use crate::line::{FrameEdge, WholeFrame};
 use ppm_shared::frame::{
-    Channels, EdgeSchedule, FrameModel, Level, Protocol, MAX_CHANNELS, MAX_EDGES,
+    Channels, EdgeSchedule, FrameKind, FrameModel, Level, MAX_CHANNELS, MAX_EDGES,
 };
-use ppm_shared::sbus::{self, timing::GAP_MARGIN_US};
+use ppm_shared::wire::{WireModel, MAX_FRAME_BYTES};
 
 /// A frame as it goes on the wire, in the protocol of its output.
 #[derive(Clone, Copy)]
@@ -30,15 +33,15 @@ use ppm_shared::sbus::{self, timing::GAP_MARGIN_US};
 pub(super) enum WireFrame {
     /// PPM: edges at their times.
     Ppm(PpmFrame),
-    /// SBUS: one 25-byte frame.
-    Sbus(SbusFrame),
+    /// Bytes (SBUS): one frame of bytes.
+    Bytes(BytesFrame),
 }
 
 /// Room on the stack for a frame handed whole to a line, so the loop never
 /// allocates one.
 pub(super) struct WholeBuf {
     edges: [FrameEdge; MAX_EDGES + 2],
-    bytes: [u8; sbus::FRAME_LEN],
+    bytes: [u8; MAX_FRAME_BYTES],
 }
 
 impl WholeBuf {
@@ -49,46 +52,57 @@ impl WholeBuf {
                 at_ns: 0,
                 level: Level::Low,
             }; MAX_EDGES + 2],
-            bytes: [0; sbus::FRAME_LEN],
+            bytes: [0; MAX_FRAME_BYTES],
         }
     }
 }
 
 impl WireFrame {
-    /// `channels` encoded by `model` in its protocol, not placed yet; an
-    /// SBUS frame with its failsafe flag set when `failsafe_flag`.
+    /// `channels` encoded by `model` in its protocol, not placed yet; a
+    /// frame of bytes with its failsafe flag set when `failsafe_flag` (and
+    /// the protocol has one).
     pub fn encode(model: &FrameModel, channels: &Channels, failsafe_flag: bool) -> WireFrame {
-        match model.protocol() {
-            Protocol::Ppm => WireFrame::Ppm(PpmFrame::new(model.encode(channels))),
-            Protocol::Sbus => WireFrame::Sbus(SbusFrame {
-                bytes: model.encode_sbus(channels, failsafe_flag),
-                start: 0,
-            }),
+        let wire = model.wire();
+        match wire.kind() {
+            FrameKind::Pulses => WireFrame::Ppm(PpmFrame::new(model.encode(channels))),
+            FrameKind::Bytes => {
+                let mut bytes = [0; MAX_FRAME_BYTES];
+                let len = model.encode_bytes(channels, failsafe_flag, &mut bytes);
+                WireFrame::Bytes(BytesFrame {
+                    bytes,
+                    len,
+                    wire_ns: wire.frame_wire_ns(),
+                    late_margin_ns: wire.late_margin_ns(),
+                    wire: *wire,
+                    start: 0,
+                })
+            }
         }
     }
 
-    /// Where the frame's last pulse starts, from the frame's start (SBUS:
+    /// Where the frame's last pulse starts, from the frame's start (bytes:
     /// where its last byte ends on the wire).
     pub fn last_pulse(&self) -> u64 {
         match self {
             WireFrame::Ppm(f) => f.last_pulse(),
-            WireFrame::Sbus(_) => sbus::FRAME_WIRE_NS,
+            WireFrame::Bytes(f) => f.wire_ns,
         }
     }
 
     /// After its whole-frame write, due at `due`, returned at `written`:
     /// where it ends on the wire at the latest, when the next frame's idle
     /// line must be measured from there rather than from its planned end.
-    /// SBUS: the frame left no later than the write's return; when that is
+    /// Bytes: the frame left no later than the write's return; when that is
     /// later than the margin the idle lines keep for a late frame
-    /// ([`GAP_MARGIN_US`]), the next frame starts its idle line after this
-    /// end. `None` otherwise, and for PPM, whose sync a whole-frame line
-    /// times itself.
+    /// ([`WireModel::late_margin_ns`]), the next frame starts its idle line
+    /// after this end. `None` otherwise, and for PPM, whose sync a
+    /// whole-frame line times itself.
     pub fn ends_by(&self, due: u64, written: u64) -> Option<u64> {
         match self {
             WireFrame::Ppm(_) => None,
-            WireFrame::Sbus(_) => (written.saturating_sub(due) > GAP_MARGIN_US * 1_000)
-                .then_some(written + sbus::FRAME_WIRE_NS),
+            WireFrame::Bytes(f) => {
+                (written.saturating_sub(due) > f.late_margin_ns).then_some(written + f.wire_ns)
+            }
         }
     }
 
@@ -101,7 +115,7 @@ impl WireFrame {
                 f.lead_in_ns = lead_in_ns;
                 f.before_pulse = before_pulse;
             }
-            WireFrame::Sbus(f) => f.start = start,
+            WireFrame::Bytes(f) => f.start = start,
         }
     }
 
@@ -109,16 +123,16 @@ impl WireFrame {
     pub fn due(&self) -> u64 {
         match self {
             WireFrame::Ppm(f) => f.edge().0,
-            WireFrame::Sbus(f) => f.start,
+            WireFrame::Bytes(f) => f.start,
         }
     }
 
-    /// The level its next write sets, on a line written edge by edge (an
-    /// SBUS frame is never written so: its level is the start bit's).
+    /// The level its next write sets, on a line written edge by edge (a
+    /// frame of bytes is never written so: its level is the start bit's).
     pub fn level(&self) -> Level {
         match self {
             WireFrame::Ppm(f) => f.edge().1,
-            WireFrame::Sbus(_) => Level::Low,
+            WireFrame::Bytes(_) => Level::Low,
         }
     }
 
@@ -132,7 +146,7 @@ impl WireFrame {
                     && model.timed(f.edge().1)
                     && now - due > model.late_edge_guard_ns()
             }
-            WireFrame::Sbus(_) => false,
+            WireFrame::Bytes(_) => false,
         }
     }
 
@@ -141,7 +155,7 @@ impl WireFrame {
     pub fn sync_overrun(&self, model: &FrameModel, now: u64) -> bool {
         match self {
             WireFrame::Ppm(f) => f.sync_overrun(model, now),
-            WireFrame::Sbus(_) => false,
+            WireFrame::Bytes(_) => false,
         }
     }
 
@@ -151,11 +165,11 @@ impl WireFrame {
     pub fn whole<'b>(&self, due: u64, buf: &'b mut WholeBuf) -> (WholeFrame<'b>, usize) {
         match self {
             WireFrame::Ppm(f) => f.whole(due, &mut buf.edges),
-            WireFrame::Sbus(f) => {
+            WireFrame::Bytes(f) => {
                 buf.bytes = f.bytes;
                 (
-                    WholeFrame::Sbus {
-                        bytes: &buf.bytes,
+                    WholeFrame::Bytes {
+                        bytes: &buf.bytes[..f.len],
                         due_ns: due,
                     },
                     1,
@@ -169,7 +183,7 @@ impl WireFrame {
     pub fn sent_whole(&mut self, model: &FrameModel) {
         match self {
             WireFrame::Ppm(f) => f.timed = model.channels() + 1,
-            WireFrame::Sbus(_) => {}
+            WireFrame::Bytes(_) => {}
         }
     }
 
@@ -179,7 +193,7 @@ impl WireFrame {
     pub fn last_timed(&self, model: &FrameModel) -> Option<u64> {
         match self {
             WireFrame::Ppm(f) => f.last_timed(model),
-            WireFrame::Sbus(_) => None,
+            WireFrame::Bytes(_) => None,
         }
     }
 
@@ -187,7 +201,7 @@ impl WireFrame {
     pub fn timed(&self, model: &FrameModel) -> bool {
         match self {
             WireFrame::Ppm(f) => model.timed(f.edge().1),
-            WireFrame::Sbus(_) => false,
+            WireFrame::Bytes(_) => false,
         }
     }
 
@@ -197,7 +211,7 @@ impl WireFrame {
     pub fn timed_written(&mut self, late_ns: u64) -> bool {
         match self {
             WireFrame::Ppm(f) => f.timed_written(late_ns),
-            WireFrame::Sbus(_) => false,
+            WireFrame::Bytes(_) => false,
         }
     }
 
@@ -206,7 +220,7 @@ impl WireFrame {
     pub fn advance(&mut self, whole: bool) -> bool {
         match self {
             WireFrame::Ppm(f) => f.advance(whole),
-            WireFrame::Sbus(_) => true,
+            WireFrame::Bytes(_) => true,
         }
     }
 
@@ -217,7 +231,7 @@ impl WireFrame {
     pub fn abort(&mut self, model: &FrameModel, at: u64, timed_ns: Option<u64>) -> bool {
         match self {
             WireFrame::Ppm(f) => f.abort(model, at, timed_ns),
-            WireFrame::Sbus(_) => true,
+            WireFrame::Bytes(_) => true,
         }
     }
 
@@ -226,7 +240,7 @@ impl WireFrame {
     pub fn pulse_of(&self, model: &FrameModel, timed_ns: Option<u64>) -> Option<u64> {
         match self {
             WireFrame::Ppm(_) => timed_ns.map(|t| t - model.timed_offset_ns()),
-            WireFrame::Sbus(_) => None,
+            WireFrame::Bytes(_) => None,
         }
     }
 
@@ -234,7 +248,7 @@ impl WireFrame {
     pub fn aborted_at(&self) -> usize {
         match self {
             WireFrame::Ppm(f) => f.timed.max(1),
-            WireFrame::Sbus(_) => 1,
+            WireFrame::Bytes(_) => 1,
         }
     }
 
@@ -249,23 +263,31 @@ impl WireFrame {
     ) -> usize {
         match self {
             WireFrame::Ppm(f) => f.carried(model, sent, aborted, values),
-            WireFrame::Sbus(f) => {
+            WireFrame::Bytes(f) => {
                 // What the receiver the values are encoded for reads of
                 // the bytes sent.
-                let read = model.sbus_reads(&f.bytes);
-                for (v, r) in values.iter_mut().zip(read) {
-                    *v = r as u32;
+                let mut read = [0u64; MAX_CHANNELS];
+                let n = f.wire.reads(&f.bytes[..f.len], &mut read);
+                for (v, r) in values.iter_mut().zip(&read[..n]) {
+                    *v = *r as u32;
                 }
-                sbus::CHANNELS
+                n
             }
         }
     }
 }
 
-/// An SBUS frame on the wire: its bytes and where it starts.
+/// A frame of bytes on the wire: its bytes, what its wire says of it, and
+/// where it starts.
 #[derive(Clone, Copy)]
-pub(super) struct SbusFrame {
-    bytes: [u8; sbus::FRAME_LEN],
+pub(super) struct BytesFrame {
+    bytes: [u8; MAX_FRAME_BYTES],
+    len: usize,
+    /// How long it takes on the wire.
+    wire_ns: u64,
+    /// See [`WireModel::late_margin_ns`].
+    late_margin_ns: u64,
+    wire: WireModel,
     start: u64,
 }
 

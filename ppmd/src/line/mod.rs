@@ -65,11 +65,11 @@ pub enum WholeFrame<'a> {
         /// When the first was due (CLOCK_MONOTONIC ns).
         due_ns: u64,
     },
-    /// An SBUS frame: its 25 bytes, sent back to back from the write, which
-    /// was due at `due_ns`.
-    Sbus {
+    /// A frame of bytes (SBUS: its 25 bytes), sent back to back from the
+    /// write, which was due at `due_ns`.
+    Bytes {
         /// The frame.
-        bytes: &'a [u8; ppm_shared::sbus::FRAME_LEN],
+        bytes: &'a [u8],
         /// When it was due (CLOCK_MONOTONIC ns).
         due_ns: u64,
     },
@@ -224,7 +224,7 @@ impl FrameLine for SimFrameLine {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         let now = (self.now_ns)();
         match frame {
-            WholeFrame::Sbus { bytes, due_ns } => {
+            WholeFrame::Bytes { bytes, due_ns } => {
                 let edges = ppm_shared::sbus::uart::edges(bytes, 0, self.idle);
                 write_whole(&mut self.sim, due_ns, now, edges)
             }

@@ -288,15 +288,15 @@ impl SerialLine {
     /// write interrupted before it took any byte is made again; one that
     /// took part of the frame is counted in [`SerialLine::short_writes`]
     /// and returned as [`LineError::ShortWrite`], the rest never sent.
-    pub fn write_frame(&mut self, frame: &[u8; FRAME_LEN]) -> Result<(), LineError> {
+    pub fn write_frame(&mut self, frame: &[u8]) -> Result<(), LineError> {
         loop {
             match self.file.write(frame) {
-                Ok(FRAME_LEN) => return Ok(()),
+                Ok(written) if written == frame.len() => return Ok(()),
                 Ok(written) => {
                     self.short_writes += 1;
                     return Err(LineError::ShortWrite {
                         written,
-                        len: FRAME_LEN,
+                        len: frame.len(),
                     });
                 }
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
@@ -326,7 +326,7 @@ fn termios2_of(file: &File) -> io::Result<libc::termios2> {
 impl FrameLine for SerialLine {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         match frame {
-            WholeFrame::Sbus { bytes, .. } => SerialLine::write_frame(self, bytes),
+            WholeFrame::Bytes { bytes, .. } => SerialLine::write_frame(self, bytes),
             WholeFrame::Ppm { .. } => Err(LineError::WrongProtocol),
         }
     }

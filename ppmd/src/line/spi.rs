@@ -227,10 +227,13 @@ impl FrameLine for SpiLine {
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
         let len = match frame {
             WholeFrame::Ppm { edges, .. } => encode(edges, self.hz, &mut self.buf),
-            WholeFrame::Sbus { bytes, .. } if self.hz == SBUS_HZ => {
+            WholeFrame::Bytes { bytes, .. } if self.hz == SBUS_HZ => {
+                let Ok(bytes) = bytes.try_into() else {
+                    return Err(LineError::WrongProtocol);
+                };
                 encode_sbus(bytes, &mut self.buf)
             }
-            WholeFrame::Sbus { .. } => return Err(LineError::WrongProtocol),
+            WholeFrame::Bytes { .. } => return Err(LineError::WrongProtocol),
         }
         .ok_or(LineError::FrameTooLong)?;
         let mut t = SpidevTransfer::write(&self.buf[..len]);

@@ -3,10 +3,10 @@
 
 use super::schema::{Config, CpuChoice, FailsafeAction, IngressSection, OutputSpec};
 use super::ConfigError;
+use crate::frame::FrameModel;
 use crate::frame::PpmSection;
-use crate::frame::{FrameModel, Level};
 use crate::mavlink;
-use crate::signal::Protocol;
+use crate::wire::LineKind;
 use std::path::PathBuf;
 
 impl Config {
@@ -57,19 +57,21 @@ impl Config {
                 ),
             ));
         }
-        match self.ppm.protocol {
-            Protocol::Ppm => self.check_ppm_output(&output)?,
-            Protocol::Sbus => self.check_sbus_output(&output)?,
-        }
+        let spec = self.ppm.protocol.spec();
+        (spec.check_line)(line_kind(&output), self.ppm.idle_level, &self.ppmd.output)
+            .map_err(|(key, message)| ConfigError::invalid(key, message))?;
         self.readback_plan()?;
         for (key, action) in [
             ("failsafe.action", self.failsafe.action),
             ("failsafe.startup", self.failsafe.startup),
         ] {
-            if action == FailsafeAction::Flag && self.ppm.protocol != Protocol::Sbus {
+            if action == FailsafeAction::Flag && !spec.failsafe_flag {
                 return Err(ConfigError::invalid(
                     key,
-                    "\"flag\" sets SBUS's failsafe flag, and PPM has none: use \"silence\", \"hold\" or \"default\" (or ppm.protocol = \"sbus\")",
+                    format!(
+                        "\"flag\" sets SBUS's failsafe flag, and {} has none: use \"silence\", \"hold\" or \"default\" (or ppm.protocol = \"sbus\")",
+                        spec.title
+                    ),
                 ));
             }
         }
@@ -213,82 +215,14 @@ impl Config {
         })
     }
 
-    /// `[ppm]` with the idle level an SBUS output takes when the key is not
-    /// given: low (true SBUS) through SPI, high (a UART's) elsewhere.
+    /// `[ppm]` with the idle level the protocol takes on `output` when the
+    /// key is not given ([`crate::wire::Spec::line_idle_level`]).
     fn resolved_ppm(&self, output: &OutputSpec) -> PpmSection {
         let mut ppm = self.ppm.clone();
-        if ppm.protocol == Protocol::Sbus && ppm.idle_level.is_none() {
-            ppm.idle_level = Some(match output {
-                OutputSpec::Spi { .. } => Level::Low,
-                _ => Level::High,
-            });
+        if ppm.idle_level.is_none() {
+            ppm.idle_level = (ppm.protocol.spec().line_idle_level)(line_kind(output));
         }
         ppm
-    }
-
-    /// A PPM output: a line PPM's edges can be written on.
-    fn check_ppm_output(&self, output: &OutputSpec) -> Result<(), ConfigError> {
-        match output {
-            OutputSpec::Spi { .. } if self.ppm.idle_level() == Level::High => {
-                Err(ConfigError::invalid(
-                    "ppm.idle_level",
-                    format!(
-                        "\"high\" cannot be sent through `{}`: between transfers an SPI controller leaves MOSI low (or at the last bit), which would add an edge to every sync; use idle_level = \"low\" (an inverter in the cable gives a transmitter that wants high), or a gpio: output",
-                        self.ppmd.output
-                    ),
-                ))
-            }
-            OutputSpec::Sim { whole: true, .. } if self.ppm.idle_level() == Level::High => {
-                Err(ConfigError::invalid(
-                    "ppm.idle_level",
-                    format!(
-                        "\"high\" cannot be sent through `{}`, which simulates an SPI output (MOSI rests low between transfers): use idle_level = \"low\", or a sim: output",
-                        self.ppmd.output
-                    ),
-                ))
-            }
-            OutputSpec::Serial { .. } => Err(ConfigError::invalid(
-                "ppmd.output",
-                format!(
-                    "`{}` carries SBUS, not PPM: set ppm.protocol = \"sbus\" (for a radio's serial trainer input or a flight controller), or use a gpio: or spi: output for a trainer jack",
-                    self.ppmd.output
-                ),
-            )),
-            _ => Ok(()),
-        }
-    }
-
-    /// An SBUS output: a line that sends its bytes whole, at the polarity
-    /// `ppm.idle_level` names.
-    fn check_sbus_output(&self, output: &OutputSpec) -> Result<(), ConfigError> {
-        let out = &self.ppmd.output;
-        match (output, self.ppm.idle_level) {
-            (OutputSpec::Sim { whole: true, .. }, _) => Err(ConfigError::invalid(
-                "ppmd.output",
-                format!(
-                    "`{out}` simulates a PPM output sent whole through SPI; an SBUS output's simulated line (sim or sim:PATH) already takes each frame whole"
-                ),
-            )),
-            (OutputSpec::Gpio { .. }, _) => Err(ConfigError::invalid(
-                "ppmd.output",
-                format!(
-                    "`{out}`: SBUS is 10 us bits that must leave back to back, which a GPIO line written from software cannot hold: use serial:DEVICE (a UART, SBUS idling high) or spi:DEVICE (true SBUS, idling low)"
-                ),
-            )),
-            (OutputSpec::Serial { .. }, Some(Level::Low)) => Err(ConfigError::invalid(
-                "ppm.idle_level",
-                format!(
-                    "\"low\" (true, inverted SBUS) cannot be sent through `{out}`: a UART idles high; use an spi: output (MOSI idles low), or an inverter in the cable with idle_level = \"high\""
-                ),
-            )),
-            (OutputSpec::Spi { .. }, Some(Level::High)) => Err(ConfigError::invalid(
-                "ppm.idle_level",
-                format!(
-                    "\"high\" SBUS cannot be sent through `{out}`: between transfers an SPI controller leaves MOSI low, a break in an idle-high line; use a serial: output (a UART idles high), or an inverter in the cable with idle_level = \"low\""
-                ),
-            )),
-            _ => Ok(()),
-        }
     }
 
     /// The address blocks of `ingress.allow` (a bare address is a block of one).
@@ -339,7 +273,7 @@ impl Config {
         let input: crate::capture::InputSpec = input
             .parse()
             .map_err(|m| ConfigError::invalid("ppmd.readback", m))?;
-        if self.ppm.protocol != Protocol::Ppm {
+        if !self.ppm.protocol.spec().reads_back {
             return Err(ConfigError::invalid(
                 "ppmd.readback",
                 "a read-back reads PPM (a radio's module bay set to PPM), and compares it with a PPM output's frames: set ppm.protocol = \"ppm\", or remove ppmd.readback",
@@ -386,6 +320,17 @@ impl Config {
             .output
             .parse()
             .map_err(|m| ConfigError::invalid("ppmd.output", m))
+    }
+}
+
+/// What kind of line `output` is, as a protocol's line check sees it.
+fn line_kind(output: &OutputSpec) -> LineKind {
+    match output {
+        OutputSpec::Gpio { .. } => LineKind::Gpio,
+        OutputSpec::Spi { .. } => LineKind::Spi,
+        OutputSpec::Sim { whole: true, .. } => LineKind::SimWhole,
+        OutputSpec::Sim { .. } => LineKind::Sim,
+        OutputSpec::Serial { .. } => LineKind::Serial,
     }
 }
 

@@ -7,7 +7,8 @@
 //! sets are named: a key left at its default is never one the user meant.
 
 use super::schema::{Config, OutputSpec, SpinMargin};
-use crate::signal::{Protocol, Timing};
+use crate::signal::Timing;
+use crate::wire::Protocol;
 
 /// The program that would use a key, and so says that it does nothing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -93,7 +94,7 @@ impl Config {
         let set = |key: &str| self.set.in_file(key);
         let mut out = Vec::new();
         let ppm = &self.ppm;
-        let sbus = ppm.protocol == Protocol::Sbus;
+        let spec = ppm.protocol.spec();
         match by {
             Program::Ppmd => {
                 if ppm.timing == Timing::Follow && set("ppm.frame_us") {
@@ -101,7 +102,7 @@ impl Config {
                         "ppm.frame_us",
                         format!(
                             "under ppm.timing = \"follow\" (the default) frames follow the commands: a fresh command starts its frame once the {gap} has lasted ppm.follow_sync_min_us, and without one the last frame repeats when it reaches ppm.follow_sync_max_us; for frames every ppm.frame_us set ppm.timing = \"grid\" (or ppmd --timing grid)",
-                            gap = if sbus { "idle line" } else { "sync" },
+                            gap = spec.gap,
                         ),
                     ));
                 }
@@ -113,29 +114,18 @@ impl Config {
                                 format!(
                                     "under ppm.timing = \"grid\" a frame starts every ppm.frame_us ({} us) whatever the commands do; the follow limits are for ppm.timing = \"follow\"{}",
                                     ppm.frame_us(),
-                                    if sbus { "" } else { " (checked against the receiver all the same)" }
+                                    if spec.grid_checks_follow { " (checked against the receiver all the same)" } else { "" }
                                 ),
                             ));
                         }
                     }
                 }
-                if sbus {
-                    for (key, what) in [
-                        (
-                            "ppm.pulse_us",
-                            "an SBUS frame is bytes at 100000 baud, without separator pulses",
-                        ),
-                        (
-                            "ppm.late_edge_guard_us",
-                            "an SBUS frame leaves whole, in one write, so no edge of it is guarded",
-                        ),
-                    ] {
-                        if set(key) {
-                            out.push((
-                                key,
-                                format!("{what}; the key is PPM's (ppm.protocol = \"ppm\")"),
-                            ));
-                        }
+                for &(key, what) in spec.unused_keys {
+                    if set(key) {
+                        out.push((
+                            key,
+                            format!("{what}; the key is PPM's (ppm.protocol = \"ppm\")"),
+                        ));
                     }
                 }
             }
@@ -177,7 +167,7 @@ impl Config {
         let mut out = Vec::new();
         let ppm_spi = outputs
             .iter()
-            .any(|(o, p, _)| matches!(o, OutputSpec::Spi { .. }) && *p == Protocol::Ppm);
+            .any(|(o, p, _)| matches!(o, OutputSpec::Spi { .. }) && p.spec().uses_spi_hz);
         if set("ppmd.spi_hz") && !ppm_spi {
             out.push((
                 "ppmd.spi_hz",

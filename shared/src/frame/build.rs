@@ -2,14 +2,11 @@
 //! what the receivers of `ppm.receiver` read, then the model in one step.
 //! Errors name the key and say how to fix it.
 
-use super::section::{ppm_defaults, ChannelOverride, PpmSection, LATE_EDGE_GUARD_US};
+use super::section::{ppm_defaults, ChannelOverride, PpmSection};
 use super::{us_to_ns, FrameModel, UnitMapping, MAX_CHANNELS, PULSE_MIN_US};
 use crate::receiver::{ReceiverChoice, Rules, CHANNEL_MARGIN_US, SYNC_MARGIN_US};
-use crate::sbus::{
-    self,
-    timing::{SbusChoice, FOLLOW_GAP_MAX_DEFAULT_US, FRAME_WIRE_US, GAP_MARGIN_US, GAP_MAX_US},
-};
-use crate::signal::{Protocol, Timing, CHANNEL_MAX_US, CHANNEL_MIN_US, SYNC_MAX_US};
+use crate::signal::{Timing, CHANNEL_MAX_US, CHANNEL_MIN_US, SYNC_MAX_US};
+use crate::wire::{PpmWire, Protocol, WireModel};
 
 /// A `[ppm]` key whose value a transmitter would reject or misread: the
 /// key and why (the configuration reports it as its own error).
@@ -23,7 +20,7 @@ pub struct InvalidKey {
 }
 
 impl InvalidKey {
-    fn new(key: impl Into<String>, message: impl Into<String>) -> Self {
+    pub(crate) fn new(key: impl Into<String>, message: impl Into<String>) -> Self {
         InvalidKey {
             key: key.into(),
             message: message.into(),
@@ -39,11 +36,12 @@ pub const FOLLOW_SYNC_CEILING_US: f64 = SYNC_MAX_US - SYNC_MARGIN_US;
 impl FrameModel {
     /// Checks `[ppm]` against what transmitters accept (the receivers of
     /// `ppm.receiver`) and builds the model from it in one step: a model
-    /// exists only once every check passed. Errors name the key.
+    /// exists only once every check passed. Errors name the key. Each
+    /// protocol builds its own.
     pub fn build(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
         match ppm.protocol {
             Protocol::Ppm => build_ppm(ppm),
-            Protocol::Sbus => build_sbus(ppm),
+            Protocol::Sbus => super::build_sbus::build(ppm),
         }
     }
 }
@@ -77,27 +75,30 @@ fn build_ppm(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
         &limits,
         Wire {
             frame_ns,
-            pulse_ns,
             follow_sync_ns,
             sync_window_ns: (us_to_ns(rules.sync_min_us.0), us_to_ns(rules.sync_max_us.0)),
             late_edge_guard_ns,
-            sbus: None,
+            wire: WireModel::Ppm(PpmWire { pulse_ns }),
         },
     ))
 }
 
-/// What a model's signal is on the wire, checked.
-struct Wire {
-    frame_ns: u64,
-    pulse_ns: u64,
-    follow_sync_ns: (u64, u64),
-    sync_window_ns: (u64, u64),
-    late_edge_guard_ns: u64,
-    sbus: Option<SbusChoice>,
+/// A model's timing and wire settings, checked by its protocol's build.
+pub(crate) struct Wire {
+    pub(crate) frame_ns: u64,
+    pub(crate) follow_sync_ns: (u64, u64),
+    pub(crate) sync_window_ns: (u64, u64),
+    pub(crate) late_edge_guard_ns: u64,
+    pub(crate) wire: WireModel,
 }
 
 /// The model of checked channels and wire settings.
-fn model(ppm: &PpmSection, names: Vec<String>, limits: &[ChannelLimits], w: Wire) -> FrameModel {
+pub(crate) fn model(
+    ppm: &PpmSection,
+    names: Vec<String>,
+    limits: &[ChannelLimits],
+    w: Wire,
+) -> FrameModel {
     // Channel i's value in ns; 0 past the last channel.
     let ns = |i: usize, us: fn(&ChannelLimits) -> f64| {
         limits.get(i).map_or(0, |l| us_to_ns(us(l)) as u32)
@@ -112,102 +113,14 @@ fn model(ppm: &PpmSection, names: Vec<String>, limits: &[ChannelLimits], w: Wire
         channels: limits.len(),
         names,
         frame_ns: w.frame_ns,
-        pulse_ns: w.pulse_ns,
         idle: ppm.idle_level(),
         timing: ppm.timing,
         follow_sync_ns: w.follow_sync_ns,
         receiver: ppm.receiver,
         sync_window_ns: w.sync_window_ns,
         late_edge_guard_ns: w.late_edge_guard_ns,
-        sbus: w.sbus,
+        wire: w.wire,
     }
-}
-
-/// An SBUS model: 16 channels whose values every SBUS receiver of
-/// `ppm.receiver` reads, encoded for one of them, and idle lines between
-/// frames each of them takes. The PPM keys `pulse_us` and
-/// `late_edge_guard_us` are not used.
-fn build_sbus(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
-    let choice = SbusChoice::new(ppm.receiver).map_err(|m| {
-        InvalidKey::new(
-            "ppm.receiver",
-            format!("`{}` under protocol = \"sbus\": {m}", ppm.receiver.name()),
-        )
-    })?;
-    let under = format!("protocol = \"sbus\" and {}", receiver_key(ppm.receiver));
-    if ppm.channels() as usize != sbus::CHANNELS {
-        return Err(InvalidKey::new(
-            "ppm.channels",
-            format!(
-                "{}: an SBUS frame carries {} channels, so with protocol = \"sbus\" ppm.channels is {} (remove the key; a command with fewer values fills the rest with the channel defaults)",
-                ppm.channels(),
-                sbus::CHANNELS,
-                sbus::CHANNELS
-            ),
-        ));
-    }
-    let (names, limits) = resolve_channels(ppm)?;
-    let (lo, hi) = choice.value_range_us();
-    for l in &limits {
-        let (key, v, rule, nearest) = if l.min_us < lo as f64 {
-            (&l.min_key, l.min_us, "raise", lo)
-        } else if l.max_us > hi as f64 {
-            (&l.max_key, l.max_us, "lower", hi)
-        } else {
-            continue;
-        };
-        return Err(InvalidKey::new(
-            key,
-            format!(
-                "{v} us: the SBUS values every receiver of {under} reads as they were sent are {lo}..={hi} us (encoded for {}): {rule} {key} to {nearest} us",
-                choice.encode_for().name()
-            ),
-        ));
-    }
-    let least = choice.least_gap_us() as f64;
-    let gap_min = ppm.follow_sync_min_us.unwrap_or(choice.default_gap_us());
-    if !gap_min.is_finite() || gap_min < least || gap_min > GAP_MAX_US {
-        return Err(InvalidKey::new(
-            "ppm.follow_sync_min_us",
-            format!(
-                "{gap_min} us: the idle line between SBUS frames must be {least}..={GAP_MAX_US} us under {under} (the receivers' least, with {GAP_MARGIN_US} us for a frame that leaves late)"
-            ),
-        ));
-    }
-    let gap_max = ppm
-        .follow_sync_max_us
-        .unwrap_or(FOLLOW_GAP_MAX_DEFAULT_US.max(gap_min));
-    if !gap_max.is_finite() || gap_max > GAP_MAX_US || gap_max < gap_min {
-        return Err(InvalidKey::new(
-            "ppm.follow_sync_max_us",
-            format!(
-                "{gap_max} us: the longest idle line between SBUS frames must be {gap_min}..={GAP_MAX_US} us (from ppm.follow_sync_min_us to well inside the receivers' signal-loss time)"
-            ),
-        ));
-    }
-    let period = ppm.frame_us();
-    let (period_lo, period_hi) = (FRAME_WIRE_US + least, FRAME_WIRE_US + GAP_MAX_US);
-    if !period.is_finite() || period < period_lo || period > period_hi {
-        return Err(InvalidKey::new(
-            "ppm.frame_us",
-            format!(
-                "{period} us: the SBUS grid period must be {period_lo}..={period_hi} us under {under} (a frame takes {FRAME_WIRE_US} us on the wire, and the receivers need {least} us of idle line after it; 7000 and 14000 are common periods)"
-            ),
-        ));
-    }
-    Ok(model(
-        ppm,
-        names,
-        &limits,
-        Wire {
-            frame_ns: us_to_ns(period),
-            pulse_ns: 0,
-            follow_sync_ns: (us_to_ns(gap_min), us_to_ns(gap_max)),
-            sync_window_ns: (us_to_ns(least), us_to_ns(GAP_MAX_US)),
-            late_edge_guard_ns: us_to_ns(LATE_EDGE_GUARD_US),
-            sbus: Some(choice),
-        },
-    ))
 }
 
 /// The channel count against the receivers' bounds.
@@ -339,7 +252,7 @@ fn check_grid_sync(
 }
 
 /// `ppm.receiver = "NAME"`, for messages.
-fn receiver_key(r: ReceiverChoice) -> String {
+pub(crate) fn receiver_key(r: ReceiverChoice) -> String {
     match r {
         ReceiverChoice::Any => "ppm.receiver = \"any\" (every supported receiver)".into(),
         ReceiverChoice::One(r) => format!("ppm.receiver = \"{}\"", r.name()),
@@ -407,18 +320,20 @@ fn late_edge_guard(ppm: &PpmSection) -> Result<u64, InvalidKey> {
 
 /// Validated per-channel limits, in microseconds.
 #[derive(Debug, Clone, PartialEq)]
-struct ChannelLimits {
+pub(crate) struct ChannelLimits {
     default_us: f64,
-    min_us: f64,
-    max_us: f64,
+    pub(crate) min_us: f64,
+    pub(crate) max_us: f64,
     mapping: UnitMapping,
     /// The keys `min_us` and `max_us` come from, for messages.
-    min_key: String,
-    max_key: String,
+    pub(crate) min_key: String,
+    pub(crate) max_key: String,
 }
 
 /// Resolves names and limits of every channel and checks them.
-fn resolve_channels(ppm: &PpmSection) -> Result<(Vec<String>, Vec<ChannelLimits>), InvalidKey> {
+pub(crate) fn resolve_channels(
+    ppm: &PpmSection,
+) -> Result<(Vec<String>, Vec<ChannelLimits>), InvalidKey> {
     let n = ppm.channels() as usize;
     if !(1..=MAX_CHANNELS).contains(&n) {
         return Err(InvalidKey::new(

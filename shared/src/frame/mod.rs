@@ -1,4 +1,5 @@
-//! The PPM frame model and the encoder.
+//! The frame model (channels, timing, and its [`WireModel`]) and the PPM
+//! encoder.
 //!
 //! A frame of `n` channels is `n + 1` separator pulses. Pulse `i` starts at
 //! `t_i`, with `t_0 = 0` (the frame start) and `t_{i+1} = t_i + value_i`: a
@@ -15,9 +16,11 @@
 
 use crate::receiver::ReceiverChoice;
 use crate::sbus::{self, timing::SbusChoice};
-pub use crate::signal::{Level, Protocol, Timing, MAX_CHANNELS, MAX_EDGES};
+pub use crate::signal::{Level, Timing, MAX_CHANNELS, MAX_EDGES};
+pub use crate::wire::{FrameKind, Protocol, WireModel};
 
 pub mod build;
+mod build_sbus;
 pub mod section;
 
 pub use build::{
@@ -91,9 +94,12 @@ pub fn us_to_ns(us: f64) -> u64 {
     (us * 1_000.0).round() as u64
 }
 
-/// The validated PPM signal: channel count, names, limits, timing, idle level.
-/// Built once at start from the checked `[ppm]` section ([`FrameModel::build`]); encoding with it never
-/// allocates.
+/// One output's validated signal: the channel model (count, names, limits,
+/// defaults, units, [fingerprint](FrameModel::fingerprint)), when frames
+/// start (timing, frame length, sync or idle-line windows, idle level), and
+/// what a frame is on the wire ([`WireModel`]: PPM, SBUS, ..., each with its
+/// own settings). Built once at start from the checked `[ppm]` section
+/// ([`FrameModel::build`]); encoding with it never allocates.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrameModel {
     names: Vec<String>,
@@ -103,29 +109,31 @@ pub struct FrameModel {
     mapping: [UnitMapping; MAX_CHANNELS],
     channels: usize,
     frame_ns: u64,
-    pulse_ns: u64,
     idle: Level,
     timing: Timing,
     follow_sync_ns: (u64, u64),
     receiver: ReceiverChoice,
     sync_window_ns: (u64, u64),
     late_edge_guard_ns: u64,
-    /// SBUS's receivers, for an SBUS model.
-    sbus: Option<SbusChoice>,
+    /// What a frame is on the wire, with the protocol's own settings.
+    wire: WireModel,
 }
 
 impl FrameModel {
-    /// What a frame is on the wire.
-    pub fn protocol(&self) -> Protocol {
-        match self.sbus {
-            None => Protocol::Ppm,
-            Some(_) => Protocol::Sbus,
-        }
+    /// What a frame is on the wire: the protocol seam, asked instead of
+    /// branching on the protocol.
+    pub fn wire(&self) -> &WireModel {
+        &self.wire
     }
 
-    /// The SBUS receivers an SBUS model is for (`None` for PPM).
+    /// The protocol of [`FrameModel::wire`].
+    pub fn protocol(&self) -> Protocol {
+        self.wire.protocol()
+    }
+
+    /// The SBUS receivers an SBUS model is for (`None` otherwise).
     pub fn sbus(&self) -> Option<&SbusChoice> {
-        self.sbus.as_ref()
+        self.wire.sbus()
     }
 
     /// One SBUS frame carrying `values` (clamped to their channel's limits,
@@ -138,7 +146,7 @@ impl FrameModel {
         for (i, r) in raw.iter_mut().enumerate().take(self.channels) {
             let v = values.as_ns().get(i).copied().unwrap_or(self.default_ns[i]);
             let ns = u64::from(self.clamp(i, v).0);
-            *r = match &self.sbus {
+            *r = match self.sbus() {
                 Some(c) => c.raw(ns),
                 None => sbus::raw_for(sbus::SbusReceiver::EdgeTx, ns),
             };
@@ -150,11 +158,29 @@ impl FrameModel {
         sbus::encode(&raw, flags)
     }
 
+    /// One frame of bytes ([`WireModel::encode_bytes`]) carrying `values`
+    /// (clamped to their channel's limits, missing channels at their
+    /// default), flagged failsafe when `failsafe`, in `out`; how many bytes.
+    /// Allocation-free.
+    pub fn encode_bytes(
+        &self,
+        values: &Channels,
+        failsafe: bool,
+        out: &mut [u8; crate::wire::MAX_FRAME_BYTES],
+    ) -> usize {
+        let mut ns = [0u64; MAX_CHANNELS];
+        for (i, n) in ns.iter_mut().enumerate().take(self.channels) {
+            let v = values.as_ns().get(i).copied().unwrap_or(self.default_ns[i]);
+            *n = u64::from(self.clamp(i, v).0);
+        }
+        self.wire.encode_bytes(&ns, failsafe, out)
+    }
+
     /// What the receiver values are encoded for reads of an SBUS frame's
     /// channels, ns (its scaling, whatever the header and flags).
     pub fn sbus_reads(&self, frame: &[u8; sbus::FRAME_LEN]) -> [u64; sbus::CHANNELS] {
         let r = self
-            .sbus
+            .sbus()
             .map_or(sbus::SbusReceiver::EdgeTx, |c| c.encode_for());
         sbus::channels(frame).map(|raw| r.read_ns(raw))
     }
@@ -231,7 +257,7 @@ impl FrameModel {
     pub fn timed_offset_ns(&self) -> u64 {
         match self.idle {
             Level::Low => 0,
-            Level::High => self.pulse_ns,
+            Level::High => self.pulse_ns(),
         }
     }
 
@@ -260,9 +286,9 @@ impl FrameModel {
         self.frame_ns
     }
 
-    /// Separator pulse width in nanoseconds.
+    /// Separator pulse width in nanoseconds (0 without pulses).
     pub fn pulse_ns(&self) -> u64 {
-        self.pulse_ns
+        self.wire.pulse_ns()
     }
 
     /// The level between pulses and while silent.
@@ -315,7 +341,7 @@ impl FrameModel {
                 level: active,
             };
             s.edges[s.len + 1] = Edge {
-                at_ns: t + self.pulse_ns,
+                at_ns: t + self.pulse_ns(),
                 level: self.idle,
             };
             s.len += 2;

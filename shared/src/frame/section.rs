@@ -3,7 +3,8 @@
 //! builds the model.
 
 use crate::receiver::ReceiverChoice;
-use crate::signal::{Level, Protocol, Timing};
+use crate::signal::{Level, Timing};
+use crate::wire::Protocol;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 
@@ -99,9 +100,9 @@ impl Default for PpmSection {
 /// PPM's defaults of the keys whose default depends on the protocol.
 pub mod ppm_defaults {
     /// `ppm.channels`.
-    pub const CHANNELS: u32 = 8;
+    pub const CHANNELS: u32 = crate::wire::ppm::CHANNELS_DEFAULT;
     /// `ppm.frame_us`.
-    pub const FRAME_US: f64 = 22_500.0;
+    pub const FRAME_US: f64 = crate::wire::ppm::FRAME_US_DEFAULT;
     /// `ppm.follow_sync_min_us`.
     pub const FOLLOW_SYNC_MIN_US: f64 = 5_000.0;
     /// `ppm.follow_sync_max_us`.
@@ -111,27 +112,18 @@ pub mod ppm_defaults {
 impl PpmSection {
     /// `ppm.channels`, or the protocol's default (PPM 8, SBUS 16).
     pub fn channels(&self) -> u32 {
-        self.channels.unwrap_or(match self.protocol {
-            Protocol::Ppm => ppm_defaults::CHANNELS,
-            Protocol::Sbus => crate::sbus::CHANNELS as u32,
-        })
+        self.channels.unwrap_or(self.protocol.spec().channels)
     }
 
     /// `ppm.frame_us`, or the protocol's default (PPM 22500, SBUS 7000).
     pub fn frame_us(&self) -> f64 {
-        self.frame_us.unwrap_or(match self.protocol {
-            Protocol::Ppm => ppm_defaults::FRAME_US,
-            Protocol::Sbus => crate::sbus::timing::PERIOD_DEFAULT_US,
-        })
+        self.frame_us.unwrap_or(self.protocol.spec().frame_us)
     }
 
     /// `ppm.idle_level`, or the protocol's default on a line that can send
     /// either (PPM low, SBUS high: a plain UART's).
     pub fn idle_level(&self) -> Level {
-        self.idle_level.unwrap_or(match self.protocol {
-            Protocol::Ppm => Level::Low,
-            Protocol::Sbus => Level::High,
-        })
+        self.idle_level.unwrap_or(self.protocol.spec().idle_level)
     }
 }
 

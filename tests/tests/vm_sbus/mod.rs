@@ -11,7 +11,7 @@
 //! spi-gpio clocks as fast as gpiolib goes. What is checked is what the
 //! kernel holds and every byte and bit.
 
-use super::read;
+use super::{logged_frames, read};
 use crate::vm_spi::{parse_spi_lines, spi_transfers, trace_sets};
 use ppm_shared::frame::Level;
 use ppm_shared::sbus::{self, uart, SbusReceiver, Verdict};
@@ -35,14 +35,6 @@ fn check_frame(frame: &[u8; sbus::FRAME_LEN], what: &str) {
         }
         v => panic!("{what}: EdgeTX gives {v:?} for {frame:02x?}"),
     }
-}
-
-/// Frames ppmd's frame log has.
-fn logged_frames(out: &Path, file: &str) -> usize {
-    read(out, file)
-        .lines()
-        .filter(|l| l.contains(r#""type":"frame""#))
-        .count()
 }
 
 /// SBUS on ttyS1: the kernel holds 100 000 baud, 8 data bits, even parity,
@@ -85,7 +77,7 @@ pub(crate) fn check_sbus_serial(out: &Path, flavor: &str) {
         );
     }
     assert_eq!(
-        logged_frames(out, "sbus_frames.jsonl"),
+        logged_frames(out, "sbus_frames.jsonl").len(),
         frames,
         "frames logged and sent on ttyS1 on {flavor}"
     );
@@ -168,7 +160,7 @@ pub(crate) fn check_sbus_spi(out: &Path, flavor: &str) {
         "idle transfers {parks:?} among the frames {first}..={last} on {flavor}"
     );
     assert_eq!(
-        logged_frames(out, "sbus_spi_frames.jsonl"),
+        logged_frames(out, "sbus_spi_frames.jsonl").len(),
         frames.len(),
         "frames logged and sent through spi on {flavor}"
     );

@@ -2,7 +2,7 @@
 //! `spi:` output read back from the gpio_value trace of the spi-gpio
 //! master's lines, transfer by transfer, in bit time.
 
-use super::{read, COMMAND_US};
+use super::{logged_frames, read, COMMAND_US};
 use ppm_shared::decode::{decode, DecoderLimits};
 use ppm_shared::frame::Level;
 use std::path::Path;
@@ -292,10 +292,7 @@ pub(crate) fn check_spi(out: &Path, flavor: &str) {
         );
     }
     // One transfer per frame ppmd logged.
-    let logged = read(out, "spi_frames.jsonl")
-        .lines()
-        .filter(|l| l.contains(r#""type":"frame""#))
-        .count();
+    let logged = logged_frames(out, "spi_frames.jsonl").len();
     assert_eq!(
         logged,
         frames.len(),

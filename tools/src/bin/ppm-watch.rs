@@ -109,8 +109,8 @@ impl Header {
             self.names = v.trim().split(',').map(str::to_string).collect();
         } else if let Some(v) = line.strip_prefix("# receiver ") {
             self.receiver = v.trim().parse().ok();
-        } else if line.trim() == "# protocol sbus" {
-            self.protocol = Protocol::Sbus;
+        } else if let Some(v) = line.trim().strip_prefix("# protocol ") {
+            self.protocol = v.trim().parse().unwrap_or(self.protocol);
         }
     }
 

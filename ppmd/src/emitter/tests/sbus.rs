@@ -54,9 +54,10 @@ impl FrameLine for SbusLine {
         Ok(())
     }
     fn write_frame(&mut self, frame: WholeFrame<'_>) -> Result<(), LineError> {
-        let WholeFrame::Sbus { bytes, due_ns } = frame else {
+        let WholeFrame::Bytes { bytes, due_ns } = frame else {
             panic!("a PPM frame on an SBUS line");
         };
+        let bytes: &[u8; sbus::FRAME_LEN] = bytes.try_into().expect("an SBUS frame");
         if self.stall.is_some_and(|(k, _)| k == self.frames.len()) {
             self.sim.advance(self.stall.unwrap().1);
         }

@@ -29,7 +29,7 @@ fn example_file_lists_the_defaults() {
     // PPM's, which the default configuration leaves to the model.
     let mut parsed = Config::parse(text).unwrap();
     let ppm = &mut parsed.ppm;
-    assert_eq!(ppm.protocol, crate::signal::Protocol::Ppm);
+    assert_eq!(ppm.protocol, crate::wire::Protocol::Ppm);
     use crate::frame::section::ppm_defaults;
     assert_eq!(ppm.channels.take(), Some(ppm_defaults::CHANNELS));
     // frame_us is commented out: the example's timing is follow, where it

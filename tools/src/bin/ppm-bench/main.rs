@@ -28,6 +28,7 @@
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use hdrhistogram::Histogram;
+use ppm_shared::framelog::{self, FrameRow, Status};
 use ppm_shared::status::StatusReply;
 use ppm_shared::time::now_ns;
 use ppm_tools::analysis::Percentiles;
@@ -415,40 +416,30 @@ fn ingress_latency(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result
     Ok(())
 }
 
-/// The frame records of a frame log, in order.
-fn frame_records(log: &Path) -> impl Iterator<Item = Value> {
-    std::fs::read_to_string(log)
-        .unwrap_or_default()
-        .lines()
-        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
-        .filter(|r| r["type"] == "frame")
-        .collect::<Vec<_>>()
-        .into_iter()
+/// The frame records of a frame log, in order (a last row ppmd is still
+/// writing left out).
+fn frame_records(log: &Path) -> Result<Vec<FrameRow>> {
+    Ok(framelog::read_frames(log)?)
 }
 
 /// Ages (ns) of the command at each frame start, from a frame log.
-fn frame_ages(log: &Path, from_ns: u64, to_ns: u64) -> Vec<f64> {
-    frame_records(log)
-        .filter_map(|r| Some((r["mono_ns"].as_u64()?, r["recv_mono_ns"].as_u64()?)))
+fn frame_ages(log: &Path, from_ns: u64, to_ns: u64) -> Result<Vec<f64>> {
+    Ok(frame_records(log)?
+        .iter()
+        .filter_map(|r| Some((r.mono_ns, r.recv_mono_ns?)))
         .filter(|(t, _)| (from_ns..=to_ns).contains(t))
         .map(|(t, recv)| t.saturating_sub(recv) as f64)
-        .collect()
+        .collect())
 }
 
 /// Start of the first frame in the frame log at or after `from_ns` whose
 /// first channels are `want` (us).
-fn first_frame_with(log: &Path, from_ns: u64, want: &[f64]) -> Option<u64> {
-    frame_records(log)
-        .filter(|r| {
-            let ch = r["ch_us"].as_array();
-            ch.is_some_and(|ch| {
-                want.iter()
-                    .enumerate()
-                    .all(|(i, w)| ch.get(i).and_then(Value::as_f64) == Some(*w))
-            })
-        })
-        .filter_map(|r| r["mono_ns"].as_u64())
-        .find(|&t| t >= from_ns)
+fn first_frame_with(log: &Path, from_ns: u64, want: &[f64]) -> Result<Option<u64>> {
+    Ok(frame_records(log)?
+        .iter()
+        .filter(|r| r.ch_us.starts_with(want))
+        .map(|r| r.mono_ns)
+        .find(|&t| t >= from_ns))
 }
 
 fn flood(cli: &Cli, variants: &[Variant], plots: &mut Plots) -> Result<()> {
@@ -519,7 +510,7 @@ fn flood_run(cli: &Cli, v: &Variant, plots: &mut Plots) -> Result<()> {
     let received =
         (after.datagrams.received - received_before).saturating_sub(calm_sent.len() as u64);
     let sent = sent.load(Relaxed);
-    let mut ages = frame_ages(&log, flood_start + 50_000_000, flood_end);
+    let mut ages = frame_ages(&log, flood_start + 50_000_000, flood_end)?;
     plots
         .flood
         .push((v.label.clone(), plot::histogram_of(&ages)));
@@ -536,7 +527,7 @@ fn flood_run(cli: &Cli, v: &Variant, plots: &mut Plots) -> Result<()> {
         age.line(1_000.0),
         age.count
     );
-    match first_frame_with(&log, calm_sent[0], &[1777.0, 1333.0]) {
+    match first_frame_with(&log, calm_sent[0], &[1777.0, 1333.0])? {
         Some(t) => println!(
             "the calm command after the flood was on the line {:.1} ms after it was first sent",
             (t - calm_sent[0]) as f64 / 1e6
@@ -839,17 +830,10 @@ fn late_run(
     std::thread::sleep(Duration::from_millis(100));
     ingress.terminate();
     ppmd.terminate();
-    let rows: Vec<Value> = frame_records(&log).collect();
-    let status = |r: &Value| r["status"].as_str().unwrap_or("").to_string();
-    let values = |r: &Value| -> Vec<f64> {
-        r["ch_us"]
-            .as_array()
-            .map(|a| a.iter().filter_map(Value::as_f64).collect())
-            .unwrap_or_default()
-    };
+    let rows = frame_records(&log)?;
     // A command reached the line when a frame carried its first two
     // values (udp-ingress numbers commands from 1, in the order sent).
-    let carried = |r: &Value| r["ingress_seq"].as_u64().filter(|_| values(r).len() >= 2);
+    let carried = |r: &FrameRow| r.ingress_seq.filter(|_| r.ch_us.len() >= 2);
     let by_log: std::collections::BTreeSet<u64> = rows.iter().filter_map(carried).collect();
     let f = std::fs::File::open(&trace)?;
     let t = ppm_shared::trace::Trace::read(BufReader::new(f))?;
@@ -858,14 +842,11 @@ fn late_run(
     let mut by_line = std::collections::BTreeSet::new();
     for f in &read {
         let v = f.channels_us();
-        let row = rows
-            .iter()
-            .rev()
-            .find(|r| r["mono_ns"].as_u64().is_some_and(|s| s <= f.start_ns));
-        let logged = row.map(values).unwrap_or_default();
+        let row = rows.iter().rev().find(|r| r.mono_ns <= f.start_ns);
+        let logged = row.map_or(&[][..], |r| &r.ch_us[..]);
         if logged.len() != v.len()
             || v.iter()
-                .zip(&logged)
+                .zip(logged)
                 .any(|(a, b)| (*a as f64 - b).abs() > 1.0)
         {
             differ += 1;
@@ -876,7 +857,7 @@ fn late_run(
         }
         // The command the row carries (udp-ingress numbers them from 1, in
         // the order sent) and the defaults.
-        if let Some(i) = row.and_then(|r| r["ingress_seq"].as_u64()) {
+        if let Some(i) = row.and_then(|r| r.ingress_seq) {
             let [a, b] = late_code(i - 1);
             let want = [a, b, 1000, 1500, 1500, 1500, 1500, 1500];
             for (got, w) in v.iter().zip(want) {
@@ -886,9 +867,9 @@ fn late_run(
     }
     Ok(Some(LateRun {
         rows: rows.len(),
-        whole: rows.iter().filter(|r| status(r) == "whole").count(),
-        aborted: rows.iter().filter(|r| status(r) == "aborted").count(),
-        glitched: rows.iter().filter(|r| r["glitched"] == true).count(),
+        whole: rows.iter().filter(|r| r.status == Status::Whole).count(),
+        aborted: rows.iter().filter(|r| r.status == Status::Aborted).count(),
+        glitched: rows.iter().filter(|r| r.glitched).count(),
         differ,
         max_off_us,
         by_log: by_log.len(),
