@@ -16,6 +16,8 @@
 //!   decode it, each modelled on its firmware.
 //! - [`sbus`]: the SBUS frame, its encoder, and SBUS input as EdgeTX,
 //!   Betaflight and ArduPilot frame and read it, each modelled on its firmware.
+//! - [`crsf`]: the CRSF frame, its RC encoder and link statistics, CRSF input as
+//!   Betaflight, iNav and ArduPilot frame and read it, and a telemetry reader.
 //! - [`protocol`]: the UDP wire protocol (JSON commands) and its parser.
 //! - [`mavlink`]: MAVLink 1 and 2 commands (RC_CHANNELS_OVERRIDE,
 //!   MANUAL_CONTROL) on the same socket, and their frames.
@@ -35,6 +37,7 @@
 pub mod auth;
 pub mod capture;
 pub mod config;
+pub mod crsf;
 pub mod daemon;
 pub mod decode;
 pub mod files;
