@@ -163,7 +163,13 @@ mod tests {
             (serial(SerialStep::Open, libc::EBUSY), false),
             (serial(SerialStep::Open, libc::ENXIO), false),
             (serial(SerialStep::Open, libc::ENODEV), false),
-            (serial(SerialStep::Configure, libc::EINVAL), false),
+            (
+                serial(
+                    SerialStep::Configure(ppm_shared::sbus::uart::FORMAT),
+                    libc::EINVAL,
+                ),
+                false,
+            ),
         ] {
             assert_eq!(output_fault(&e), fault, "{e}");
         }

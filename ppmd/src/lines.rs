@@ -71,7 +71,12 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
         match cfg.output.clone() {
             OutputSpec::Sim { path, .. } if bytes => {
                 let sim = create_sim(cfg, shared.trace_max_mb, path)?;
-                let line = SimFrameLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
+                let line = SimFrameLine::new(
+                    sim,
+                    model.idle_level(),
+                    model.wire().uart(),
+                    ppm_shared::time::now_ns,
+                );
                 each[i] = Some(OpenLine::Whole(Box::new(line)));
             }
             OutputSpec::Sim { path, whole: true } => {
@@ -80,7 +85,8 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                     "output `{}`: each frame handed to the simulated line whole at its start, timed by the line's own clock, as an spi: output sends it",
                     cfg.name
                 );
-                let line = SimFrameLine::new(sim, model.idle_level(), ppm_shared::time::now_ns);
+                let line =
+                    SimFrameLine::new(sim, model.idle_level(), None, ppm_shared::time::now_ns);
                 each[i] = Some(OpenLine::Whole(Box::new(line)));
             }
             OutputSpec::Sim { path, .. } => {
@@ -99,14 +105,27 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                 each[i] = Some(OpenLine::Whole(Box::new(out)));
             }
             OutputSpec::Serial { device } => {
-                let out = SerialLine::open(&device).map_err(|e| {
+                // The configuration pairs serial: only with a protocol of
+                // bytes, which has a UART format.
+                let wire = model.wire();
+                let format = wire.uart().ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "output `{}`: {} has no UART format for serial:{}",
+                        cfg.name,
+                        wire.spec().title,
+                        device.display()
+                    )
+                })?;
+                let out = SerialLine::open(&device, format).map_err(|e| {
                     let at = format!("output `{}`: serial:{}", cfg.name, device.display());
                     line_error(cfg, e, at)
                 })?;
                 log::info!(
-                    "output `{}`: serial {} (SBUS, 100000 baud 8E2, each frame one write)",
+                    "output `{}`: serial {} ({}, {}, each frame one write)",
                     cfg.name,
-                    device.display()
+                    device.display(),
+                    wire.spec().title,
+                    format.describe()
                 );
                 each[i] = Some(OpenLine::Whole(Box::new(out)));
             }

@@ -144,6 +144,13 @@ fn the_timing_loop_does_not_allocate_after_start_with_sbus() {
     run_with(Timing::Follow, 10, true, Protocol::Sbus);
 }
 
+#[test]
+fn the_timing_loop_does_not_allocate_after_start_with_crsf() {
+    run_with(Timing::Grid, 3, false, Protocol::Crsf);
+    // No spi: output carries CRSF, so no stand-in for one.
+    run_with(Timing::Follow, 10, false, Protocol::Crsf);
+}
+
 fn run_without_allocating(timing: Timing, every_ms: u64, whole_frames: bool) {
     run_with(timing, every_ms, whole_frames, Protocol::Ppm);
 }
@@ -230,9 +237,9 @@ fn run_with(timing: Timing, every_ms: u64, whole_frames: bool, protocol: Protoco
             });
             let mut sim = (!whole_frames && protocol == Protocol::Ppm)
                 .then(|| SimLine::create(&trace, &["idle_level 0".into()], u64::MAX).unwrap());
-            let mut sim_sbus = (!whole_frames && protocol == Protocol::Sbus).then(|| {
+            let mut sim_sbus = (!whole_frames && model.wire().uart().is_some()).then(|| {
                 let sim = SimLine::create(&trace, &["idle_level 1".into()], u64::MAX).unwrap();
-                SimFrameLine::new(sim, Level::High, clock::now_ns)
+                SimFrameLine::new(sim, Level::High, model.wire().uart(), clock::now_ns)
             });
             let line = match (&mut spi, &mut sim, &mut sim_sbus) {
                 (Some(spi), _, _) => LineRef::Whole(spi),

@@ -5,7 +5,7 @@
 //!   `[[outputs]]` entries, the checks, and the [`config::Plan`] the file and
 //!   a program's flags resolve into.
 //! - [`signal`]: line levels, channel and edge limits, frame timing.
-//! - [`wire`]: what a frame is on the wire, per protocol (PPM, SBUS): the
+//! - [`wire`]: what a frame is on the wire, per protocol (PPM, SBUS, CRSF): the
 //!   seam everything that differs between protocols is asked through.
 //! - [`frame`]: the frame model, built and checked from the `[ppm]`
 //!   section ([`FrameModel::build`]), and the encoder that turns channel
@@ -30,6 +30,8 @@
 //! - [`framelog`]: a row of ppmd's frame log, written by ppmd and read by the tools and tests.
 //! - [`status`]: the reply to a status query, written by udp-ingress and read by the tools.
 //! - [`trace`]: the simulated line's trace format.
+//! - [`uart`]: bytes on a UART in a protocol's format (baud, parity, stop
+//!   bits), as edges and read back.
 //! - [`time`]: CLOCK_MONOTONIC and CLOCK_REALTIME reads in nanoseconds.
 //! - [`sched`]: CPU pinning and SCHED_FIFO of the calling thread (ppmd's
 //!   timing thread, udp-ingress's receive thread).
@@ -55,6 +57,7 @@ pub mod signal;
 pub mod status;
 pub mod time;
 pub mod trace;
+pub mod uart;
 pub mod wire;
 
 pub use config::{Config, ConfigError, Plan};

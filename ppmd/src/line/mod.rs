@@ -12,6 +12,7 @@ pub mod spi;
 use crate::rotating::{self, RotatingFile, WriterOptions};
 use ppm_shared::frame::Level;
 use ppm_shared::trace::TraceEdge;
+use ppm_shared::wire::UartFormat;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -197,21 +198,34 @@ impl Drop for SimLine {
 
 /// The simulated line taking whole frames, each written to the trace from
 /// the write, every edge at its time from the write (actual) and from when
-/// the frame was due (scheduled): an SBUS frame's bytes as the UART
-/// waveform a line idling at `idle` carries; a PPM frame (`sim-spi`) with
+/// the frame was due (scheduled): a frame of bytes as the UART waveform a
+/// line idling at `idle` carries in the wire's format (SBUS's 8E2 at
+/// 100 000 baud); a PPM frame (`sim-spi`) with
 /// its edges at their offsets, as SPI sends it, so an edge's lateness is
 /// the frame's start's whatever the timing thread does during the frame.
 pub struct SimFrameLine {
     sim: SimLine,
     idle: Level,
+    uart: Option<UartFormat>,
     now_ns: fn() -> u64,
 }
 
 impl SimFrameLine {
-    /// A whole-frame line on `sim`, idling at `idle`, reading the write's
-    /// time from `now_ns` (CLOCK_MONOTONIC in ppmd).
-    pub fn new(sim: SimLine, idle: Level, now_ns: fn() -> u64) -> SimFrameLine {
-        SimFrameLine { sim, idle, now_ns }
+    /// A whole-frame line on `sim`, idling at `idle`, drawing bytes in
+    /// `uart` ([`ppm_shared::wire::WireModel::uart`]; `None` for pulses),
+    /// reading the write's time from `now_ns` (CLOCK_MONOTONIC in ppmd).
+    pub fn new(
+        sim: SimLine,
+        idle: Level,
+        uart: Option<UartFormat>,
+        now_ns: fn() -> u64,
+    ) -> SimFrameLine {
+        SimFrameLine {
+            sim,
+            idle,
+            uart,
+            now_ns,
+        }
     }
 
     /// The simulated line under it.
@@ -225,7 +239,8 @@ impl FrameLine for SimFrameLine {
         let now = (self.now_ns)();
         match frame {
             WholeFrame::Bytes { bytes, due_ns } => {
-                let edges = ppm_shared::sbus::uart::edges(bytes, 0, self.idle);
+                let format = self.uart.ok_or(LineError::WrongProtocol)?;
+                let edges = ppm_shared::wire::uart::edges(format, bytes, 0, self.idle);
                 write_whole(&mut self.sim, due_ns, now, edges)
             }
             WholeFrame::Ppm { edges, due_ns } => {

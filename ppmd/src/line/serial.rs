@@ -2,7 +2,8 @@
 //! such as the Raspberry Pi's `/dev/ttyAMA0`, a USB serial adaptor, or a
 //! pseudo-terminal in tests), sent by the UART at its own baud clock.
 //!
-//! This is the line of an SBUS output on `serial:DEVICE` (25-byte frames,
+//! This is the line of a `serial:DEVICE` output, in the UART format its
+//! protocol's wire names ([`UartFormat`]: SBUS's 25-byte frames at
 //! 100 000 baud, 8 data bits, even parity, 2 stop bits), a [`FrameLine`]:
 //! the loop hands it each frame at the frame's start.
 //!
@@ -20,6 +21,8 @@
 
 use super::{FrameLine, LineError, WholeFrame};
 use ppm_shared::frame::Level;
+pub use ppm_shared::wire::uart::Parity;
+use ppm_shared::wire::UartFormat;
 use std::fs::{File, OpenOptions};
 use std::io::{self, Write};
 use std::os::fd::AsRawFd;
@@ -27,7 +30,7 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::path::{Path, PathBuf};
 
 /// The SBUS baud rate.
-pub const BAUD: u32 = ppm_shared::sbus::BAUD as u32;
+pub const BAUD: u32 = ppm_shared::sbus::uart::FORMAT.baud;
 
 /// The bytes of one SBUS frame.
 pub const FRAME_LEN: usize = ppm_shared::sbus::FRAME_LEN;
@@ -39,8 +42,8 @@ pub enum SerialStep {
     Open,
     /// Reading its settings (`TCGETS2`).
     ReadSettings,
-    /// Setting raw mode, 100 000 baud, 8E2 (`TCSETS2`).
-    Configure,
+    /// Setting raw mode and the wire's format (`TCSETS2`).
+    Configure(UartFormat),
 }
 
 impl std::fmt::Display for SerialStep {
@@ -48,7 +51,9 @@ impl std::fmt::Display for SerialStep {
         f.write_str(match self {
             SerialStep::Open => "opening",
             SerialStep::ReadSettings => "reading the termios2 settings of",
-            SerialStep::Configure => "setting raw 100000 baud 8E2 (termios2, BOTHER) on",
+            SerialStep::Configure(u) => {
+                return write!(f, "setting raw {} (termios2, BOTHER) on", u.describe())
+            }
         })
     }
 }
@@ -94,17 +99,6 @@ fn hint(err: &io::Error) -> &'static str {
         }
         _ => "",
     }
-}
-
-/// Parity as the terminal settings hold it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Parity {
-    /// No parity bit (`PARENB` clear).
-    None,
-    /// Even parity (`PARENB` set, `PARODD` clear).
-    Even,
-    /// Odd parity (`PARENB` and `PARODD` set).
-    Odd,
 }
 
 /// A tty's settings as the kernel holds them (read back with `TCGETS2`).
@@ -181,29 +175,38 @@ impl SerialSettings {
     }
 }
 
-/// Makes `t` raw, 100 000 baud both ways, 8E2, no flow control, with reads
-/// returning at once.
-fn make_sbus(t: &mut libc::termios2) {
+/// Makes `t` raw, in `format` both ways (8 data bits, its baud rate,
+/// parity and stop bits), no flow control, with reads returning at once.
+fn make_raw(t: &mut libc::termios2, format: UartFormat) {
     t.c_iflag &= !(COOKED_IFLAGS | libc::INPCK);
     t.c_oflag &= !libc::OPOST;
     t.c_lflag &= !COOKED_LFLAGS;
-    t.c_cflag &=
-        !(libc::CSIZE | libc::PARODD | libc::CMSPAR | libc::CRTSCTS | libc::CBAUD | libc::CIBAUD);
-    t.c_cflag |= libc::CS8
+    t.c_cflag &= !(libc::CSIZE
         | libc::PARENB
+        | libc::PARODD
         | libc::CSTOPB
-        | libc::CLOCAL
-        | libc::CREAD
-        | libc::BOTHER
-        | (libc::BOTHER << libc::IBSHIFT);
-    t.c_ispeed = BAUD;
-    t.c_ospeed = BAUD;
+        | libc::CMSPAR
+        | libc::CRTSCTS
+        | libc::CBAUD
+        | libc::CIBAUD);
+    t.c_cflag |=
+        libc::CS8 | libc::CLOCAL | libc::CREAD | libc::BOTHER | (libc::BOTHER << libc::IBSHIFT);
+    t.c_cflag |= match format.parity {
+        Parity::None => 0,
+        Parity::Even => libc::PARENB,
+        Parity::Odd => libc::PARENB | libc::PARODD,
+    };
+    if format.stop_bits == 2 {
+        t.c_cflag |= libc::CSTOPB;
+    }
+    t.c_ispeed = format.baud;
+    t.c_ospeed = format.baud;
     t.c_cc[libc::VMIN] = 0;
     t.c_cc[libc::VTIME] = 0;
 }
 
-/// The serial output's line for SBUS: a tty in raw mode at 100 000 baud,
-/// 8E2, written one whole frame per call.
+/// The serial output's line: a tty in raw mode in the wire's UART format
+/// (SBUS: 100 000 baud, 8E2), written one whole frame per call.
 #[derive(Debug)]
 pub struct SerialLine {
     file: File,
@@ -213,9 +216,10 @@ pub struct SerialLine {
 
 impl SerialLine {
     /// Opens the tty at `path` (read-write, not as the controlling
-    /// terminal, closed on exec, blocking writes) and sets it raw, 100 000
-    /// baud, 8 data bits, even parity, 2 stop bits, no flow control.
-    pub fn open(path: &Path) -> Result<Self, SerialError> {
+    /// terminal, closed on exec, blocking writes) and sets it raw, in
+    /// `format` (SBUS's: 100 000 baud, 8 data bits, even parity, 2 stop
+    /// bits), no flow control.
+    pub fn open(path: &Path, format: UartFormat) -> Result<Self, SerialError> {
         let fail = |step, source| SerialError::Device {
             path: path.to_path_buf(),
             step,
@@ -243,12 +247,15 @@ impl SerialLine {
                 fail(SerialStep::ReadSettings, e)
             }
         })?;
-        make_sbus(&mut t);
+        make_raw(&mut t, format);
         // SAFETY: TCSETS2 reads one termios2 from the pointer, which is a
         // live, initialised termios2 for the whole call.
         let rc = unsafe { libc::ioctl(line.file.as_raw_fd(), libc::TCSETS2, &t) };
         if rc != 0 {
-            return Err(fail(SerialStep::Configure, io::Error::last_os_error()));
+            return Err(fail(
+                SerialStep::Configure(format),
+                io::Error::last_os_error(),
+            ));
         }
         Ok(line)
     }

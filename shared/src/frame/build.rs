@@ -42,6 +42,7 @@ impl FrameModel {
         match ppm.protocol {
             Protocol::Ppm => build_ppm(ppm),
             Protocol::Sbus => super::build_sbus::build(ppm),
+            Protocol::Crsf => super::build_crsf::build(ppm),
         }
     }
 }

@@ -20,6 +20,7 @@ pub use crate::signal::{Level, Timing, MAX_CHANNELS, MAX_EDGES};
 pub use crate::wire::{FrameKind, Protocol, WireModel};
 
 pub mod build;
+mod build_crsf;
 mod build_sbus;
 pub mod section;
 

@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PpmSection {
-    /// What a frame is on the wire: `"ppm"` (default) or `"sbus"`.
+    /// What a frame is on the wire: `"ppm"` (default), `"sbus"` or `"crsf"`.
     pub protocol: Protocol,
     /// Number of channels in a frame, 1..=16. Default 8; SBUS frames carry
     /// 16, its only value.
@@ -73,6 +73,11 @@ pub struct PpmSection {
     /// receivers resolve 1 us, so a value off by less is read within a few
     /// of their capture ticks. PPM only.
     pub late_edge_guard_us: f64,
+    /// CRSF only: the line rate to the flight controller, 115200..=3000000.
+    /// Default 420000, what Betaflight and iNav (`CRSF_BAUDRATE`) and
+    /// ExpressLRS receivers use, not the TBS specification's 416666
+    /// (ArduPilot's default; 0.8 % apart, which every UART takes).
+    pub crsf_baud: Option<u32>,
 }
 
 impl Default for PpmSection {
@@ -93,6 +98,7 @@ impl Default for PpmSection {
             follow_sync_min_us: None,
             follow_sync_max_us: None,
             late_edge_guard_us: LATE_EDGE_GUARD_US,
+            crsf_baud: None,
         }
     }
 }

@@ -12,18 +12,27 @@
 //!   settings) and [`FrameKind`] (how the loop paces and hands over a frame).
 //! - [`ppm`]: PPM's spec and settings (pulse width).
 //! - [`sbus`]: SBUS's spec, settings (its receivers) and encoding.
+//! - [`crsf`]: CRSF's spec, settings (firmware, baud rate), timing and
+//!   encoding.
+//! - [`uart`] (the crate's, below SBUS and here): bytes on a UART in a
+//!   protocol's [`UartFormat`] (baud, parity, stop bits), what the serial
+//!   line sets and the simulated line draws.
 //!
 //! Adding a protocol: its module (spec, settings, build, encoding), a
 //! variant of [`Protocol`] and of [`WireModel`] with their arms here.
 
+pub mod crsf;
 pub mod ppm;
 pub mod sbus;
+pub use crate::uart;
 
 use crate::signal::{Level, MAX_CHANNELS};
 use serde::Deserialize;
 
+pub use crsf::CrsfWire;
 pub use ppm::PpmWire;
 pub use sbus::SbusWire;
+pub use uart::UartFormat;
 
 /// The longest frame of bytes any protocol sends, so a frame fits a
 /// fixed buffer in the timing loop.
@@ -41,21 +50,26 @@ pub enum Protocol {
     /// 8E2, for a radio's serial trainer input, its module bay or a flight
     /// controller (see [`crate::sbus`]).
     Sbus,
+    /// CRSF: RC_CHANNELS_PACKED and LINK_STATISTICS to a flight
+    /// controller's receiver port, 8N1 at 420 000 baud (see
+    /// [`crate::crsf`]).
+    Crsf,
 }
 
 impl Protocol {
     /// Every protocol.
-    pub const ALL: [Protocol; 2] = [Protocol::Ppm, Protocol::Sbus];
+    pub const ALL: [Protocol; 3] = [Protocol::Ppm, Protocol::Sbus, Protocol::Crsf];
 
     /// What the configuration knows of the protocol before a model exists.
     pub fn spec(self) -> &'static Spec {
         match self {
             Protocol::Ppm => &ppm::SPEC,
             Protocol::Sbus => &sbus::SPEC,
+            Protocol::Crsf => &crsf::SPEC,
         }
     }
 
-    /// `"ppm"` or `"sbus"`, as in the configuration.
+    /// `"ppm"`, `"sbus"` or `"crsf"`, as in the configuration.
     pub fn name(self) -> &'static str {
         self.spec().name
     }
@@ -153,6 +167,8 @@ pub enum WireModel {
     Ppm(PpmWire),
     /// SBUS frames.
     Sbus(SbusWire),
+    /// CRSF frames.
+    Crsf(CrsfWire),
 }
 
 impl WireModel {
@@ -161,6 +177,7 @@ impl WireModel {
         match self {
             WireModel::Ppm(_) => Protocol::Ppm,
             WireModel::Sbus(_) => Protocol::Sbus,
+            WireModel::Crsf(_) => Protocol::Crsf,
         }
     }
 
@@ -178,7 +195,7 @@ impl WireModel {
     pub fn pulse_ns(&self) -> u64 {
         match self {
             WireModel::Ppm(p) => p.pulse_ns,
-            WireModel::Sbus(_) => 0,
+            WireModel::Sbus(_) | WireModel::Crsf(_) => 0,
         }
     }
 
@@ -188,6 +205,7 @@ impl WireModel {
         match self {
             WireModel::Ppm(_) => 0,
             WireModel::Sbus(_) => crate::sbus::FRAME_WIRE_NS,
+            WireModel::Crsf(c) => c.frame_wire_ns(),
         }
     }
 
@@ -198,6 +216,17 @@ impl WireModel {
         match self {
             WireModel::Ppm(_) => 0,
             WireModel::Sbus(_) => crate::sbus::timing::GAP_MARGIN_US * 1_000,
+            WireModel::Crsf(_) => crsf::GAP_MARGIN_US * 1_000,
+        }
+    }
+
+    /// The UART format its bytes go in on a `serial:` output and the
+    /// simulated line (`None` for pulses).
+    pub fn uart(&self) -> Option<UartFormat> {
+        match self {
+            WireModel::Ppm(_) => None,
+            WireModel::Sbus(_) => Some(crate::sbus::uart::FORMAT),
+            WireModel::Crsf(c) => Some(c.uart()),
         }
     }
 
@@ -205,7 +234,7 @@ impl WireModel {
     pub fn sbus(&self) -> Option<&crate::sbus::timing::SbusChoice> {
         match self {
             WireModel::Sbus(s) => Some(&s.choice),
-            WireModel::Ppm(_) => None,
+            WireModel::Ppm(_) | WireModel::Crsf(_) => None,
         }
     }
 
@@ -221,6 +250,7 @@ impl WireModel {
         match self {
             WireModel::Ppm(_) => 0,
             WireModel::Sbus(s) => s.encode(values_ns, failsafe, out),
+            WireModel::Crsf(c) => c.encode(values_ns, out),
         }
     }
 
@@ -230,6 +260,7 @@ impl WireModel {
         match self {
             WireModel::Ppm(_) => 0,
             WireModel::Sbus(s) => s.reads(bytes, values),
+            WireModel::Crsf(c) => c.reads(bytes, values),
         }
     }
 
@@ -239,6 +270,11 @@ impl WireModel {
         match self {
             WireModel::Ppm(p) => format!("pulse {} us", p.pulse_ns as f64 / 1e3),
             WireModel::Sbus(s) => format!("SBUS encoded for {}", s.choice.encode_for().name()),
+            WireModel::Crsf(c) => format!(
+                "CRSF encoded for {}, {}, link statistics after every RC frame",
+                c.encode_for.name(),
+                c.uart().describe()
+            ),
         }
     }
 }

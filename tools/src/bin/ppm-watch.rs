@@ -67,6 +67,7 @@ fn run(cli: Cli) -> Result<()> {
                     .map(|t| header.format_sbus(r, t))
                     .collect()
             }
+            Protocol::Crsf => anyhow::bail!("ppm-watch does not decode CRSF traces yet"),
         };
         let mut out = std::io::stdout().lock();
         for line in shown {
@@ -246,6 +247,7 @@ fn follow(cli: &Cli) -> Result<()> {
                             framer: Framer::new(r),
                         }
                     }
+                    Protocol::Crsf => anyhow::bail!("ppm-watch does not decode CRSF traces yet"),
                 });
             }
             let d = decoder.as_mut().expect("made above");

@@ -78,9 +78,15 @@ fn no_termios2_here(err: &SerialError) -> bool {
     missing
 }
 
-/// The pty's slave opened as a serial line; `None` without termios2.
+/// The pty's slave opened as an SBUS serial line; `None` without termios2.
 fn open_slave(pty: &Pty) -> Option<SerialLine> {
-    match SerialLine::open(&pty.slave) {
+    open_slave_as(pty, ppm_shared::sbus::uart::FORMAT)
+}
+
+/// The pty's slave opened as a serial line in `format`; `None` without
+/// termios2.
+fn open_slave_as(pty: &Pty, format: UartFormat) -> Option<SerialLine> {
+    match SerialLine::open(&pty.slave, format) {
         Ok(line) => Some(line),
         Err(e) if no_termios2_here(&e) => None,
         Err(e) => panic!("open the pty slave: {e:?}"),
@@ -130,6 +136,27 @@ fn pty_holds_100000_baud_8_data_2_stop_raw_and_drops_parity() {
 }
 
 #[test]
+fn the_format_comes_from_the_wire_8n1_at_420000_one_stop_bit() {
+    let pty = pty();
+    let format = UartFormat {
+        baud: 420_000,
+        parity: Parity::None,
+        stop_bits: 1,
+    };
+    let Some(line) = open_slave_as(&pty, format) else {
+        return;
+    };
+    let s = line.settings().expect("TCGETS2");
+    assert_eq!((s.ispeed, s.ospeed), (420_000, 420_000));
+    assert_eq!((s.data_bits, s.stop_bits, s.parity), (8, 1, Parity::None));
+    assert_eq!(s.flags[2] & (libc::PARENB | libc::CSTOPB), 0);
+    assert!(s.raw);
+    // What another program opening the tty sees.
+    let other = SerialLine::settings_of(&pty.slave).expect("TCGETS2");
+    assert_eq!((other.ospeed, other.stop_bits), (420_000, 1));
+}
+
+#[test]
 fn two_frames_come_out_of_the_pty_byte_for_byte() {
     let mut pty = pty();
     let Some(mut line) = open_slave(&pty) else {
@@ -161,7 +188,7 @@ fn two_frames_come_out_of_the_pty_byte_for_byte() {
 #[test]
 fn a_missing_path_fails_opening_and_names_it() {
     let path = std::env::temp_dir().join(format!("ppmd-serial-missing-{}", std::process::id()));
-    let err = SerialLine::open(&path).expect_err("no such file");
+    let err = SerialLine::open(&path, ppm_shared::sbus::uart::FORMAT).expect_err("no such file");
     match &err {
         SerialError::Device {
             path: p,
@@ -191,7 +218,8 @@ fn a_regular_file_is_refused_as_not_a_tty() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("plain");
     std::fs::write(&path, b"").unwrap();
-    let err = SerialLine::open(&path).expect_err("a regular file is no tty");
+    let err = SerialLine::open(&path, ppm_shared::sbus::uart::FORMAT)
+        .expect_err("a regular file is no tty");
     std::fs::remove_dir_all(&dir).unwrap();
     if no_termios2_here(&err) {
         return;

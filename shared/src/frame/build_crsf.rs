@@ -1,0 +1,119 @@
+//! Building a CRSF [`FrameModel`]: the `[ppm]` section against the
+//! flight-controller firmware of `ppm.receiver` and the line rate of
+//! `ppm.crsf_baud`.
+
+use super::build::{model, resolve_channels, Wire};
+use super::{us_to_ns, FrameModel, InvalidKey, PpmSection, LATE_EDGE_GUARD_US};
+use crate::crsf::{self, CrsfReceiver};
+use crate::receiver::{Receiver, ReceiverChoice};
+use crate::wire::crsf::{
+    CrsfFor, CrsfWire, BAUD_DEFAULT, BAUD_RANGE, FOLLOW_GAP_MAX_DEFAULT_US, GAP_LEAST_US,
+    GAP_MARGIN_US, GAP_MAX_US, RESYNC_US,
+};
+use crate::wire::WireModel;
+
+/// A CRSF model: 16 channels whose values the firmware of `ppm.receiver`
+/// reads (all three under `any`), encoded for it, at `ppm.crsf_baud`, with
+/// idle lines between frames that put a firmware knocked out of step back
+/// in step. The PPM keys `pulse_us` and `late_edge_guard_us` are not used.
+pub(crate) fn build(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
+    let encode_for = match ppm.receiver {
+        ReceiverChoice::Any => CrsfFor::Any,
+        ReceiverChoice::One(Receiver::Betaflight) => CrsfFor::One(CrsfReceiver::Betaflight),
+        ReceiverChoice::One(Receiver::ArduPilot) => CrsfFor::One(CrsfReceiver::ArduPilot),
+        ReceiverChoice::One(r @ (Receiver::EdgeTx | Receiver::OpenTx)) => {
+            return Err(InvalidKey::new(
+                "ppm.receiver",
+                format!(
+                    "`{}` under protocol = \"crsf\": EdgeTX and OpenTX take no CRSF on their trainer port (nor on an AUX serial port); CRSF goes to a flight controller: set ppm.receiver to betaflight, ardupilot or any (all of them), or use protocol = \"ppm\" or \"sbus\" for a radio",
+                    r.name()
+                ),
+            ))
+        }
+    };
+    let under = format!(
+        "protocol = \"crsf\" and ppm.receiver = \"{}\"",
+        encode_for.name()
+    );
+    if ppm.channels() as usize != crsf::CHANNELS {
+        return Err(InvalidKey::new(
+            "ppm.channels",
+            format!(
+                "{}: a CRSF RC frame carries {} channels, so with protocol = \"crsf\" ppm.channels is {} (remove the key; a command with fewer values fills the rest with the channel defaults)",
+                ppm.channels(),
+                crsf::CHANNELS,
+                crsf::CHANNELS
+            ),
+        ));
+    }
+    let baud = ppm.crsf_baud.unwrap_or(BAUD_DEFAULT);
+    if !(BAUD_RANGE.0..=BAUD_RANGE.1).contains(&baud) {
+        return Err(InvalidKey::new(
+            "ppm.crsf_baud",
+            format!(
+                "{baud} is outside {}..={}: Betaflight and iNav read CRSF at 420000 (the default), ArduPilot at 416666 or 420000",
+                BAUD_RANGE.0, BAUD_RANGE.1
+            ),
+        ));
+    }
+    let wire = CrsfWire::new(encode_for, baud);
+    let (names, limits) = resolve_channels(ppm)?;
+    let (lo, hi) = encode_for.value_range_us();
+    for l in &limits {
+        let (key, v, rule, nearest) = if l.min_us < lo as f64 {
+            (&l.min_key, l.min_us, "raise", lo)
+        } else if l.max_us > hi as f64 {
+            (&l.max_key, l.max_us, "lower", hi)
+        } else {
+            continue;
+        };
+        return Err(InvalidKey::new(
+            key,
+            format!("{v} us: the CRSF values every firmware of {under} reads are {lo}..={hi} us: {rule} {key} to {nearest} us"),
+        ));
+    }
+    let least = GAP_LEAST_US as f64;
+    let gap_min = ppm.follow_sync_min_us.unwrap_or(least);
+    if !gap_min.is_finite() || gap_min < least || gap_min > GAP_MAX_US {
+        return Err(InvalidKey::new(
+            "ppm.follow_sync_min_us",
+            format!(
+                "{gap_min} us: the idle line between CRSF frames must be {least}..={GAP_MAX_US} us (more than the {RESYNC_US} us after which Betaflight and iNav restart their framing, so a lost byte costs one frame, with {GAP_MARGIN_US} us for a frame that leaves late)"
+            ),
+        ));
+    }
+    let gap_max = ppm
+        .follow_sync_max_us
+        .unwrap_or(FOLLOW_GAP_MAX_DEFAULT_US.max(gap_min));
+    if !gap_max.is_finite() || gap_max > GAP_MAX_US || gap_max < gap_min {
+        return Err(InvalidKey::new(
+            "ppm.follow_sync_max_us",
+            format!(
+                "{gap_max} us: the longest idle line between CRSF frames must be {gap_min}..={GAP_MAX_US} us (from ppm.follow_sync_min_us to well inside the firmware's signal-loss time, 100 ms on Betaflight)"
+            ),
+        ));
+    }
+    let wire_us = wire.frame_wire_ns() as f64 / 1e3;
+    let period = ppm.frame_us();
+    let (period_lo, period_hi) = ((wire_us + least).ceil(), (wire_us + GAP_MAX_US).floor());
+    if !period.is_finite() || period < period_lo || period > period_hi {
+        return Err(InvalidKey::new(
+            "ppm.frame_us",
+            format!(
+                "{period} us: the CRSF grid period must be {period_lo}..={period_hi} us at {baud} baud (an RC frame and link statistics take {wire_us} us on the wire, and {least} us of idle line follow; 4000 is the default)"
+            ),
+        ));
+    }
+    Ok(model(
+        ppm,
+        names,
+        &limits,
+        Wire {
+            frame_ns: us_to_ns(period),
+            follow_sync_ns: (us_to_ns(gap_min), us_to_ns(gap_max)),
+            sync_window_ns: (us_to_ns(least), us_to_ns(GAP_MAX_US)),
+            late_edge_guard_ns: us_to_ns(LATE_EDGE_GUARD_US),
+            wire: WireModel::Crsf(wire),
+        },
+    ))
+}
