@@ -10,6 +10,8 @@
 //! from the traced SCK, MOSI and CS and reads its frame in bit time. SBUS
 //! goes out on the guest's second serial port (its bytes captured on the
 //! host) and through the same spidev, read back as a UART receiver would.
+//! CRSF goes out on its third serial port, its bytes captured on the host
+//! and read byte for byte, and as Betaflight reads them.
 //! The capture path: ppm-capture reads an input line that pull-timed (a
 //! helper of this crate) drives at PPM timing through gpio-sim's pull
 //! attribute, and every frame it logs is checked against the driver's own
@@ -22,8 +24,8 @@
 //!
 //! - here: the boot, the PPM lines (one output, two, follow timing, under
 //!   interference) and the start-up errors.
-//! - `vm_spi/`, `vm_sbus/`, `vm_capture/`: the SPI output, SBUS, and the
-//!   capture path.
+//! - `vm_spi/`, `vm_sbus/`, `vm_crsf/`, `vm_capture/`: the SPI output,
+//!   SBUS, CRSF, and the capture path.
 //! - `vm_trace/`: the kernel's `gpio_value` trace, as this test and the
 //!   arm64 one read it.
 
@@ -37,6 +39,7 @@ use std::process::Command;
 use std::sync::OnceLock;
 
 mod vm_capture;
+mod vm_crsf;
 mod vm_sbus;
 mod vm_spi;
 mod vm_trace;
@@ -395,6 +398,7 @@ fn check(flavor: &str) {
     check_spi(&out, flavor);
     vm_sbus::check_sbus_serial(&out, flavor);
     vm_sbus::check_sbus_spi(&out, flavor);
+    vm_crsf::check_crsf_serial(&out, flavor);
     for timing in ["grid", "follow"] {
         check_interference(&out, gpio18, flavor, timing);
     }

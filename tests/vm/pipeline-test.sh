@@ -25,6 +25,9 @@
 #     sbus_ppmd.log, sbus_ppmd_exit.txt, sbus_frames.jsonl (serial; the
 #     bytes are the host's serial1.bin), sbus_spi_trace.txt,
 #     sbus_spi_ppmd.log, sbus_spi_ppmd_exit.txt, sbus_spi_frames.jsonl.
+#   - CRSF on ttyS2: crsf_tty.txt, crsf_tty_before.txt, crsf_uartclk.txt,
+#     crsf_ppmd.log, crsf_ppmd_exit.txt, crsf_frames.jsonl,
+#     crsf_proc_serial.txt (the bytes are the host's serial2.bin).
 set -eu
 . /lib/vmtest.sh
 
@@ -289,4 +292,41 @@ end_ppmd "$bppmd" sbus_spi_ppmd_exit
 spi_trace sbus_spi_trace
 kill -TERM "$bing"
 wait "$bing" || true
+
+# CRSF on the guest's third serial port (ttyS2, a 16550 whose bytes QEMU
+# writes to the host's OUTDIR/serial2.bin): follow timing, encoded for
+# Betaflight, four commands in turn (aileron 1100, 1300, 1600, 1900), ten
+# each at 50 Hz. crsf_tty.txt: the settings the kernel holds for ttyS2
+# while ppmd has it open (crsf_tty_before.txt: before ppmd opened it);
+# crsf_uartclk.txt: the UART's clock (sysfs); crsf_proc_serial.txt: the
+# kernel's per-port counters after ppmd exited (tx: bytes sent).
+cat > /tmp/crsf.toml <<CONF
+name = "vm-crsf"
+[ingress]
+listen = "127.0.0.1:5011"
+[ipc]
+root = "/tmp/ppm-ipc"
+[ppm]
+protocol = "crsf"
+receiver = "betaflight"
+timing = "follow"
+CONF
+cat /sys/class/tty/ttyS2/uartclk > /out/crsf_uartclk.txt 2>&1 || true
+tty-settings /dev/ttyS2 > /out/crsf_tty_before.txt 2>&1 || true
+udp-ingress --config /tmp/crsf.toml 2> /out/crsf_ingress.log &
+cing=$!
+ppmd --config /tmp/crsf.toml --output serial:/dev/ttyS2 --frame-log /out/crsf_frames.jsonl \
+    2> /out/crsf_ppmd.log &
+cppmd=$!
+sleep 1
+tty-settings /dev/ttyS2 > /out/crsf_tty.txt 2>&1 || true
+for ail in 1100 1300 1600 1900; do
+    ppm-send --to 127.0.0.1:5011 --rate 50 --count 10 \
+        "{\"ail\": $ail, \"ele\": 1200, \"thr\": 1700, \"rud\": 2000, \"aux12\": 1900}"
+done
+sleep 0.5
+end_ppmd "$cppmd" crsf_ppmd_exit
+cat /proc/tty/driver/serial > /out/crsf_proc_serial.txt 2>&1 || true
+kill -TERM "$cing"
+wait "$cing" || true
 echo "pipeline: done"

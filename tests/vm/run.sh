@@ -10,8 +10,8 @@
 #   /bin/<name>        each HOST_FILE (static binaries: the guest has no libc)
 # Everything the script writes to /out ends up in OUTDIR, next to
 # OUTDIR/console.log (serial console), OUTDIR/dmesg.log (guest kernel log)
-# and OUTDIR/serial1.bin (what the guest wrote to its second serial port,
-# ttyS1).
+# OUTDIR/serial1.bin and OUTDIR/serial2.bin (what the guest wrote to its
+# second and third serial ports, ttyS1 and ttyS2).
 # The exit status is the one of /test.sh; 124 on timeout, 125 when the VM
 # produced no result (panic, setup failure), 2 on usage errors.
 #
@@ -146,6 +146,9 @@ QEMU=(qemu-system-x86_64
     # OUTDIR/serial1.bin: the SBUS output's capture.
     -serial mon:stdio
     -serial "file:$OUTDIR/serial1.bin"
+    # A third, the guest's ttyS2, into OUTDIR/serial2.bin: the CRSF
+    # output's capture.
+    -serial "file:$OUTDIR/serial2.bin"
 )
 log "booting $KREL ($FLAVOR), timeout ${TIMEOUT}s, console: $CONSOLE"
 start_ms=$(date +%s%3N)

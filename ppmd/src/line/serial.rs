@@ -257,6 +257,19 @@ impl SerialLine {
                 io::Error::last_os_error(),
             ));
         }
+        // A UART whose clock cannot make the rate gets another one (the
+        // nearest its divisor makes, or the one it had) without an error:
+        // read it back and say so.
+        if let Ok(now) = line.settings() {
+            if baud_off(format.baud, now.ospeed) {
+                log::warn!(
+                    "{}: the UART runs at {} baud, not the {} asked (its clock cannot make that rate): receivers will misread every frame; on a Raspberry Pi use a PL011 UART (ttyAMA*), whose clock makes it, or a USB adaptor that does",
+                    path.display(),
+                    now.ospeed,
+                    format.baud
+                );
+            }
+        }
         Ok(line)
     }
 
@@ -315,6 +328,13 @@ impl SerialLine {
             }
         }
     }
+}
+
+/// Whether a UART set to `asked` baud that reports `got` is off by more
+/// than the 2 % a UART receiver takes (half a bit over a 10 to 12 bit
+/// character is about 4 %, shared by both ends).
+pub fn baud_off(asked: u32, got: u32) -> bool {
+    (asked as u64).abs_diff(got as u64) * 50 > asked as u64
 }
 
 /// The termios2 settings of the tty open as `file`.

@@ -249,3 +249,15 @@ fn permission_denied_says_to_join_dialout() {
         "opening /dev/ttyAMA0: Permission denied (os error 13): add the user to the dialout group"
     );
 }
+
+#[test]
+fn a_rate_the_uart_could_not_make_is_told_apart_from_its_rounding() {
+    // A 16550 at 1.8432 MHz: 100000 asked runs at 115200 (15 % off), 420000
+    // keeps 9600; a 48 MHz PL011 makes 420000 within 0.1 %.
+    assert!(baud_off(100_000, 115_200));
+    assert!(baud_off(420_000, 9_600));
+    assert!(!baud_off(420_000, 420_168));
+    assert!(!baud_off(100_000, 100_000));
+    assert!(!baud_off(100_000, 101_900));
+    assert!(baud_off(100_000, 102_100));
+}
