@@ -15,6 +15,7 @@ pub mod harness;
 pub mod interfere;
 /// SVG pictures of latency: histograms with percentile marks, percentile curves.
 pub mod plot;
+pub mod radio;
 pub mod send;
 pub mod status;
 

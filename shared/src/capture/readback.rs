@@ -7,13 +7,17 @@
 //! A channel of a frame read matches when some frame ppm's line carried
 //! that began within the window before the read frame ended (`window_ns`
 //! before its start, up to its end) carried that channel within
-//! `tolerance_ns`. Channels are matched one by one, not frame by frame,
+//! `tolerance_ns`, or the newest frame the line carried before it ended,
+//! if that began within [`HELD_NS`] (1 s): a radio keeps relaying the last
+//! trainer values it read until its input times out, so a line whose
+//! frames were cut short for a while is still followed. Channels are
+//! matched one by one, not frame by frame,
 //! because a radio (EdgeTX, OpenTX) uses each trainer channel as it
 //! arrives: one frame it transmits may mix channels of two frames ppm sent.
 //! Only the channels both frames have are compared (a radio sending 8
 //! channels relays ppm's 4 in its first 4). A frame read while ppm's line
-//! carried nothing within the window does not match: the radio transmits
-//! its own.
+//! carried nothing for a second does not match: the radio transmits its
+//! own.
 
 use super::decode::ReadFrame;
 use crate::signal::MAX_CHANNELS;
@@ -100,6 +104,10 @@ pub struct Verdict {
     pub changed: Option<(ReadbackState, ReadbackState)>,
 }
 
+/// How long a radio keeps relaying the last trainer values it read:
+/// EdgeTX's trainer input is valid 1 s after the last good frame.
+pub const HELD_NS: u64 = 1_000_000_000;
+
 /// Frames of ppm's line kept: more than a second of frames at 50 Hz.
 pub const HISTORY: usize = 64;
 
@@ -179,11 +187,27 @@ impl Matcher {
     /// ppm carried in the window.
     fn max_diff(&self, f: &ReadFrame) -> u32 {
         let from = f.start_ns.saturating_sub(self.settings.window_ns);
+        // The newest frame carried before the read frame ended: a radio
+        // keeps the last trainer values it read until its input times out
+        // (1 s), so it is what the radio relays when the line carried
+        // nothing newer (a line whose frames were cut short a while).
+        let newest = self
+            .history
+            .iter()
+            .take(self.len)
+            .filter(|c| c.start_ns <= f.end_ns && c.count > 0)
+            .max_by_key(|c| c.start_ns)
+            .filter(|c| c.start_ns >= f.start_ns.saturating_sub(HELD_NS))
+            .map(|c| c.start_ns);
         let mut window = self
             .history
             .iter()
             .take(self.len)
-            .filter(|c| c.start_ns >= from && c.start_ns <= f.end_ns && c.count > 0)
+            .filter(|c| {
+                c.start_ns <= f.end_ns
+                    && c.count > 0
+                    && (c.start_ns >= from || Some(c.start_ns) == newest)
+            })
             .peekable();
         if window.peek().is_none() {
             return u32::MAX;
@@ -282,6 +306,12 @@ mod tests {
         let late = read(110 * MS, &[1_000_000, 2_000_000]);
         let v = m.read(&late);
         assert_eq!((v.matched, v.max_diff_ns), (false, 1_000_000));
+        // The newest frame carried stays what the radio may relay for 1 s
+        // (the line carried nothing newer), not longer.
+        let held = read(900 * MS, &[2_000_000, 2_000_000]);
+        assert_eq!(m.read(&held).max_diff_ns, 0);
+        let gone = read(1_100 * MS, &[2_000_000, 2_000_000]);
+        assert_eq!(m.read(&gone).max_diff_ns, u32::MAX);
         // A frame ppm sends after the read frame ended is not what it relays.
         let mut m = Matcher::new(MatchSettings::default());
         m.carried(carried(100 * MS, &[1000, 1000]));

@@ -150,19 +150,7 @@ pub fn encode_rc(raw: &[u16; CHANNELS]) -> [u8; RC_FRAME_LEN] {
     out[0] = ADDRESS_FLIGHT_CONTROLLER;
     out[1] = (RC_PAYLOAD_LEN + 2) as u8;
     out[2] = TYPE_RC_CHANNELS_PACKED;
-    let mut acc: u32 = 0;
-    let mut bits: u32 = 0;
-    let mut at = 3;
-    for &v in raw {
-        acc |= u32::from(v.min(RAW_MAX)) << bits;
-        bits += CHANNEL_BITS;
-        while bits >= 8 {
-            out[at] = acc as u8;
-            at += 1;
-            acc >>= 8;
-            bits -= 8;
-        }
-    }
+    crate::sbus::pack_channels(raw, &mut out[3..3 + RC_PAYLOAD_LEN]);
     out[RC_FRAME_LEN - 1] = crc8(&out[2..RC_FRAME_LEN - 1]);
     out
 }
@@ -170,21 +158,7 @@ pub fn encode_rc(raw: &[u16; CHANNELS]) -> [u8; RC_FRAME_LEN] {
 /// The 16 raw values packed in an RC payload's first 22 bytes (what each
 /// firmware's bit-field struct reads).
 pub fn rc_channels(payload: &[u8; RC_PAYLOAD_LEN]) -> [u16; CHANNELS] {
-    let mut raw = [0u16; CHANNELS];
-    let mut acc: u32 = 0;
-    let mut bits: u32 = 0;
-    let mut at = 0;
-    for v in &mut raw {
-        while bits < CHANNEL_BITS {
-            acc |= u32::from(payload[at]) << bits;
-            at += 1;
-            bits += 8;
-        }
-        *v = (acc & u32::from(RAW_MAX)) as u16;
-        acc >>= CHANNEL_BITS;
-        bits -= CHANNEL_BITS;
-    }
-    raw
+    crate::sbus::unpack_channels(payload)
 }
 
 /// The channels of a well-formed RC frame (address 0xC8, `len` 24, type

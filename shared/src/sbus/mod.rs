@@ -97,9 +97,24 @@ impl Flags {
 pub fn encode(raw: &[u16; CHANNELS], flags: Flags) -> [u8; FRAME_LEN] {
     let mut out = [0u8; FRAME_LEN];
     out[0] = HEADER;
+    pack_channels(raw, &mut out[1..23]);
+    out[FLAGS_INDEX] = flags.to_byte();
+    out[FRAME_LEN - 1] = END;
+    out
+}
+
+/// The raw channel values of `frame`, whatever its header and end byte.
+pub fn channels(frame: &[u8; FRAME_LEN]) -> [u16; CHANNELS] {
+    unpack_channels(&frame[1..23])
+}
+
+/// Packs 16 channels of 11 bits, least significant bit first, into the 22
+/// bytes of `out` (the layout SBUS and CRSF's RC_CHANNELS_PACKED share);
+/// each value is clamped to [`RAW_MAX`].
+pub fn pack_channels(raw: &[u16; CHANNELS], out: &mut [u8]) {
     let mut acc: u32 = 0;
     let mut bits: u32 = 0;
-    let mut at = 1;
+    let mut at = 0;
     for &v in raw {
         acc |= u32::from(v.min(RAW_MAX)) << bits;
         bits += CHANNEL_BITS;
@@ -110,20 +125,18 @@ pub fn encode(raw: &[u16; CHANNELS], flags: Flags) -> [u8; FRAME_LEN] {
             bits -= 8;
         }
     }
-    out[FLAGS_INDEX] = flags.to_byte();
-    out[FRAME_LEN - 1] = END;
-    out
 }
 
-/// The raw channel values of `frame`, whatever its header and end byte.
-pub fn channels(frame: &[u8; FRAME_LEN]) -> [u16; CHANNELS] {
+/// The 16 channels of 11 bits packed in the first 22 bytes of `bytes`
+/// ([`pack_channels`]' layout).
+pub fn unpack_channels(bytes: &[u8]) -> [u16; CHANNELS] {
     let mut raw = [0u16; CHANNELS];
     let mut acc: u32 = 0;
     let mut bits: u32 = 0;
-    let mut at = 1;
+    let mut at = 0;
     for v in &mut raw {
         while bits < CHANNEL_BITS {
-            acc |= u32::from(frame[at]) << bits;
+            acc |= u32::from(bytes[at]) << bits;
             at += 1;
             bits += 8;
         }

@@ -31,16 +31,16 @@ use ppm_shared::time::now_ns;
 use ppm_tools::analysis::Percentiles;
 use serde_json::Value;
 use std::collections::HashMap;
-use std::io::{Read, Write};
+use std::io::Write;
 use std::net::UdpSocket;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::SeqCst};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 /// The radio's frame period and pulse, ns.
 const RADIO_FRAME_NS: u64 = 22_500_000;
-const RADIO_PULSE_NS: u64 = 300_000;
+const RADIO_PULSE_NS: u64 = ppm_tools::radio::PULSE_NS;
 /// The radio's channel count (ppm sends 4; the radio sends 8).
 const RADIO_CHANNELS: usize = 8;
 /// What the instructor's sticks send on the first four channels.
@@ -70,64 +70,12 @@ struct RadioCtl {
     stop: AtomicBool,
 }
 
-/// Follows a growing trace file: the complete lines written since the
-/// last call.
-struct Follow {
-    file: Option<std::fs::File>,
-    path: PathBuf,
-    partial: String,
-}
-
-impl Follow {
-    fn new(path: &Path) -> Follow {
-        Follow {
-            file: None,
-            path: path.to_owned(),
-            partial: String::new(),
-        }
-    }
-
-    /// Edges `(actual_ns, level)` written since the last call.
-    fn edges(&mut self) -> std::io::Result<Vec<(u64, Level)>> {
-        if self.file.is_none() {
-            self.file = std::fs::File::open(&self.path).ok();
-        }
-        let Some(f) = self.file.as_mut() else {
-            return Ok(vec![]);
-        };
-        let mut text = std::mem::take(&mut self.partial);
-        f.read_to_string(&mut text)?;
-        let complete = text.rfind('\n').map_or(0, |i| i + 1);
-        self.partial = text[complete..].to_owned();
-        Ok(text[..complete]
-            .lines()
-            .filter_map(|l| match ppm_shared::trace::parse_line(l) {
-                Some(Ok(e)) => Some((e.actual_ns, e.level)),
-                _ => None,
-            })
-            .collect())
-    }
-}
-
-/// One PPM frame of the radio starting at `start`: its edges.
-fn radio_frame(start: u64, us: &[u64]) -> Vec<(u64, u8)> {
-    let mut out = Vec::new();
-    let mut t = start;
-    for &v in us {
-        out.extend([(t, 1), (t + RADIO_PULSE_NS, 0)]);
-        t += v * 1_000;
-    }
-    // The pulse that ends the last channel; the sync follows.
-    out.extend([(t, 1), (t + RADIO_PULSE_NS, 0)]);
-    out
-}
-
 /// The radio: relays the trainer channels it reads from ppm's `line`
 /// until `ctl.instructor` is set, then sends the instructor's sticks, into
 /// the trace `out`; returns, when `ctl.stop` is set, each edge's time and
 /// when it was written.
 fn radio(line: &Path, out: &Path, ctl: &RadioCtl) -> Result<Vec<(u64, u64)>> {
-    let mut follow = Follow::new(line);
+    let mut follow = ppm_tools::radio::Follow::new(line);
     let mut trainer = ReceiverDecoder::new(Receiver::EdgeTx, Level::High);
     let mut values: Option<Vec<u64>> = None;
     let mut file = std::fs::File::create(out).context("creating the radio's trace")?;
@@ -177,7 +125,7 @@ fn radio(line: &Path, out: &Path, ctl: &RadioCtl) -> Result<Vec<(u64, u64)>> {
         }
         let mut us = vec![1_500; RADIO_CHANNELS];
         us[..4].copy_from_slice(if inst { &INSTRUCTOR_US[..] } else { &v[..] });
-        pending.extend(radio_frame(start, &us));
+        pending.extend(ppm_tools::radio::frame_edges(start, &us));
     }
     Ok(written)
 }
@@ -948,7 +896,7 @@ mod tests {
 
     #[test]
     fn the_radio_frames_close_with_a_pulse_and_commands_stay_off_the_instructor() {
-        let f = radio_frame(0, &[1_000, 2_000]);
+        let f = ppm_tools::radio::frame_edges(0, &[1_000, 2_000]);
         assert_eq!(
             f,
             [
