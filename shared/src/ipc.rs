@@ -169,7 +169,7 @@ pub fn readback_service_name(name: &str) -> String {
 
 /// Refusal reasons a [`ReadbackSample`] counts, in
 /// [`crate::capture::CaptureCounts::reasons`]' order.
-pub const READBACK_REASONS: usize = 8;
+pub const READBACK_REASONS: usize = crate::capture::decode::REASONS;
 
 /// Output `name`'s read-back, published by ppmd's read-back thread at every
 /// frame it reads and every state change (and every tenth of a second

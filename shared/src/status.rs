@@ -89,7 +89,7 @@ pub struct ReadbackStatus {
     pub ch_us: Vec<f64>,
     /// Largest difference between it and the nearest value ppm's line
     /// carried, us.
-    pub max_diff_us: f64,
+    pub max_diff_us: Option<f64>,
     /// Age of the newest read-back sample, ms.
     pub age_ms: f64,
 }

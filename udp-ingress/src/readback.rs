@@ -204,7 +204,7 @@ impl Readback {
                 .map(|((name, _), n)| (name.to_string(), n))
                 .collect(),
             ch_us: s.values_ns[..n].iter().map(|&v| us(v as u64)).collect(),
-            max_diff_us: us(s.max_diff_ns as u64),
+            max_diff_us: (s.max_diff_ns != u32::MAX).then(|| us(s.max_diff_ns as u64)),
             age_ms: ms(age_ns),
         }
     }

@@ -29,9 +29,6 @@ use std::os::fd::AsRawFd;
 use std::os::unix::fs::OpenOptionsExt;
 use std::path::{Path, PathBuf};
 
-/// The SBUS baud rate.
-pub const BAUD: u32 = ppm_shared::sbus::uart::FORMAT.baud;
-
 /// The bytes of one SBUS frame.
 pub const FRAME_LEN: usize = ppm_shared::sbus::FRAME_LEN;
 

@@ -108,8 +108,10 @@ pub struct Verdict {
 /// EdgeTX's trainer input is valid 1 s after the last good frame.
 pub const HELD_NS: u64 = 1_000_000_000;
 
-/// Frames of ppm's line kept: more than a second of frames at 50 Hz.
-pub const HISTORY: usize = 64;
+/// Frames of ppm's line kept: `readback.window_ms` at its largest (2 s)
+/// of the shortest PPM frames (one channel of 800 us and a 4 ms sync,
+/// 4.8 ms), and the held second besides.
+pub const HISTORY: usize = 512;
 
 /// The comparison of frames read with frames carried, and the state.
 #[derive(Debug, Clone)]

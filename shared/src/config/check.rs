@@ -263,7 +263,6 @@ impl Config {
         })
     }
 
-    /// The output named by `ppmd.output`.
     /// The read-back `ppmd.readback` and `[readback]` describe, checked:
     /// errors name the key.
     pub fn readback_plan(&self) -> Result<Option<super::ReadbackPlan>, ConfigError> {

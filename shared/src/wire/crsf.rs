@@ -224,7 +224,7 @@ fn check_line(output: LineKind, idle: Option<Level>, out: &str) -> Result<(), Re
         (LineKind::Gpio | LineKind::Spi, _) => Err((
             "ppmd.output",
             format!(
-                "`{out}`: CRSF goes to a flight controller's UART at 420000 baud, 8N1, which needs a UART: use serial:DEVICE (the Pi's /dev/ttyAMA0: its TX to the flight controller's RX, RX to its TX, ground to ground, 3.3 V levels)"
+                "`{out}`: CRSF goes to a flight controller's UART (ppm.crsf_baud, 8N1), which needs a UART: use serial:DEVICE (the Pi's /dev/ttyAMA0: its TX to the flight controller's RX, RX to its TX, ground to ground, 3.3 V levels)"
             ),
         )),
     }

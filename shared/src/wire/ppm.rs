@@ -54,7 +54,7 @@ fn check_line(output: LineKind, idle: Option<Level>, shown: &str) -> Result<(), 
         LineKind::Serial => Err((
             "ppmd.output",
             format!(
-                "`{shown}` carries SBUS, not PPM: set ppm.protocol = \"sbus\" (for a radio's serial trainer input or a flight controller), or use a gpio: or spi: output for a trainer jack"
+                "`{shown}` carries a serial protocol, not PPM: set ppm.protocol = \"sbus\" (a radio's serial trainer input or a flight controller) or \"crsf\" (a flight controller), or use a gpio: or spi: output for a trainer jack"
             ),
         )),
         _ => Ok(()),

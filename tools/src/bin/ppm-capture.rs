@@ -109,7 +109,16 @@ fn run(cli: Cli) -> Result<()> {
     let mut flushed = Instant::now();
     let mut out = std::io::stdout().lock();
     while !stop.load(Relaxed) && cli.duration.is_none_or(|d| started.elapsed() < d) {
-        let n = source.read(&mut buf, Duration::from_millis(50))?;
+        let n = match source.read(&mut buf, Duration::from_millis(50)) {
+            Ok(n) => n,
+            Err(e) => {
+                // As ppmd's read-back: said, and reading goes on (a bad
+                // line of a trace, a GPIO read that failed once).
+                eprintln!("ppm-capture: {e}");
+                std::thread::sleep(Duration::from_millis(100));
+                0
+            }
+        };
         for e in &buf[..n] {
             let Some(f) = capture.push(*e) else { continue };
             let row = Row::Read {

@@ -152,7 +152,7 @@ fn the_largest_reply_fits_the_documented_bound() {
             .map(|(r, _)| (r.to_string(), 1))
             .collect(),
         ch_us: vec![1500.5; 16],
-        max_diff_us: 1.5,
+        max_diff_us: Some(1.5),
         age_ms: 1.5,
     })
     .unwrap();

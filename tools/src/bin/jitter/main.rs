@@ -391,8 +391,14 @@ fn trace(path: &PathBuf, receiver: Option<Receiver>, plot: Option<&Path>) -> Res
     let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
     let t = Trace::read(std::io::BufReader::new(file))?;
     let receiver = receiver.unwrap_or(t.default_receiver());
-    if t.protocol == ppm_shared::frame::Protocol::Sbus {
-        return sbus_trace(path, &t, receiver, plot);
+    match t.protocol {
+        ppm_shared::frame::Protocol::Sbus => return sbus_trace(path, &t, receiver, plot),
+        ppm_shared::frame::Protocol::Ppm => {}
+        other => anyhow::bail!(
+            "{}: a trace of a {} output; jitter --trace reads PPM and SBUS traces",
+            path.display(),
+            other.name()
+        ),
     }
     let r = analyse_trace(&t, receiver);
     println!("# jitter --trace {}", path.display());
