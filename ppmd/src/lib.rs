@@ -42,6 +42,8 @@
 //! - [`meter`]: histograms of the loop's timing, handed over lock-free.
 //! - [`readback`]: the read-back thread: what the radio transmits, compared
 //!   with what the line carried.
+//! - [`telemetry`]: the telemetry thread of a CRSF serial output: what
+//!   the flight controller sends back, read, counted and published.
 //! - [`rotating`]: the log files' type: rotated at a size cap, fed by a
 //!   lock-free ring and a writer thread.
 //! - [`startup`]: what the main thread holds of each output around the
@@ -66,6 +68,7 @@ pub mod rotating;
 pub mod rt;
 pub mod source;
 pub mod startup;
+pub mod telemetry;
 pub mod timing;
 pub mod watchdog;
 

@@ -92,6 +92,16 @@ fn run(cli: Cli) -> Result<()> {
         })
         .collect::<Result<Vec<_>>>()?;
 
+    // The flight controller's telemetry (a CRSF serial: output), opened
+    // before the line moves too.
+    let ports = outputs
+        .iter()
+        .filter_map(|o| {
+            let port = o.plan.telemetry_port()?;
+            Some(ppmd::telemetry::Opened::open(&o.plan.name, &o.tag, port))
+        })
+        .collect::<Result<Vec<_>>>()?;
+
     let (ready_tx, ready_rx) = std::sync::mpsc::channel();
     let timing = ppmd::timing::spawn(
         timed,
@@ -129,6 +139,18 @@ fn run(cli: Cli) -> Result<()> {
         }
     }
 
+    let mut telemetry = Vec::new();
+    for p in ports {
+        match p.start(&shared.ipc.root, obtained.cpu) {
+            Ok(t) => telemetry.push(t),
+            Err(e) => {
+                stop.store(true, Relaxed);
+                let _ = timing.join();
+                return Err(e);
+            }
+        }
+    }
+
     let mut watched = startup::watch_all(outputs, &obtained);
     let progress = |watched: &[Watched]| -> u64 {
         watched
@@ -150,6 +172,9 @@ fn run(cli: Cli) -> Result<()> {
         .map_err(|_| anyhow!("the timing thread panicked"))??;
     for r in &mut readbacks {
         r.finish();
+    }
+    for t in &mut telemetry {
+        t.finish();
     }
     for w in &mut watched {
         w.finish(hdr.as_mut());

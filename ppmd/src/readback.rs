@@ -419,7 +419,7 @@ impl Drop for Readback {
 }
 
 /// Keeps the calling thread off `cpu` (the timing thread's).
-fn avoid(cpu: Option<usize>) {
+pub(crate) fn avoid(cpu: Option<usize>) {
     let Some(cpu) = cpu else { return };
     use nix::sched::{sched_getaffinity, sched_setaffinity, CpuSet};
     use nix::unistd::Pid;

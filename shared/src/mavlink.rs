@@ -83,7 +83,10 @@ pub use specs::{
     MAV_DATA_STREAM_ALL, MAV_DATA_STREAM_RC_CHANNELS, PARAM_REQUEST_LIST, PARAM_VALUE,
     PROTOCOL_VERSION, RC_CHANNELS, RC_CHANNELS_OVERRIDE, REQUEST_DATA_STREAM, SPECS,
 };
-pub use telemetry::{servo_output_raw_payload, statustext_payloads, SERVO_OUTPUT_RAW, STATUSTEXT};
+pub use telemetry::{
+    attitude_payload, gps_raw_int_payload, servo_output_raw_payload, statustext_payloads,
+    sys_status_payload, GpsRawInt, ATTITUDE, GPS_RAW_INT, SERVO_OUTPUT_RAW, STATUSTEXT, SYS_STATUS,
+};
 
 #[cfg(test)]
 mod tests;

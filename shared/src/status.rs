@@ -58,6 +58,10 @@ pub struct StatusReply {
     /// input; absent when none is configured (or from an older udp-ingress).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub readback: Option<ReadbackStatus>,
+    /// What the flight controller sends back on a CRSF output's serial
+    /// port; absent for other outputs (or from an older udp-ingress).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telemetry: Option<crate::crsf::report::TelemetryStatus>,
 }
 
 /// The `readback` member of a status reply: whether the radio transmits

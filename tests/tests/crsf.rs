@@ -2,12 +2,14 @@
 //! over UDP, RC_CHANNELS_PACKED and LINK_STATISTICS frames out on the
 //! simulated line (read back as a 420 000 baud 8N1 UART and each
 //! firmware's framing read them) and on a pseudo-terminal (the exact bytes,
-//! and the terminal settings ppmd set, read through termios2).
+//! and the terminal settings ppmd set, read through termios2); the flight
+//! controller's telemetry back through the pseudo-terminal to the status
+//! reply and to pymavlink as a groundstation.
 
 use ppm_shared::crsf::{self, CrsfReceiver, Framer, LinkStatistics, Verdict};
 use ppm_shared::frame::Level;
 use ppm_shared::wire::uart::{self, Parity, UartFormat};
-use ppm_tests::{at_50hz, read_trace, stop_all, Pty, Sandbox, Sender};
+use ppm_tests::{at_50hz, python3, read_trace, status, stop_all, Pty, Sandbox, Sender};
 use std::time::Duration;
 
 /// CRSF's UART format at the default rate.
@@ -155,4 +157,210 @@ fn crsf_on_a_serial_port_is_rc_frames_and_link_statistics() {
     }
     ail.dedup();
     assert_eq!(ail, sent, "every command, in order");
+}
+
+/// A CRSF frame from the flight controller: `kind`, `payload`, its CRC.
+fn fc_frame(kind: u8, payload: &[u8]) -> Vec<u8> {
+    let mut f = vec![0xC8, payload.len() as u8 + 2, kind];
+    f.extend_from_slice(payload);
+    f.push(crsf::crc8(&f[2..]));
+    f
+}
+
+/// The groundstation: pymavlink sends its HEARTBEAT every 0.2 s for 4 s
+/// and prints every SYS_STATUS, ATTITUDE, GPS_RAW_INT and STATUSTEXT it
+/// gets from ppm, one JSON object a line. argv: the port.
+const GROUNDSTATION: &str = r#"
+import json, os, sys, time
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
+m = mavutil.mavlink_connection("udpout:127.0.0.1:%d" % int(sys.argv[1]), source_system=255, source_component=190)
+end = time.time() + 4
+beat = 0
+while time.time() < end:
+    if time.time() >= beat:
+        m.mav.heartbeat_send(6, 8, 0, 0, 4)
+        beat = time.time() + 0.2
+    msg = m.recv_match(type=["SYS_STATUS", "ATTITUDE", "GPS_RAW_INT", "STATUSTEXT"], blocking=True, timeout=0.05)
+    if msg is not None:
+        d = msg.to_dict()
+        d["sys"] = msg.get_srcSystem()
+        print(json.dumps(d), flush=True)
+"#;
+
+/// What the flight controller sends on its TX line reaches the
+/// groundstation: ppmd reads it from the pseudo-terminal (junk, a frame
+/// with a bad CRC and one cut short among the good ones), the status
+/// reply has the exact values and every bad frame counted by reason, and
+/// pymavlink reads SYS_STATUS, ATTITUDE, GPS_RAW_INT and the flight mode's
+/// STATUSTEXT with the same values.
+#[test]
+fn telemetry_from_the_flight_controller_reaches_the_groundstation() {
+    assert!(
+        std::process::Command::new("python3")
+            .args(["-c", "import pymavlink"])
+            .status()
+            .is_ok_and(|s| s.success()),
+        "pymavlink is needed for this test: python3 -m pip install pymavlink"
+    );
+    let sb = Sandbox::new("crsf-telemetry");
+    let pty = Pty::open().expect("a pseudo-terminal");
+    // Both read the output from the file, as under systemd: udp-ingress
+    // learns there that the output has telemetry.
+    let output = format!("serial:{}", pty.slave.display());
+    let cfg = sb.config(&format!(
+        "[ppmd]\noutput = \"{output}\"\n{}",
+        crsf_config("betaflight")
+    ));
+    let cfg_s = cfg.to_str().unwrap();
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg_s], "ppmd");
+    ppmd.wait_for_log("telemetry: reading", Duration::from_secs(20));
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    ingress.wait_for_log(
+        "telemetry from the flight controller",
+        Duration::from_secs(20),
+    );
+    // 16.8 V, 12.3 A, 1234 mAh, 75 %; roll -0.5, pitch 0.1234, yaw 3.1415
+    // rad; 47.3977419 N 8.5455938 E, 36.5 km/h, 271.15 deg, 488 m, 12
+    // satellites; "ANGL".
+    let battery = fc_frame(0x08, &[0x00, 0xA8, 0x00, 0x7B, 0x00, 0x04, 0xD2, 0x4B]);
+    let attitude = fc_frame(0x1E, &[0x04, 0xD2, 0xEC, 0x78, 0x7A, 0xB7]);
+    let gps = fc_frame(
+        0x02,
+        &[
+            0x1C, 0x40, 0x52, 0x4B, 0x05, 0x17, 0xF4, 0x42, 0x01, 0x6D, 0x69, 0xEB, 0x05, 0xD0,
+            0x0C,
+        ],
+    );
+    let mode = fc_frame(0x21, b"ANGL\0");
+    let mut bad_crc = battery.clone();
+    *bad_crc.last_mut().unwrap() ^= 0xFF;
+    let dir = sb.dir.clone();
+    let port = sb.addr().port().to_string();
+    let gcs = std::thread::spawn(move || python3(&dir, "", &["-c", GROUNDSTATION, &port]));
+    std::thread::sleep(Duration::from_millis(500));
+    // 40 rounds, 50 ms apart: each its frames back to back, as a flight
+    // controller sends them between two RC frames.
+    let rounds = 40;
+    for _ in 0..rounds {
+        let mut burst = vec![0x00, 0x55];
+        for f in [&battery, &attitude, &gps, &mode, &bad_crc] {
+            burst.extend_from_slice(f);
+        }
+        pty.send(&burst).expect("writing to the pty");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // A frame cut short: the line then pauses.
+    pty.send(&attitude[..5]).expect("writing to the pty");
+    let lines = gcs.join().expect("the groundstation");
+    std::thread::sleep(Duration::from_millis(300));
+    let st = status(sb.addr());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
+    let _ = pty.finish();
+
+    let t = st.telemetry.expect("a telemetry member");
+    assert_eq!(t.port, pty_path(&output));
+    assert_eq!(t.frames, 4 * rounds, "{t:?}");
+    assert_eq!(t.bad["bad_crc"], rounds, "{t:?}");
+    assert_eq!(t.bad["truncated"], 1, "{t:?}");
+    // Junk: the two leading bytes of each round, and the bad frames'
+    // bytes after their first.
+    assert_eq!(
+        t.junk_bytes,
+        rounds * (2 + battery.len() as u64 - 1) + 4,
+        "{t:?}"
+    );
+    let b = t.battery.expect("battery");
+    assert_eq!(
+        (b.voltage_v, b.current_a, b.used_mah, b.remaining_pct),
+        (16.8, 12.3, 1234, 75)
+    );
+    let a = t.attitude.expect("attitude");
+    assert_eq!(
+        (a.roll_rad, a.pitch_rad, a.yaw_rad),
+        (-0.5, 0.1234, 31_415.0 / 10_000.0)
+    );
+    let g = t.gps.expect("gps");
+    assert_eq!(
+        (
+            g.lat_deg,
+            g.lon_deg,
+            g.altitude_m,
+            g.groundspeed_kmh,
+            g.heading_deg,
+            g.satellites
+        ),
+        (47.3977419, 8.5455938, 488, 36.5, 271.15, 12)
+    );
+    assert_eq!(t.flight_mode.expect("mode").mode, "ANGL");
+
+    let msgs: Vec<serde_json::Value> = lines
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("a JSON line"))
+        .collect();
+    let of = |kind: &str| -> Vec<&serde_json::Value> {
+        msgs.iter().filter(|m| m["mavpackettype"] == kind).collect()
+    };
+    let sys = of("SYS_STATUS");
+    assert!(sys.len() >= 5, "{} SYS_STATUS in 2 s", sys.len());
+    for m in &sys {
+        assert_eq!(
+            (
+                &m["voltage_battery"],
+                &m["current_battery"],
+                &m["battery_remaining"]
+            ),
+            (&16800.into(), &1230.into(), &75.into())
+        );
+        assert_eq!(m["sys"], 1);
+    }
+    let att = of("ATTITUDE");
+    assert!(att.len() >= 5, "{} ATTITUDE", att.len());
+    for m in &att {
+        let f = |k: &str| m[k].as_f64().unwrap();
+        assert_eq!(
+            (f("roll"), f("pitch"), f("yaw")),
+            (
+                -0.5,
+                0.1234f32 as f64,
+                (31_415.0f64 / 10_000.0) as f32 as f64
+            )
+        );
+    }
+    let gps_msgs = of("GPS_RAW_INT");
+    assert!(gps_msgs.len() >= 5, "{} GPS_RAW_INT", gps_msgs.len());
+    for m in &gps_msgs {
+        let v = |k: &str| m[k].as_i64().unwrap();
+        assert_eq!(
+            [
+                v("lat"),
+                v("lon"),
+                v("alt"),
+                v("vel"),
+                v("cog"),
+                v("fix_type"),
+                v("satellites_visible")
+            ],
+            [473977419, 85455938, 488_000, 1014, 27115, 3, 12]
+        );
+    }
+    // At most ten of a kind a second: 40 frames of each in 2 s, 20 sent
+    // at most (and one more at the edges).
+    assert!(
+        sys.len() <= 21 && att.len() <= 21,
+        "{} {}",
+        sys.len(),
+        att.len()
+    );
+    let texts: Vec<&str> = of("STATUSTEXT")
+        .iter()
+        .map(|m| m["text"].as_str().unwrap())
+        .collect();
+    let want = format!("ppm {}: flight mode ANGL", sb.name);
+    assert_eq!(texts.iter().filter(|t| **t == want).count(), 1, "{texts:?}");
+}
+
+/// The tty of a `serial:` output.
+fn pty_path(output: &str) -> String {
+    output.trim_start_matches("serial:").to_owned()
 }

@@ -206,6 +206,9 @@ pub type Chunks = Vec<(u64, Vec<u8>)>;
 pub struct Pty {
     /// The slave end's path (`/dev/pts/N`).
     pub slave: PathBuf,
+    /// The master end, to write what the device at the other end sends
+    /// (a flight controller's telemetry).
+    master: File,
     stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
     reader: Option<std::thread::JoinHandle<Chunks>>,
 }
@@ -235,6 +238,7 @@ impl Pty {
             let path = std::ffi::CStr::from_ptr(name.as_ptr());
             (master, PathBuf::from(path.to_string_lossy().into_owned()))
         };
+        let writer = master.try_clone()?;
         let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
         let stopping = stop.clone();
         let reader = std::thread::spawn(move || {
@@ -260,9 +264,17 @@ impl Pty {
         });
         Ok(Pty {
             slave,
+            master: writer,
             stop,
             reader: Some(reader),
         })
+    }
+
+    /// Writes `bytes` to the master end: the program at the slave end
+    /// reads them, as from the device's TX line.
+    pub fn send(&self, bytes: &[u8]) -> std::io::Result<()> {
+        use std::io::Write;
+        (&self.master).write_all(bytes)
     }
 
     /// Stops reading; every chunk read, with when it arrived.

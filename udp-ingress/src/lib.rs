@@ -24,6 +24,8 @@
 //! - [`peers`]: the MAVLink groundstations it answers, and what they get.
 //! - [`readback`]: ppmd's read-back (what the radio transmits) as status
 //!   replies, JSON events and STATUSTEXTs report it.
+//! - [`telemetry`]: a CRSF flight controller's telemetry as status replies
+//!   and MAVLink messages report it.
 //! - [`seqfile`]: the last accepted `seq`, kept across restarts.
 //!
 //! Its unit tests are in `src/tests/`.
@@ -33,13 +35,15 @@ pub mod peers;
 pub mod readback;
 pub mod seqfile;
 pub mod server;
+pub mod telemetry;
 
 use ipnet::IpNet;
 use ppm_shared::auth::{self, AuthKey};
 use ppm_shared::frame::{FrameModel, MAX_CHANNELS};
-use ppm_shared::ipc::{LineSample, ReadbackSample, TimingSnapshot};
+use ppm_shared::ipc::{LineSample, ReadbackSample, TelemetrySample, TimingSnapshot};
 use ppm_shared::line::LineState;
 use ppm_shared::mavlink;
+use ppm_shared::mavlink::telemetry::MAV_SEVERITY_INFO;
 use ppm_shared::protocol::{
     self, Command, Reject, RejectReason, SeqGate, To, STATUS_REPLY_MAX_RATIO,
 };
@@ -292,6 +296,8 @@ pub struct Intake {
     latency: hdrhistogram::Histogram<u64>,
     /// The read-back (`ppmd.readback`), if any.
     readback: Option<readback::Readback>,
+    /// The flight controller's CRSF telemetry, if the output reads it.
+    telemetry: Option<telemetry::Telemetry>,
 }
 
 impl Intake {
@@ -320,6 +326,7 @@ impl Intake {
             latency: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000_000, 3)
                 .expect("valid histogram bounds"),
             readback: None,
+            telemetry: None,
         }
     }
 
@@ -416,6 +423,27 @@ impl Intake {
         let (severity, text) = readback::statustext(&self.name, &change);
         self.peers.announce(severity, &text);
         Some((change, rb.event(&self.name, &change)))
+    }
+
+    /// The output reads a flight controller's CRSF telemetry from `port`:
+    /// status replies carry it, MAVLink peers get it
+    /// ([`Intake::telemetry`]).
+    pub fn with_telemetry(mut self, port: String) -> Intake {
+        self.telemetry = Some(telemetry::Telemetry::new(port));
+        self
+    }
+
+    /// Takes `sample`, the newest telemetry ppmd published (without
+    /// telemetry, nothing); a new flight mode is told to every MAVLink
+    /// peer as a STATUSTEXT at the next [`Intake::mavlink_due`].
+    pub fn telemetry(&mut self, sample: TelemetrySample) {
+        let Some(t) = self.telemetry.as_mut() else {
+            return;
+        };
+        if let Some(mode) = t.seen(sample) {
+            let text = telemetry::statustext(&self.name, &mode);
+            self.peers.announce(MAV_SEVERITY_INFO, &text);
+        }
     }
 
     /// An event [`Intake::readback`] gave could not be sent.
@@ -722,6 +750,7 @@ impl Intake {
                 at_us: at_ns / 1_000,
             },
             radio: radio_frame,
+            telemetry: self.telemetry.as_ref().and_then(|t| t.newest()),
         };
         self.peers
             .due(now, now_line, self.signing.as_mut(), ts, out);
@@ -824,6 +853,7 @@ impl Intake {
                 .readback
                 .as_ref()
                 .map(|r| r.status(now_mono_ns, uptime.as_nanos() as u64)),
+            telemetry: self.telemetry.as_ref().map(|t| t.status(now_mono_ns)),
         }
     }
 }

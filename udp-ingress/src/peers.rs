@@ -5,7 +5,10 @@
 //! the line without one) and SERVO_OUTPUT_RAW (the values on the line),
 //! each at `mavlink.rc_channels_hz` or the rate the peer asks for
 //! (MAV_CMD_SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM); a STATUSTEXT for
-//! each read-back state change ([`Peers::announce`]); a COMMAND_ACK to
+//! each read-back state change and flight mode change
+//! ([`Peers::announce`]); with a CRSF output's telemetry, SYS_STATUS (the
+//! battery), ATTITUDE and GPS_RAW_INT as new frames of each come from the
+//! flight controller, each at most every [`TELEMETRY_MIN_EVERY`]; a COMMAND_ACK to
 //! each COMMAND_LONG; and to a PARAM_REQUEST_LIST, ppm's one parameter,
 //! `PPM_CHANNELS` (the channel count), which QGroundControl waits for
 //! before it offers its joystick.
@@ -26,6 +29,9 @@
 //! Logic only, without I/O: the server sends what [`Peers::due`] gives.
 //! Its tests are in `src/peers/tests.rs`.
 
+use ppm_shared::crsf::report;
+use ppm_shared::crsf::Telemetry;
+use ppm_shared::ipc::TelemetrySample;
 use ppm_shared::mavlink::{
     self, CommandLong, Header, Message, COMMAND_ACK, HEARTBEAT, PARAM_VALUE, PROTOCOL_VERSION,
     RC_CHANNELS, SERVO_OUTPUT_RAW, STATUSTEXT,
@@ -59,6 +65,15 @@ pub const TEXTS_KEPT: usize = 8;
 /// for (ppmd publishes its line every tenth of a second).
 pub const RC_CHANNELS_MIN_EVERY: Duration =
     Duration::from_millis(1_000 / mavlink::RC_CHANNELS_MAX_HZ as u64);
+/// The shortest interval between two telemetry messages of a kind
+/// (SYS_STATUS, ATTITUDE, GPS_RAW_INT): a flight controller may send
+/// attitude 50 times a second; a groundstation's display needs 10.
+pub const TELEMETRY_MIN_EVERY: Duration = Duration::from_millis(100);
+
+/// The telemetry kinds sent to peers ([`report::BATTERY`] as SYS_STATUS,
+/// [`report::ATTITUDE`], [`report::GPS`] as GPS_RAW_INT).
+const TELEMETRY_SENT: [usize; 3] = [report::BATTERY, report::ATTITUDE, report::GPS];
+
 /// MAV_RESULT_ACCEPTED.
 pub const MAV_RESULT_ACCEPTED: u8 = 0;
 /// MAV_RESULT_DENIED: a command ppm knows, with a parameter it cannot
@@ -164,6 +179,9 @@ pub struct Peers {
     mav_type: u8,
     /// The `id` of the next STATUSTEXT sent in chunks (never 0).
     text_id: u16,
+    /// Per [`TELEMETRY_SENT`] kind: the reader's count of it when it was
+    /// last sent, and when the next may go.
+    telemetry: [(u64, Option<Instant>); 3],
     counters: ReplyCounters,
 }
 
@@ -189,6 +207,8 @@ pub struct LineNow<'a> {
     /// With a read-back: the newest frame the radio transmits
     /// (RC_CHANNELS); `None` without one.
     pub radio: Option<Frame<'a>>,
+    /// With a CRSF output's telemetry: ppmd's newest sample of it.
+    pub telemetry: Option<&'a TelemetrySample>,
 }
 
 /// The interval of `hz` messages a second (`None` for 0), no shorter than
@@ -218,6 +238,7 @@ impl Peers {
             rc_default: every_of_hz(rc_hz as f64),
             mav_type: 0,
             text_id: 1,
+            telemetry: [(0, None); 3],
             counters: ReplyCounters::default(),
         }
     }
@@ -407,6 +428,51 @@ impl Peers {
                 let keep = if asked { 0 } else { kept + rc_next };
                 let s = signing.as_deref_mut();
                 self.reply_keeping(i, &SERVO_OUTPUT_RAW, &servo, keep, s, ts, out);
+            }
+        }
+        if let Some(t) = line.telemetry {
+            self.telemetry(now, t, signing, ts, out);
+        }
+    }
+
+    /// The telemetry messages due at `now` from sample `s`, to every peer
+    /// with the credit for them beyond [`HEARTBEATS_KEPT`] HEARTBEATs: one
+    /// of a kind when the flight controller sent a new frame of it since
+    /// the last one and [`TELEMETRY_MIN_EVERY`] has passed.
+    fn telemetry(
+        &mut self,
+        now: Instant,
+        s: &TelemetrySample,
+        mut signing: Option<&mut mavlink::Signing>,
+        ts: u64,
+        out: &mut Vec<(SocketAddr, Vec<u8>)>,
+    ) {
+        let counts = s.counts();
+        for (k, kind) in TELEMETRY_SENT.into_iter().enumerate() {
+            let count = match kind {
+                report::BATTERY => counts.battery,
+                report::ATTITUDE => counts.attitude,
+                _ => counts.gps,
+            };
+            let (told, next) = self.telemetry[k];
+            if count == told || next.is_some_and(|t| now < t) {
+                continue;
+            }
+            let Some((at, t)) = s.newest(kind) else {
+                continue;
+            };
+            self.telemetry[k] = (count, Some(now + TELEMETRY_MIN_EVERY));
+            let (spec, payload): (&mavlink::Spec, Vec<u8>) = match t {
+                Telemetry::Battery(b) => (&mavlink::SYS_STATUS, report::sys_status(&b).to_vec()),
+                Telemetry::Attitude(a) => (&mavlink::ATTITUDE, report::attitude(&a, at).to_vec()),
+                Telemetry::Gps(g) => (&mavlink::GPS_RAW_INT, report::gps_raw_int(&g, at).to_vec()),
+                _ => continue,
+            };
+            for i in 0..self.peers.len() {
+                let kept =
+                    HEARTBEATS_KEPT * heartbeat_len(self.peers[i].version, signing.is_some());
+                let s = signing.as_deref_mut();
+                self.reply_keeping(i, spec, &payload, kept, s, ts, out);
             }
         }
     }

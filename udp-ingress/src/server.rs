@@ -19,7 +19,7 @@ use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
 use mio::{Events, Poll, Token};
 use ppm_shared::ipc::{
-    self, CommandSample, LineSample, PublishError, ReadbackSample, TimingSnapshot,
+    self, CommandSample, LineSample, PublishError, ReadbackSample, TelemetrySample, TimingSnapshot,
 };
 use ppm_shared::logging::Chain;
 use ppm_shared::time::{now_ns, realtime_ns};
@@ -120,6 +120,9 @@ pub struct Server {
     /// ppmd's read-back samples, with a read-back (the intake keeps the
     /// newest).
     readback: Option<Subscriber<ReadbackSample>>,
+    /// ppmd's telemetry samples, with a CRSF serial output (the intake
+    /// keeps the newest).
+    telemetry: Option<Subscriber<TelemetrySample>>,
     /// How long the loop waits for datagrams at most: [`POLL_TIMEOUT`], or
     /// [`READBACK_POLL_TIMEOUT`] with a read-back.
     idle_every: Duration,
@@ -227,6 +230,13 @@ impl Server {
             }
         }
         self.readback_changes();
+        if let Some(sub) = &self.telemetry {
+            let mut sample = None;
+            newest(sub, &mut sample, "telemetry sample");
+            if let Some(s) = sample {
+                self.intake.telemetry(s);
+            }
+        }
         // Answered after publishing, so the counters add up.
         if !self.status_to.is_empty() && self.awaiting_ppmd.is_none() {
             if let Some(sub) = &self.stats {

@@ -228,6 +228,16 @@ impl OutputPlan {
         })
     }
 
+    /// The tty whose receive side carries what the flight controller sends
+    /// back (CRSF telemetry): a `serial:` output of a protocol that has
+    /// telemetry; `None` for every other output.
+    pub fn telemetry_port(&self) -> Option<&std::path::Path> {
+        match (&self.output, self.model.protocol()) {
+            (OutputSpec::Serial { device }, crate::wire::Protocol::Crsf) => Some(device),
+            _ => None,
+        }
+    }
+
     /// Refuses a busy-polling receive thread pinned to the CPU of ppmd's
     /// timing thread: `rt_cpu` is `rt.cpu` resolved on this machine.
     pub fn check_busy_poll_cpu(&self, rt_cpu: Option<usize>) -> Result<(), ConfigError> {

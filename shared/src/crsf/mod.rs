@@ -25,10 +25,13 @@
 //!   controller about the radio link.
 //! - [`telemetry`]: a streaming reader of what a flight controller sends back
 //!   (battery, GPS, attitude, flight mode, vario, barometric altitude).
+//! - [`report`]: that telemetry as the groundstation gets it (the status
+//!   reply's `telemetry` member, MAVLink SYS_STATUS, ATTITUDE, GPS_RAW_INT).
 
 pub mod framing;
 pub mod link;
 pub mod receiver;
+pub mod report;
 pub mod telemetry;
 
 #[cfg(test)]

@@ -199,6 +199,45 @@ pub enum Telemetry {
     LinkStatistics(LinkStatistics),
 }
 
+/// The kinds of telemetry decoded ([`Telemetry::kind`]).
+pub const KINDS: usize = 7;
+
+/// The names of the kinds, in [`Telemetry::kind`]'s order (the status
+/// reply's keys).
+pub const KIND_NAMES: [&str; KINDS] = [
+    "battery",
+    "gps",
+    "attitude",
+    "flight_mode",
+    "vario",
+    "baro_altitude",
+    "link_statistics",
+];
+
+impl Telemetry {
+    /// Its kind: an index into [`KIND_NAMES`].
+    pub fn kind(&self) -> usize {
+        match self {
+            Telemetry::Battery(_) => 0,
+            Telemetry::Gps(_) => 1,
+            Telemetry::Attitude(_) => 2,
+            Telemetry::FlightMode(_) => 3,
+            Telemetry::Vario { .. } => 4,
+            Telemetry::BaroAltitude(_) => 5,
+            Telemetry::LinkStatistics(_) => 6,
+        }
+    }
+}
+
+/// What one good frame (address to CRC, as [`TelemetryReader::feed`] hands
+/// it on) decodes to, if it is of a type decoded.
+pub fn decode_frame(frame: &[u8]) -> Option<Telemetry> {
+    let mut reader = TelemetryReader::new();
+    let mut out = None;
+    reader.feed(frame, |_, t| out = Some(t));
+    out
+}
+
 /// What the reader has seen, by kind; every count only grows.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
 pub struct TelemetryCounts {
@@ -234,6 +273,83 @@ pub struct TelemetryCounts {
     pub truncated: u64,
     /// Bytes skipped while looking for a frame's first byte.
     pub junk_bytes: u64,
+}
+
+impl TelemetryCounts {
+    /// How many counts there are.
+    pub const LEN: usize = 16;
+
+    /// Their names, in [`TelemetryCounts::to_array`]'s order.
+    pub const NAMES: [&'static str; TelemetryCounts::LEN] = [
+        "frames",
+        "frame_bytes",
+        "battery",
+        "gps",
+        "attitude",
+        "flight_mode",
+        "vario",
+        "baro_altitude",
+        "link_statistics",
+        "device",
+        "other",
+        "bad_payload",
+        "bad_length",
+        "bad_crc",
+        "truncated",
+        "junk_bytes",
+    ];
+
+    /// The counts, in [`TelemetryCounts::NAMES`]' order.
+    pub fn to_array(&self) -> [u64; TelemetryCounts::LEN] {
+        [
+            self.frames,
+            self.frame_bytes,
+            self.battery,
+            self.gps,
+            self.attitude,
+            self.flight_mode,
+            self.vario,
+            self.baro_altitude,
+            self.link_statistics,
+            self.device,
+            self.other,
+            self.bad_payload,
+            self.bad_length,
+            self.bad_crc,
+            self.truncated,
+            self.junk_bytes,
+        ]
+    }
+
+    /// The counts of [`TelemetryCounts::to_array`]'s `a`.
+    pub fn from_array(a: [u64; TelemetryCounts::LEN]) -> TelemetryCounts {
+        let [frames, frame_bytes, battery, gps, attitude, flight_mode, vario, baro_altitude, link_statistics, device, other, bad_payload, bad_length, bad_crc, truncated, junk_bytes] =
+            a;
+        TelemetryCounts {
+            frames,
+            frame_bytes,
+            battery,
+            gps,
+            attitude,
+            flight_mode,
+            vario,
+            baro_altitude,
+            link_statistics,
+            device,
+            other,
+            bad_payload,
+            bad_length,
+            bad_crc,
+            truncated,
+            junk_bytes,
+        }
+    }
+
+    /// Frames dropped, of every reason (`bad_payload` frames are counted
+    /// in `frames` too).
+    pub fn dropped(&self) -> u64 {
+        self.bad_length + self.bad_crc + self.truncated
+    }
 }
 
 /// A streaming reader of telemetry frames; see the [module](self).

@@ -1,5 +1,6 @@
 //! The RC frame, each firmware's scaling and framing, link statistics. The
-//! telemetry reader's tests are in `telemetry_tests.rs`.
+//! telemetry reader's tests are in `telemetry_tests.rs`, the groundstation's view of it in
+//! `report_tests.rs`.
 
 use super::framing::{
     byte_end_ns, ARDUPILOT_FRAME_TIMEOUT_US, BETAFLIGHT_FRAME_TIMEOUT_US, INAV_FRAME_TIMEOUT_US,
@@ -8,6 +9,7 @@ use super::*;
 use crate::sbus;
 use proptest::prelude::*;
 
+mod report_tests;
 mod telemetry_tests;
 
 const US: u64 = 1_000;

@@ -92,3 +92,97 @@ pub fn statustext_payloads(severity: u8, text: &str, id: u16) -> Vec<[u8; 54]> {
         .map(|(seq, c)| payload(c, id, seq as u8))
         .collect()
 }
+
+/// `SYS_STATUS`: the battery of a vehicle whose flight controller sends
+/// CRSF telemetry. The sensor words (MAVLink 2 extensions too) are 0.
+pub const SYS_STATUS: Spec = Spec {
+    id: 1,
+    name: "SYS_STATUS",
+    crc_extra: 124,
+    v1_len: 31,
+    max_len: 43,
+};
+
+/// `ATTITUDE`: roll, pitch and yaw, rad (rates unknown: 0).
+pub const ATTITUDE: Spec = Spec {
+    id: 30,
+    name: "ATTITUDE",
+    crc_extra: 39,
+    v1_len: 28,
+    max_len: 28,
+};
+
+/// `GPS_RAW_INT`: position, speed, course and satellites. The MAVLink 2
+/// extensions (ellipsoid altitude, accuracies, yaw) are 0, "unknown".
+pub const GPS_RAW_INT: Spec = Spec {
+    id: 24,
+    name: "GPS_RAW_INT",
+    crc_extra: 24,
+    v1_len: 30,
+    max_len: 52,
+};
+
+/// GPS_FIX_TYPE_NO_FIX.
+pub const GPS_FIX_TYPE_NO_FIX: u8 = 1;
+/// GPS_FIX_TYPE_3D_FIX.
+pub const GPS_FIX_TYPE_3D_FIX: u8 = 3;
+
+/// SYS_STATUS' payload: battery voltage, mV (`u16::MAX`: unknown),
+/// current, cA (-1: unknown), remaining, % (-1: unknown); every other field
+/// 0.
+pub fn sys_status_payload(voltage_mv: u16, current_ca: i16, remaining_pct: i8) -> [u8; 43] {
+    let mut p = [0u8; 43];
+    p[14..16].copy_from_slice(&voltage_mv.to_le_bytes());
+    p[16..18].copy_from_slice(&current_ca.to_le_bytes());
+    p[30] = remaining_pct as u8;
+    p
+}
+
+/// ATTITUDE's payload: `roll`, `pitch`, `yaw` (rad) at `time_boot_ms`,
+/// rates 0.
+pub fn attitude_payload(time_boot_ms: u32, roll: f32, pitch: f32, yaw: f32) -> [u8; 28] {
+    let mut p = [0u8; 28];
+    p[..4].copy_from_slice(&time_boot_ms.to_le_bytes());
+    for (i, v) in [roll, pitch, yaw].into_iter().enumerate() {
+        p[4 + 4 * i..8 + 4 * i].copy_from_slice(&v.to_le_bytes());
+    }
+    p
+}
+
+/// GPS_RAW_INT's fields that ppm knows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GpsRawInt {
+    /// us since boot.
+    pub time_usec: u64,
+    /// Latitude, degrees x 10^7.
+    pub lat: i32,
+    /// Longitude, degrees x 10^7.
+    pub lon: i32,
+    /// Altitude (MSL), mm.
+    pub alt_mm: i32,
+    /// Ground speed, cm/s.
+    pub vel_cms: u16,
+    /// Course over ground, degrees x 100.
+    pub cog_cdeg: u16,
+    /// GPS_FIX_TYPE.
+    pub fix_type: u8,
+    /// Satellites visible.
+    pub satellites: u8,
+}
+
+/// GPS_RAW_INT's payload: `g`, with eph and epv `u16::MAX` (unknown) and
+/// the extensions 0.
+pub fn gps_raw_int_payload(g: &GpsRawInt) -> [u8; 52] {
+    let mut p = [0u8; 52];
+    p[..8].copy_from_slice(&g.time_usec.to_le_bytes());
+    p[8..12].copy_from_slice(&g.lat.to_le_bytes());
+    p[12..16].copy_from_slice(&g.lon.to_le_bytes());
+    p[16..20].copy_from_slice(&g.alt_mm.to_le_bytes());
+    p[20..22].copy_from_slice(&u16::MAX.to_le_bytes());
+    p[22..24].copy_from_slice(&u16::MAX.to_le_bytes());
+    p[24..26].copy_from_slice(&g.vel_cms.to_le_bytes());
+    p[26..28].copy_from_slice(&g.cog_cdeg.to_le_bytes());
+    p[28] = g.fix_type;
+    p[29] = g.satellites;
+    p
+}

@@ -13,7 +13,7 @@ pub const STATUS_REPLY_MAX_RATIO: usize = 3;
 /// The largest status reply, in bytes, with room to spare for counters to
 /// come: a test builds the largest reply there can be (every counter at
 /// u64::MAX, the longest name, ...) and checks it fits.
-pub const STATUS_REPLY_MAX_LEN: usize = 3_600;
+pub const STATUS_REPLY_MAX_LEN: usize = 4_200;
 
 /// The size ppm's tools pad their status queries to: a third of
 /// [`STATUS_REPLY_MAX_LEN`], so even the largest reply is no more than

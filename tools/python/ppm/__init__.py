@@ -69,9 +69,9 @@ MAX_CHANNELS = 16
 #: The status query as udp-ingress recognises it.
 STATUS_QUERY = b'{"get":"status"}'
 #: The size status queries are padded to, as ppm's other tools pad theirs: a
-#: third of the largest reply (3600 bytes), which is never more than 3 times
+#: third of the largest reply (4200 bytes), which is never more than 3 times
 #: the query, so any source gets it.
-STATUS_QUERY_PADDED_LEN = 1200
+STATUS_QUERY_PADDED_LEN = 1400
 #: The largest key file read, like udp-ingress (64 hex characters and whitespace).
 KEY_MAX_BYTES = 4096
 
@@ -180,7 +180,7 @@ def status_query(size: int = STATUS_QUERY_PADDED_LEN) -> bytes:
     """``{"get":"status"}`` padded with trailing spaces to ``size`` bytes.
 
     >>> len(status_query()), status_query().rstrip()
-    (1200, b'{"get":"status"}')
+    (1400, b'{"get":"status"}')
     """
     return STATUS_QUERY.ljust(size, b" ")
 
@@ -352,7 +352,7 @@ class Sender:
         """Asks udp-ingress for its status and returns the reply (a dict with
         ``datagrams``, ``ppmd``, ...: see docs/status.md, "Status queries").
 
-        The query is padded to 1200 bytes, so any source gets the reply (no
+        The query is padded to 1400 bytes, so any source gets the reply (no
         reply is more than 3 times its query, unless the source is in
         ``ingress.status_allow``); when the answer is ``{"pad_to": N}`` the
         query is sent once more, padded to N. Raises :class:`StatusTimeout`

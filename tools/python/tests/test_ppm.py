@@ -255,19 +255,19 @@ class Status(unittest.TestCase):
 
     def test_padded_and_retried_once_at_pad_to(self) -> None:
         full = b'{"datagrams": {"received": 3}, "status_short": 0}'
-        target, sizes = self.serve([b'{"pad_to":1300}', full])
+        target, sizes = self.serve([b'{"pad_to":1500}', full])
         with ppm.Sender(target) as s:
             self.assertEqual(s.status(), json.loads(full))
-        self.assertEqual(sizes, [1200, 1300])
+        self.assertEqual(sizes, [1400, 1500])
 
     def test_answer_without_pad_to(self) -> None:
         target, sizes = self.serve([b'{"datagrams": {}}'])
         with ppm.Sender(target) as s:
             self.assertEqual(s.status(), {"datagrams": {}})
-        self.assertEqual(sizes, [1200])
+        self.assertEqual(sizes, [1400])
 
     def test_still_too_short_and_not_json(self) -> None:
-        target, _ = self.serve([b'{"pad_to":1300}', b'{"pad_to":1400}'])
+        target, _ = self.serve([b'{"pad_to":1500}', b'{"pad_to":1600}'])
         with ppm.Sender(target) as s, self.assertRaisesRegex(ppm.PpmError, "still answers"):
             s.status()
         target, _ = self.serve([b"[1, 2]"])

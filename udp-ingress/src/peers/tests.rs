@@ -13,6 +13,7 @@ fn state(s: u8) -> LineNow<'static> {
             at_us: 0,
         },
         radio: None,
+        telemetry: None,
     }
 }
 
@@ -222,6 +223,7 @@ fn rc_channels_carry_the_line_at_the_default_rate_or_the_one_asked_for() {
             at_us: 12_345_000,
         },
         radio: None,
+        telemetry: None,
     };
     p.heard(addr(1), 2, 4_000, false, t);
     p.heard(addr(2), 2, 4_000, false, t);
@@ -317,6 +319,7 @@ fn servo_output_raw_carries_the_line_at_its_own_rate() {
             values_us: &radio,
             at_us: 6_000_000,
         }),
+        telemetry: None,
     };
     let second = |p: &mut Peers, from: Instant| {
         p.heard(addr(1), 2, 4_000, false, from);
@@ -432,6 +435,7 @@ fn a_groundstation_that_sends_only_its_heartbeat_keeps_getting_ppms() {
             at_us: 0,
         },
         radio: None,
+        telemetry: None,
     };
     let mut out = vec![];
     // Its 21-byte HEARTBEAT each second earns 63 bytes: ppm's HEARTBEAT
@@ -494,6 +498,7 @@ fn a_heartbeat_every_second_whatever_the_phase_of_the_peers_own() {
             at_us: 0,
         },
         radio: None,
+        telemetry: None,
     };
     let ms = |n: u64| Duration::from_millis(n);
     let mut worst_rc = usize::MAX;
@@ -600,6 +605,7 @@ fn an_rc_channels_asked_for_is_earned_by_its_request() {
             at_us: 0,
         },
         radio: None,
+        telemetry: None,
     };
     let mut p = Peers::new(1, 1, 8, 0);
     // A MAVLink 2 COMMAND_LONG (trimmed) is 43 bytes: it earns 129, the
@@ -745,4 +751,115 @@ fn a_request_for_the_protocol_version_gets_mavlink_2() {
     assert_eq!(payload[..6], [200, 0, 100, 0, 200, 0]);
     let crc = mavlink::frame_crc(&PROTOCOL_VERSION, &v[0][1..v[0].len() - 2]);
     assert_eq!(v[0][v[0].len() - 2..], crc.to_le_bytes());
+}
+
+/// A CRSF frame from the flight controller: `kind`, `payload`, its CRC.
+fn crsf_frame(kind: u8, payload: &[u8]) -> Vec<u8> {
+    let mut f = vec![0xC8, payload.len() as u8 + 2, kind];
+    f.extend_from_slice(payload);
+    f.push(ppm_shared::crsf::crc8(&f[2..]));
+    f
+}
+
+/// A telemetry sample holding `frames`, read at `at_ns`, counted as
+/// ppmd's reader counts them.
+fn telemetry_sample(frames: &[Vec<u8>], at_ns: u64) -> TelemetrySample {
+    let mut s = TelemetrySample::default();
+    let mut r = ppm_shared::crsf::TelemetryReader::new();
+    for f in frames {
+        r.feed(f, |raw, t| s.take(raw, &t, at_ns));
+    }
+    s.counts = r.counts().to_array();
+    s.published_mono_ns = at_ns;
+    s
+}
+
+/// The ids of the frames in `out`, in order.
+fn ids(out: &[(SocketAddr, Vec<u8>)]) -> Vec<u8> {
+    out.iter().map(|(_, f)| id_and_payload(f).0).collect()
+}
+
+#[test]
+fn telemetry_goes_to_peers_once_per_new_frame_at_most_ten_a_second() {
+    let t = Instant::now();
+    let mut p = Peers::new(1, 1, 8, 0);
+    p.heard(addr(1), 2, 4_000, false, t);
+    let battery = crsf_frame(0x08, &[0x00, 0xA8, 0x00, 0x7B, 0x01, 0xE2, 0x40, 0x4B]);
+    let attitude = crsf_frame(0x1E, &[0x04, 0xD2, 0xEC, 0x78, 0x7A, 0xB7]);
+    let mode = crsf_frame(0x21, b"ANGL\0");
+    let mut line = state(4);
+    let mut out = vec![];
+    let s1 = telemetry_sample(
+        &[battery.clone(), attitude.clone(), mode.clone()],
+        7_000_000,
+    );
+    line.telemetry = Some(&s1);
+    p.due(t, line, None, 0, &mut out);
+    // A HEARTBEAT first, then SYS_STATUS and ATTITUDE; the flight mode is
+    // no MAVLink message of its own (a STATUSTEXT when it changes).
+    assert_eq!(ids(&out), [0, 1, 30]);
+    let sys = id_and_payload(&out[1].1).1.to_vec();
+    assert_eq!(u16::from_le_bytes([sys[14], sys[15]]), 16_800, "mV");
+    let att = id_and_payload(&out[2].1).1.to_vec();
+    assert_eq!(u32::from_le_bytes(att[..4].try_into().unwrap()), 7, "ms");
+    assert_eq!(
+        f32::from_le_bytes(att[4..8].try_into().unwrap()),
+        -0.5,
+        "roll"
+    );
+    // The same sample again, or nothing new: nothing more.
+    out.clear();
+    for k in 1..30 {
+        p.due(t + Duration::from_millis(10 * k), line, None, 0, &mut out);
+    }
+    assert!(out.is_empty(), "{:?}", ids(&out));
+    // A second attitude frame (the battery's count unchanged): only
+    // ATTITUDE goes.
+    let s2 = telemetry_sample(
+        &[battery.clone(), attitude.clone(), attitude.clone()],
+        8_000_000,
+    );
+    line.telemetry = Some(&s2);
+    p.due(t + Duration::from_millis(350), line, None, 0, &mut out);
+    assert_eq!(ids(&out), [30], "only the kind that moved");
+    out.clear();
+    let s3 = telemetry_sample(
+        &[battery, attitude.clone(), attitude.clone(), attitude],
+        9_000_000,
+    );
+    line.telemetry = Some(&s3);
+    p.due(t + Duration::from_millis(400), line, None, 0, &mut out);
+    assert!(
+        out.is_empty(),
+        "a third, within 100 ms of the last ATTITUDE"
+    );
+    p.due(t + Duration::from_millis(450), line, None, 0, &mut out);
+    assert_eq!(ids(&out), [30]);
+}
+
+#[test]
+fn telemetry_is_earned_like_rc_channels() {
+    let t = Instant::now();
+    let mut p = Peers::new(1, 1, 8, 0);
+    // 21 bytes earn 63: ppm's HEARTBEAT (21) and two kept, nothing more.
+    p.heard(addr(1), 2, 21, false, t);
+    let s = telemetry_sample(
+        &[crsf_frame(
+            0x08,
+            &[0x00, 0xA8, 0x00, 0x7B, 0x01, 0xE2, 0x40, 0x4B],
+        )],
+        1,
+    );
+    let mut line = state(4);
+    line.telemetry = Some(&s);
+    let mut out = vec![];
+    p.due(t, line, None, 0, &mut out);
+    assert_eq!(ids(&out), [0], "the HEARTBEAT only");
+    assert_eq!(p.counters().held, 1, "SYS_STATUS held");
+    // An exempt peer gets it.
+    let mut p = Peers::new(1, 1, 8, 0);
+    p.heard(addr(2), 2, 21, true, t);
+    out.clear();
+    p.due(t, line, None, 0, &mut out);
+    assert_eq!(ids(&out), [0, 1]);
 }

@@ -467,6 +467,7 @@ fn a_statustext_not_earned_waits_for_the_credit() {
             at_us: 0,
         },
         radio: None,
+        telemetry: None,
     };
     let mut p = Peers::new(1, 1, 8, 0);
     // 21 bytes earn 63: the HEARTBEAT (21) at once, 42 left.

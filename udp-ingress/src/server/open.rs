@@ -15,7 +15,7 @@ use mio::net::UdpSocket;
 use mio::{Interest, Poll};
 use ppm_shared::auth::{AuthKey, KeyError};
 use ppm_shared::config::{fault, ConfigError, IngressSection, KeyName, OutputPlan, Shared};
-use ppm_shared::ipc::{self, IpcError, LineSample, ReadbackSample};
+use ppm_shared::ipc::{self, IpcError, LineSample, ReadbackSample, TelemetrySample};
 use ppm_shared::logging::Chain;
 use ppm_shared::sched;
 use std::time::{Duration, Instant};
@@ -102,10 +102,22 @@ fn subscribe_stats(node: &ipc::Node, name: &str) -> Option<(StatsSubscriber, boo
         }
     }
 }
-/// Subscribes to ppmd's line samples for RC_CHANNELS. Not worth stopping
-/// for: on failure, RC_CHANNELS says no channels are on the line.
-fn subscribe_line(node: &ipc::Node, name: &str) -> Option<Subscriber<LineSample>> {
-    let subscribed = ipc::open_line_service(node, name).and_then(|service| {
+/// Subscribes to one of ppmd's newest-only services, `service` (opened, or
+/// why not), named `service_name`. Not worth stopping for: on failure, says
+/// what goes without it (`without`) and gives `None`.
+fn subscribe_newest<T: std::fmt::Debug + Copy + iceoryx2::prelude::ZeroCopySend + 'static>(
+    service: Result<
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+            iceoryx2::service::ipc::Service,
+            T,
+            (),
+        >,
+        IpcError,
+    >,
+    service_name: String,
+    without: &str,
+) -> Option<Subscriber<T>> {
+    let subscribed = service.and_then(|service| {
         service
             .subscriber_builder()
             .buffer_size(1)
@@ -115,34 +127,41 @@ fn subscribe_line(node: &ipc::Node, name: &str) -> Option<Subscriber<LineSample>
     subscribed
         .map_err(|e| {
             log::warn!(
-                "RC_CHANNELS will carry no channels: subscribing to `{}` failed: {}",
-                ipc::line_service_name(name),
+                "{without}: subscribing to `{service_name}` failed: {}",
                 Chain(&e)
             )
         })
         .ok()
 }
 
-/// Subscribes to ppmd's read-back samples (`ppmd.readback`). Not worth
-/// stopping for: on failure, status replies say its state is `stale`, and
-/// no change is told.
+/// Subscribes to ppmd's line samples for RC_CHANNELS (on failure,
+/// RC_CHANNELS says no channels are on the line).
+fn subscribe_line(node: &ipc::Node, name: &str) -> Option<Subscriber<LineSample>> {
+    subscribe_newest(
+        ipc::open_line_service(node, name),
+        ipc::line_service_name(name),
+        "RC_CHANNELS will carry no channels",
+    )
+}
+
+/// Subscribes to ppmd's read-back samples (`ppmd.readback`; on failure,
+/// status replies say its state is `stale`, and no change is told).
 fn subscribe_readback(node: &ipc::Node, name: &str) -> Option<Subscriber<ReadbackSample>> {
-    let subscribed = ipc::open_readback_service(node, name).and_then(|service| {
-        service
-            .subscriber_builder()
-            .buffer_size(1)
-            .create()
-            .map_err(|e| IpcError::new("creating the subscriber", e))
-    });
-    subscribed
-        .map_err(|e| {
-            log::warn!(
-                "the read-back will be reported `stale` and its changes not told: subscribing to `{}` failed: {}",
-                ipc::readback_service_name(name),
-                Chain(&e)
-            )
-        })
-        .ok()
+    subscribe_newest(
+        ipc::open_readback_service(node, name),
+        ipc::readback_service_name(name),
+        "the read-back will be reported `stale` and its changes not told",
+    )
+}
+
+/// Subscribes to ppmd's telemetry samples (a CRSF `serial:` output; on
+/// failure, status replies say it is `stale`, and MAVLink peers get none).
+fn subscribe_telemetry(node: &ipc::Node, name: &str) -> Option<Subscriber<TelemetrySample>> {
+    subscribe_newest(
+        ipc::open_telemetry_service(node, name),
+        ipc::telemetry_service_name(name),
+        "the flight controller's telemetry will be reported `stale` and not forwarded",
+    )
 }
 /// Loads the key file at `path`, which `key` names. Its faults (missing,
 /// not a small regular file, readable by others, not 64 hex characters)
@@ -319,6 +338,9 @@ impl Server {
             .readback
             .as_ref()
             .and_then(|_| subscribe_readback(&node, &cfg.name));
+        let telemetry = cfg
+            .telemetry_port()
+            .and_then(|_| subscribe_telemetry(&node, &cfg.name));
         let idle_every = match &cfg.readback {
             Some(_) => READBACK_POLL_TIMEOUT,
             None => POLL_TIMEOUT,
@@ -364,6 +386,13 @@ impl Server {
                 READBACK_POLL_TIMEOUT.as_millis()
             );
             intake = intake.with_readback(r.input.to_string());
+        }
+        if let Some(port) = cfg.telemetry_port() {
+            log::info!(
+                "telemetry from the flight controller on {}: in status replies; SYS_STATUS, ATTITUDE and GPS_RAW_INT to MAVLink peers, a STATUSTEXT at each flight mode change",
+                port.display()
+            );
+            intake = intake.with_telemetry(port.display().to_string());
         }
         let mut mavlink_ts_file = None;
         if let Some((path, key, ts_path, file, floor)) = mavlink_signing {
@@ -423,6 +452,7 @@ impl Server {
             line,
             line_sample: None,
             readback,
+            telemetry,
             idle_every,
             awaiting_ppmd,
             reply_budget: ReplyBudget::new(),

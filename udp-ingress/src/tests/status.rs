@@ -179,6 +179,53 @@ fn the_largest_reply_fits_the_documented_bound() {
         "{} bytes",
         text.len()
     );
+    // A CRSF serial output has telemetry instead (never both: a read-back
+    // needs PPM): every kind, a flight mode of 59 bytes, a port path of 64
+    // characters.
+    reply.as_object_mut().unwrap().remove("readback");
+    reply["telemetry"] = serde_json::to_value(widest_telemetry()).unwrap();
+    widest(&mut reply);
+    let text = reply.to_string();
+    assert!(
+        text.len() + two_more <= STATUS_REPLY_MAX_LEN,
+        "the largest reply with telemetry is {} bytes: {text}",
+        text.len()
+    );
+}
+
+/// The telemetry member with every kind, its text at its longest.
+fn widest_telemetry() -> ppm_shared::crsf::report::TelemetryStatus {
+    use ppm_shared::crsf::{crc8, LinkStatistics, TelemetryReader};
+    let frame = |kind: u8, payload: &[u8]| {
+        let mut f = vec![0xC8, payload.len() as u8 + 2, kind];
+        f.extend_from_slice(payload);
+        f.push(crc8(&f[2..]));
+        f
+    };
+    let mut s = ppm_shared::ipc::TelemetrySample::default();
+    let mut r = TelemetryReader::new();
+    let mut link = LinkStatistics::WIRED.encode().to_vec();
+    link[0] = 0xC8;
+    for f in [
+        frame(0x08, &[0x80; 8]),
+        frame(0x02, &[0x80; 15]),
+        frame(0x1E, &[0x80; 6]),
+        frame(0x21, &[0x01; 59]),
+        frame(0x07, &[0x80; 2]),
+        frame(0x09, &[0x12, 0x34, 0x80]),
+        link,
+    ] {
+        r.feed(&f, |raw, t| s.take(raw, &t, 1));
+    }
+    s.counts = r.counts().to_array();
+    s.published_mono_ns = 1;
+    let t = ppm_shared::crsf::report::TelemetryStatus::of(&s, &"/dev/tty".repeat(8), 2);
+    assert!(
+        t.link_statistics.is_some() && t.baro_altitude.is_some(),
+        "{t:?}"
+    );
+    assert_eq!(t.flight_mode.as_ref().unwrap().mode.len(), 59);
+    t
 }
 
 fn snapshot(mono_ns: u64) -> TimingSnapshot {

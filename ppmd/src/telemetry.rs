@@ -1,0 +1,243 @@
+//! The telemetry thread of a CRSF `serial:` output: reads what the flight
+//! controller sends back on its TX line (wired to the board's RX), CRC-checks
+//! and decodes it ([`ppm_shared::crsf::TelemetryReader`], which counts every
+//! byte it drops), and publishes the counts and the newest frame of each kind
+//! for udp-ingress (`ppm/NAME/telemetry`).
+//!
+//! A thread of its own at normal priority, never on the timing thread's
+//! CPU: the timing loop writes the tty and never reads it, so nothing the
+//! flight controller sends (junk, a flood, a frame cut off) reaches the
+//! loop. The thread opens the tty a second time, read-only and
+//! non-blocking: the settings (raw, the wire's baud rate both ways) are the
+//! line's, set when the line opened it. It waits in `poll` for bytes; a
+//! pause of [`GAP`] while a frame is unfinished drops that frame as
+//! `truncated` (a flight controller sends each frame back to back, and
+//! Betaflight's own receive side resets after 1.75 ms of quiet).
+
+use anyhow::{Context, Result};
+use ppm_shared::crsf::TelemetryReader;
+use ppm_shared::ipc::{self, TelemetrySample};
+use ppm_shared::logging::Chain;
+use ppm_shared::time::now_ns;
+use std::fs::{File, OpenOptions};
+use std::io::{self, Read};
+use std::os::fd::AsFd;
+use std::os::unix::fs::OpenOptionsExt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+/// A pause in the middle of a frame this long ends it ([`TelemetryReader::gap`]).
+pub const GAP: Duration = Duration::from_millis(2);
+/// The longest wait for bytes before the thread looks at its stop flag and
+/// publishes again.
+const WAIT: Duration = Duration::from_millis(50);
+/// How often the sample is published while nothing comes.
+const PUBLISH_EVERY_NS: u64 = 100_000_000;
+
+/// A telemetry port opened, its thread not yet started.
+pub struct Opened {
+    name: String,
+    tag: String,
+    port: PathBuf,
+    file: File,
+}
+
+impl Opened {
+    /// Opens `port` (the tty of output `name`, `tag` its log prefix) to
+    /// read, not as the controlling terminal, without blocking.
+    pub fn open(name: &str, tag: &str, port: &Path) -> Result<Opened> {
+        let file = OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NOCTTY | libc::O_NONBLOCK)
+            .open(port)
+            .with_context(|| {
+                format!(
+                    "output `{name}`: opening {} to read the flight controller's telemetry",
+                    port.display()
+                )
+            })?;
+        Ok(Opened {
+            name: name.to_owned(),
+            tag: tag.to_owned(),
+            port: port.to_owned(),
+            file,
+        })
+    }
+
+    /// Starts the thread, which publishes under the shared-memory `root`
+    /// and stays off `avoid_cpu` (the timing thread's). Returns once it
+    /// publishes, or why it cannot.
+    pub fn start(self, root: &Path, avoid_cpu: Option<usize>) -> Result<Telemetry> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let (name, root) = (self.name.clone(), root.to_owned());
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let flag = stop.clone();
+        let thread = std::thread::Builder::new()
+            .name("ppmd-telemetry".into())
+            .spawn(move || {
+                crate::readback::avoid(avoid_cpu);
+                let opened = (|| -> Result<_, ipc::IpcError> {
+                    let node = ipc::create_node(&root, &format!("ppmd-{name}-telemetry"))?;
+                    let service = ipc::open_telemetry_service(&node, &name)?;
+                    let publisher = service.publisher_builder().create().map_err(|e| {
+                        ipc::IpcError::new(
+                            format!("creating the telemetry publisher of `{name}`"),
+                            e,
+                        )
+                    })?;
+                    Ok((node, service, publisher))
+                })();
+                match opened {
+                    Ok((_node, _service, publisher)) => {
+                        let _ = ready_tx.send(Ok(()));
+                        self.run(&publisher, &flag);
+                    }
+                    Err(e) => {
+                        let _ = ready_tx.send(Err(e));
+                    }
+                }
+            })
+            .context("spawning the telemetry thread")?;
+        let mut t = Telemetry {
+            stop,
+            thread: Some(thread),
+        };
+        match ready_rx.recv() {
+            Ok(Ok(())) => Ok(t),
+            Ok(Err(e)) => {
+                t.finish();
+                Err(e.into())
+            }
+            Err(_) => {
+                t.finish();
+                anyhow::bail!("the telemetry thread stopped at start")
+            }
+        }
+    }
+
+    fn run(mut self, publisher: &ipc::Publisher<TelemetrySample>, stop: &AtomicBool) {
+        log::info!(
+            "{}telemetry: reading {} (CRSF from the flight controller)",
+            self.tag,
+            self.port.display()
+        );
+        let mut reader = TelemetryReader::new();
+        let mut sample = TelemetrySample::default();
+        let mut buf = [0u8; 512];
+        let mut published = 0u64;
+        let mut failing = false;
+        while !stop.load(Relaxed) {
+            let wait = if reader.buffered() > 0 { GAP } else { WAIT };
+            let before = reader.counts().frames;
+            match wait_readable(&self.file, wait) {
+                Ok(Readable::Yes) => match self.file.read(&mut buf) {
+                    Ok(n) => {
+                        if failing {
+                            log::info!(
+                                "{}telemetry: {} reads again",
+                                self.tag,
+                                self.port.display()
+                            );
+                            failing = false;
+                        }
+                        let now = now_ns();
+                        reader.feed(&buf[..n], |frame, t| sample.take(frame, &t, now));
+                    }
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => {}
+                    Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                    Err(e) => self.failed(&mut failing, &e),
+                },
+                Ok(Readable::Quiet) => {
+                    let now = now_ns();
+                    reader.gap(|frame, t| sample.take(frame, &t, now));
+                }
+                Ok(Readable::HungUp) => {
+                    // The other end of a pseudo-terminal closed, or the
+                    // device went away: poll would return at once.
+                    let e = io::Error::from_raw_os_error(libc::EIO);
+                    self.failed(&mut failing, &e);
+                }
+                Err(e) => self.failed(&mut failing, &e),
+            }
+            let now = now_ns();
+            if reader.counts().frames != before || now.saturating_sub(published) >= PUBLISH_EVERY_NS
+            {
+                sample.counts = reader.counts().to_array();
+                sample.published_mono_ns = now;
+                if let Err(e) = ipc::publish(publisher, sample) {
+                    log::debug!("publishing the telemetry: {}", Chain(&e));
+                }
+                published = now;
+            }
+        }
+    }
+
+    /// Says once that reading failed, and waits a little before the next
+    /// try.
+    fn failed(&mut self, failing: &mut bool, e: &io::Error) {
+        if !*failing {
+            log::warn!(
+                "{}telemetry: reading {}: {e}",
+                self.tag,
+                self.port.display()
+            );
+            *failing = true;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// What `poll` found.
+enum Readable {
+    /// Bytes to read.
+    Yes,
+    /// None within the wait.
+    Quiet,
+    /// The tty hung up or failed.
+    HungUp,
+}
+
+fn wait_readable(file: &File, wait: Duration) -> io::Result<Readable> {
+    use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+    let mut fds = [PollFd::new(file.as_fd(), PollFlags::POLLIN)];
+    let ms = u16::try_from(wait.as_millis()).unwrap_or(u16::MAX);
+    match poll(&mut fds, PollTimeout::from(ms)) {
+        Ok(0) => Ok(Readable::Quiet),
+        Ok(_) => {
+            let r = fds[0].revents().unwrap_or(PollFlags::empty());
+            if r.contains(PollFlags::POLLIN) {
+                Ok(Readable::Yes)
+            } else {
+                Ok(Readable::HungUp)
+            }
+        }
+        // Interrupted: look again (a read finds nothing, harmlessly).
+        Err(nix::errno::Errno::EINTR) => Ok(Readable::Yes),
+        Err(e) => Err(io::Error::from(e)),
+    }
+}
+
+/// A running telemetry thread.
+pub struct Telemetry {
+    stop: Arc<AtomicBool>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl Telemetry {
+    /// Stops the thread.
+    pub fn finish(&mut self) {
+        self.stop.store(true, Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for Telemetry {
+    fn drop(&mut self) {
+        self.finish();
+    }
+}
