@@ -120,6 +120,27 @@ pub fn open_lines(shared: &Shared, outputs: Vec<OutputPlan>) -> Result<Lines> {
                     let at = format!("output `{}`: serial:{}", cfg.name, device.display());
                     line_error(cfg, e, at)
                 })?;
+                if let Some(real) = out.rate_off(format.baud) {
+                    let message = format!(
+                        "output `{}`: the UART of {} runs at {real} baud, not the {} asked (its clock cannot make that rate, and the kernel keeps another without an error): receivers would misread every frame; on a Raspberry Pi use a PL011 UART (ttyAMA*), whose clock makes it, or a USB adaptor that does{}",
+                        cfg.name,
+                        device.display(),
+                        format.baud,
+                        if model.protocol() == ppm_shared::wire::Protocol::Crsf {
+                            ", or set ppm.crsf_baud to a rate it makes"
+                        } else {
+                            ""
+                        }
+                    );
+                    if !shared.rt.allow_degraded {
+                        return Err(match cfg.keys.name("ppmd.output") {
+                            KeyName::File(key) => ConfigError::Invalid { key, message },
+                            KeyName::Option(o) => ConfigError::Usage(format!("{o}: {message}")),
+                        }
+                        .into());
+                    }
+                    log::warn!("DEGRADED RUN (rt.allow_degraded): {message}");
+                }
                 log::info!(
                     "output `{}`: serial {} ({}, {}, each frame one write)",
                     cfg.name,

@@ -254,20 +254,17 @@ impl SerialLine {
                 io::Error::last_os_error(),
             ));
         }
-        // A UART whose clock cannot make the rate gets another one (the
-        // nearest its divisor makes, or the one it had) without an error:
-        // read it back and say so.
-        if let Ok(now) = line.settings() {
-            if baud_off(format.baud, now.ospeed) {
-                log::warn!(
-                    "{}: the UART runs at {} baud, not the {} asked (its clock cannot make that rate): receivers will misread every frame; on a Raspberry Pi use a PL011 UART (ttyAMA*), whose clock makes it, or a USB adaptor that does",
-                    path.display(),
-                    now.ospeed,
-                    format.baud
-                );
-            }
-        }
         Ok(line)
+    }
+
+    /// The rate the UART runs at, when it is off by more than a receiver
+    /// takes ([`baud_off`]) from `asked`: a UART whose clock cannot make
+    /// the rate gets another one (the nearest its divisor makes, or the one
+    /// it had) without an error, so the rate is read back. `None` when it
+    /// runs at the rate (or cannot be read back).
+    pub fn rate_off(&self, asked: u32) -> Option<u32> {
+        let now = self.settings().ok()?;
+        baud_off(asked, now.ospeed).then_some(now.ospeed)
     }
 
     /// The path the line was opened at.

@@ -151,7 +151,17 @@ fn kernel_baud(uartclk: u64, asked: u64, before: u64) -> (u64, u64) {
 /// driver makes of 420 000 baud with the UART's clock (reported: what the
 /// port really runs at).
 pub(crate) fn check_crsf_serial(out: &Path, flavor: &str) {
+    // A UART that cannot make the rate stops ppmd at start, naming the
+    // output and the rate it runs at, unless the run may be degraded.
+    let refused = read(out, "crsf_refused.log");
+    assert_eq!(read(out, "crsf_refused_exit.txt").trim(), "78", "{refused}");
+    assert!(
+        refused.contains("--output: output `vm-crsf`: the UART of /dev/ttyS2 runs at")
+            && refused.contains("not the 420000 asked"),
+        "{refused}"
+    );
     let log = read(out, "crsf_ppmd.log");
+    assert!(log.contains("DEGRADED RUN (rt.allow_degraded)"), "{log}");
     assert_eq!(read(out, "crsf_ppmd_exit.txt").trim(), "0", "{log}");
     assert!(log.contains("serial /dev/ttyS2"), "{log}");
     assert!(log.contains(" 0 write errors"), "{log}");
