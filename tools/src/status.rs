@@ -141,7 +141,52 @@ pub fn readable(r: &StatusReply) -> String {
         }
         Some(p) => ppmd_line(p),
     };
+    if let Some(rb) = &r.readback {
+        out += &format!(
+            "read-back of {}: {} ({} changes), {} frames read, {} not ppm's\n",
+            rb.input, rb.state, rb.changes, rb.frames, rb.mismatched
+        );
+    }
+    if let Some(t) = &r.telemetry {
+        out += &telemetry_line(t);
+    }
     out
+}
+
+/// The `telemetry ...` line of [`readable`]: the flight controller's
+/// state, then each kind it sent, then the frames.
+fn telemetry_line(t: &ppm_shared::crsf::report::TelemetryStatus) -> String {
+    let mut parts = vec![t.state.clone()];
+    if let Some(b) = &t.battery {
+        parts.push(format!(
+            "battery {:.1} V {:.1} A {} mAh {} %",
+            b.voltage_v, b.current_a, b.used_mah, b.remaining_pct
+        ));
+    }
+    if let Some(a) = &t.attitude {
+        parts.push(format!(
+            "roll {:.1} pitch {:.1} yaw {:.1} deg",
+            a.roll_rad.to_degrees(),
+            a.pitch_rad.to_degrees(),
+            a.yaw_rad.to_degrees()
+        ));
+    }
+    if let Some(g) = &t.gps {
+        parts.push(format!(
+            "GPS {:.7} {:.7} {} m {} satellites",
+            g.lat_deg, g.lon_deg, g.altitude_m, g.satellites
+        ));
+    }
+    if let Some(f) = &t.flight_mode {
+        parts.push(format!("mode {}", f.mode));
+    }
+    let bad: u64 = t.bad.values().sum();
+    format!(
+        "telemetry on {}: {}; {} frames, {bad} bad\n",
+        t.port,
+        parts.join(", "),
+        t.frames
+    )
 }
 
 /// The `ppmd: ...` line of [`readable`].
@@ -262,6 +307,19 @@ mod tests {
         );
         assert!(text.contains("newest command: none yet"), "{text}");
         assert!(text.contains("more than 3 s"), "{text}");
+        r["telemetry"] = serde_json::json!({"state": "receiving", "port": "/dev/ttyAMA0",
+            "age_ms": 2.0, "frames": 160, "bad": {"bad_crc": 40, "truncated": 1},
+            "junk_bytes": 0, "other": 0,
+            "battery": {"voltage_v": 16.8, "current_a": 12.3, "used_mah": 1234,
+                "remaining_pct": 75, "age_ms": 1.0},
+            "attitude": {"roll_rad": -0.5, "pitch_rad": 0.1234, "yaw_rad": 3.0, "age_ms": 1.0},
+            "gps": null, "flight_mode": {"mode": "ANGL", "age_ms": 1.0}, "vario": null,
+            "baro_altitude": null, "link_statistics": null});
+        let text = read(&r);
+        assert!(
+            text.ends_with("telemetry on /dev/ttyAMA0: receiving, battery 16.8 V 12.3 A 1234 mAh 75 %, roll -28.6 pitch 7.1 yaw 171.9 deg, mode ANGL; 160 frames, 41 bad\n"),
+            "{text}"
+        );
         r["datagrams"] = Value::Null;
         assert!(parse(&r.to_string(), ([127, 0, 0, 1], 9).into()).is_err());
     }
