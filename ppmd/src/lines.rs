@@ -297,7 +297,7 @@ pub fn open_sim(
 fn create_sim(cfg: &OutputPlan, trace_max_mb: u64, path: Option<PathBuf>) -> Result<SimLine> {
     let model = &cfg.model;
     let path = path.unwrap_or_else(|| PathBuf::from(format!("ppm-{}.trace", cfg.name)));
-    let header = [
+    let header: Vec<String> = [
         "ppm simulated line: <scheduled_ns> <actual_ns> <level>, CLOCK_MONOTONIC".to_string(),
         format!("name {}", cfg.name),
         format!("idle_level {}", model.idle_level().as_u8()),
@@ -306,7 +306,10 @@ fn create_sim(cfg: &OutputPlan, trace_max_mb: u64, path: Option<PathBuf>) -> Res
         format!("pulse_ns {}", model.pulse_ns()),
         format!("receiver {}", model.receiver().name()),
         format!("protocol {}", model.protocol().name()),
-    ];
+    ]
+    .into_iter()
+    .chain(model.wire().uart().map(|u| format!("baud {}", u.baud)))
+    .collect::<Vec<_>>();
     let sim = SimLine::create(&path, &header, trace_max_mb << 20).map_err(|e| {
         fault::path_error(
             &cfg.keys.name("ppmd.output"),

@@ -318,6 +318,11 @@ impl ReceiverDecoder {
         }
     }
 
+    /// The receiver modelled.
+    pub fn receiver(&self) -> Receiver {
+        self.receiver
+    }
+
     /// What was thrown away so far.
     pub fn stats(&self) -> ReceiverStats {
         self.stats

@@ -90,6 +90,9 @@ pub struct Trace {
     /// From a `# channels NAME,NAME,...` comment: how many channels a
     /// whole frame has.
     pub channels: Option<usize>,
+    /// From a `# baud N` comment: a protocol of bytes' UART rate (the
+    /// protocol's default when absent).
+    pub baud: Option<u32>,
 }
 
 impl Trace {
@@ -111,6 +114,9 @@ impl Trace {
             }
             if let Some(v) = text.trim().strip_prefix("# channels ") {
                 trace.channels = Some(v.trim().split(',').count());
+            }
+            if let Some(v) = text.trim().strip_prefix("# baud ") {
+                trace.baud = v.trim().parse().ok();
             }
             match parse_line(&text) {
                 None => {}

@@ -178,6 +178,11 @@ impl Reader {
         }
     }
 
+    /// The format it reads.
+    pub fn format(&self) -> UartFormat {
+        self.format
+    }
+
     /// The line went to `level` at `t_ns` (edges in time order): the
     /// character this completes, if any.
     pub fn push(&mut self, t_ns: u64, level: Level) -> Option<Character> {

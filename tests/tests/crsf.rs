@@ -106,6 +106,74 @@ fn crsf_on_the_simulated_line_reads_back_as_8n1_at_420000() {
             ail.len() == sent.len() && ail.iter().zip(&sent).all(|(a, s)| a.abs_diff(*s) <= 1);
         assert!(close, "{r:?}: every command in order: {ail:?} vs {sent:?}");
     }
+    // ppm-watch reads the same trace as each firmware does: one line per
+    // RC frame, the commands in order; EdgeTX takes no CRSF.
+    let trace = sb.dir.join("line.trace");
+    let watch = |args: &[&str]| {
+        std::process::Command::new(ppm_tests::bin("ppm-watch"))
+            .arg(&trace)
+            .args(["--once", "--actual"])
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    for args in [
+        &[][..],
+        &["--receiver", "betaflight"],
+        &["--receiver", "ardupilot"],
+    ] {
+        let out = watch(args);
+        assert!(out.status.success(), "{out:?}");
+        let text = String::from_utf8(out.stdout).unwrap();
+        assert_eq!(text.lines().count(), frames, "{args:?}: {text}");
+        let mut ail: Vec<u64> = text
+            .lines()
+            .map(|l| {
+                let v = l.split_whitespace().skip_while(|w| *w != "ail").nth(1);
+                v.and_then(|v| v.parse::<f64>().ok())
+                    .expect("an ail value")
+                    .round() as u64
+            })
+            .collect();
+        ail.dedup();
+        let close =
+            ail.len() == sent.len() && ail.iter().zip(&sent).all(|(a, s)| a.abs_diff(*s) <= 1);
+        assert!(close, "{args:?}: {ail:?} vs {sent:?}");
+    }
+    // jitter --trace reads it as 8N1 at 420000, every character good, and
+    // Betaflight's framing takes and uses every RC frame (and every link
+    // statistics frame).
+    let jitter = std::process::Command::new(ppm_tests::bin("jitter"))
+        .args([
+            "--trace",
+            trace.to_str().unwrap(),
+            "--receiver",
+            "betaflight",
+        ])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&jitter.stdout);
+    assert!(jitter.status.success(), "{jitter:?}");
+    assert!(text.contains("(CRSF, 420000 baud 8N1)"), "{text}");
+    assert!(
+        text.contains(&format!(
+            "characters {} (0 with a parity or stop bit error)",
+            chars.len()
+        )),
+        "{text}"
+    );
+    assert!(
+        text.contains(&format!(
+            "betaflight takes {frames} frames and uses {frames}"
+        )),
+        "{text}"
+    );
+    let edgetx = watch(&["--receiver", "edgetx"]);
+    assert!(!edgetx.status.success());
+    assert!(
+        String::from_utf8_lossy(&edgetx.stderr).contains("edgetx takes no CRSF"),
+        "{edgetx:?}"
+    );
 }
 
 /// ppmd sets the pseudo-terminal to raw 420 000 baud 8N1 (read through

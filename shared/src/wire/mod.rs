@@ -14,6 +14,8 @@
 //! - [`sbus`]: SBUS's spec, settings (its receivers) and encoding.
 //! - [`crsf`]: CRSF's spec, settings (firmware, baud rate), timing and
 //!   encoding.
+//! - [`reader`]: a receiver reading a line edge by edge, whatever the
+//!   protocol ([`reader::LineReader`]), for the tools that decode a trace.
 //! - [`uart`] (the crate's, below SBUS and here): bytes on a UART in a
 //!   protocol's [`UartFormat`] (baud, parity, stop bits), what the serial
 //!   line sets and the simulated line draws.
@@ -23,6 +25,7 @@
 
 pub mod crsf;
 pub mod ppm;
+pub mod reader;
 pub mod sbus;
 pub use crate::uart;
 

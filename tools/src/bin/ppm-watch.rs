@@ -1,14 +1,15 @@
 //! `ppm-watch`: decodes the simulated line's trace as a receiver's firmware
 //! would and shows the channel values, live or once: PPM as the receiver's
-//! capture reads it, SBUS (a trace whose header says `protocol sbus`) as its
-//! UART and framing read it.
+//! capture reads it, SBUS and CRSF (a trace whose header says `protocol
+//! sbus` or `protocol crsf`) as its UART and framing read them
+//! ([`ppm_shared::wire::reader::LineReader`]).
 
 use anyhow::{Context, Result};
 use clap::Parser;
 use ppm_shared::frame::{Level, Protocol};
-use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder, TIMED_EDGE};
-use ppm_shared::sbus::{uart, Framer, SbusReceiver, Taken, Verdict};
-use ppm_shared::trace::{parse_line, Trace};
+use ppm_shared::receiver::{Receiver, ReceiverChoice};
+use ppm_shared::trace::parse_line;
+use ppm_shared::wire::reader::{LineReader, Reading};
 use ppm_tools::parse_duration;
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -32,8 +33,8 @@ struct Cli {
     #[arg(long)]
     actual: bool,
     /// Decode as this receiver does: edgetx, opentx, betaflight or
-    /// ardupilot (default: the one ppmd's configuration names in the trace,
-    /// edgetx when that is `any`).
+    /// ardupilot (default: the one ppmd's configuration names in the trace;
+    /// when that is `any`, edgetx, or for CRSF iNav's reading).
     #[arg(long, value_name = "RECEIVER")]
     receiver: Option<Receiver>,
 }
@@ -51,24 +52,19 @@ fn run(cli: Cli) -> Result<()> {
             .with_context(|| format!("reading {}", cli.trace.display()))?;
         let mut header = Header::default();
         text.lines().for_each(|l| header.take(l));
-        let trace = Trace::read(text.as_bytes())?;
-        let receiver = cli.receiver.unwrap_or(trace.default_receiver());
-        let shown: Vec<String> = match trace.protocol {
-            Protocol::Ppm => trace
-                .decode_as(receiver, cli.actual)
-                .iter()
-                .map(|f| header.format(f.start_ns, &f.channels_ns, f.complete))
-                .collect(),
-            Protocol::Sbus => {
-                let r = sbus_receiver(receiver)?;
-                trace
-                    .sbus_taken(r, cli.actual)
-                    .iter()
-                    .map(|t| header.format_sbus(r, t))
-                    .collect()
-            }
-            Protocol::Crsf => anyhow::bail!("ppm-watch does not decode CRSF traces yet"),
-        };
+        let trace = ppm_shared::trace::Trace::read(text.as_bytes())?;
+        let mut reader = header.reader(cli.receiver)?;
+        let mut shown = Vec::new();
+        let mut last = 0;
+        for e in &trace.edges {
+            last = if cli.actual {
+                e.actual_ns
+            } else {
+                e.scheduled_ns
+            };
+            shown.extend(reader.push(last, e.level).map(|r| header.show(&r)));
+        }
+        shown.extend(reader.idle(last + 1_000_000_000).map(|r| header.show(&r)));
         let mut out = std::io::stdout().lock();
         for line in shown {
             if writeln!(out, "{line}").is_err() {
@@ -80,19 +76,6 @@ fn run(cli: Cli) -> Result<()> {
     follow(&cli)
 }
 
-/// The SBUS receiver whose reading `ppm-watch` shows for `receiver`:
-/// Betaflight's is 2026.6's (4.5 reads values alike).
-fn sbus_receiver(receiver: Receiver) -> Result<SbusReceiver> {
-    match receiver {
-        Receiver::EdgeTx => Ok(SbusReceiver::EdgeTx),
-        Receiver::Betaflight => Ok(SbusReceiver::Betaflight2026),
-        Receiver::ArduPilot => Ok(SbusReceiver::ArduPilot),
-        Receiver::OpenTx => anyhow::bail!(
-            "OpenTX's SBUS input is not modelled: use --receiver edgetx, betaflight or ardupilot"
-        ),
-    }
-}
-
 /// What the trace's `#` header says.
 #[derive(Default)]
 struct Header {
@@ -100,6 +83,7 @@ struct Header {
     names: Vec<String>,
     receiver: Option<ReceiverChoice>,
     protocol: Protocol,
+    baud: Option<u32>,
 }
 
 impl Header {
@@ -112,6 +96,33 @@ impl Header {
             self.receiver = v.trim().parse().ok();
         } else if let Some(v) = line.trim().strip_prefix("# protocol ") {
             self.protocol = v.trim().parse().unwrap_or(self.protocol);
+        } else if let Some(v) = line.trim().strip_prefix("# baud ") {
+            self.baud = v.trim().parse().ok();
+        }
+    }
+
+    /// The reader of this trace's line, as `receiver` reads it (by default
+    /// the one the header names; the protocol's usual one for `any`).
+    fn reader(&self, receiver: Option<Receiver>) -> Result<LineReader> {
+        let receiver = receiver.or(match self.receiver {
+            Some(ReceiverChoice::One(r)) => Some(r),
+            _ => None,
+        });
+        // A UART idles high unless the header says otherwise; the PPM
+        // receivers time the rising edge whatever the idle level.
+        let idle = self.idle.unwrap_or(Level::High);
+        LineReader::new(self.protocol, receiver, idle, self.baud).map_err(anyhow::Error::msg)
+    }
+
+    /// The line shown for what the receiver made of a frame.
+    fn show(&self, r: &Reading) -> String {
+        match r {
+            Reading::Frame {
+                at_ns,
+                channels_ns,
+                complete,
+            } => self.format(*at_ns, channels_ns, *complete),
+            Reading::Refused { at_ns, why } => format!("{:>14.6} s  {why}", *at_ns as f64 / 1e9),
         }
     }
 
@@ -138,52 +149,6 @@ impl Header {
         }
         s
     }
-
-    /// An SBUS frame `receiver` took: its values, or what it does instead.
-    fn format_sbus(&self, receiver: SbusReceiver, t: &Taken) -> String {
-        match receiver.verdict(&t.frame) {
-            Verdict::Used(r) => self.format(t.at_ns, &r.channels_ns, true),
-            v => format!(
-                "{:>14.6} s  {}",
-                t.at_ns as f64 / 1e9,
-                match v {
-                    Verdict::Invalid => "invalid frame (header or end byte)",
-                    Verdict::NoSignal => "failsafe flag: no signal",
-                    _ => "failsafe",
-                }
-            ),
-        }
-    }
-}
-
-/// A receiver's decoder, fed the trace's edges as they come.
-enum Watcher {
-    Ppm(ReceiverDecoder),
-    Sbus {
-        receiver: SbusReceiver,
-        uart: uart::Reader,
-        framer: Framer,
-    },
-}
-
-impl Watcher {
-    /// The line shown for the frame this edge completes, if any.
-    fn push(&mut self, header: &Header, t: u64, level: Level) -> Option<String> {
-        match self {
-            Watcher::Ppm(d) => d
-                .push(t, level)
-                .map(|f| header.format(f.start_ns, &f.channels_ns, f.complete)),
-            Watcher::Sbus {
-                receiver,
-                uart,
-                framer,
-            } => {
-                let c = uart.push(t, level)?;
-                let taken = framer.push(c.byte, c.end_ns)?;
-                Some(header.format_sbus(*receiver, &taken))
-            }
-        }
-    }
 }
 
 /// Follows the file as ppmd writes it (like `tail -f`), starting over when
@@ -198,7 +163,7 @@ fn follow(cli: &Cli) -> Result<()> {
     };
     eprintln!("watching {} (Ctrl-C to stop)", cli.trace.display());
     let mut header = Header::default();
-    let mut decoder: Option<Watcher> = None;
+    let mut decoder: Option<LineReader> = None;
     let mut pending = String::new();
     let mut offset = 0u64;
     let mut last_print: Option<Instant> = None;
@@ -233,22 +198,7 @@ fn follow(cli: &Cli) -> Result<()> {
             };
             last_edge = Instant::now();
             if decoder.is_none() {
-                let receiver = cli.receiver.unwrap_or(match header.receiver {
-                    Some(ReceiverChoice::One(r)) => r,
-                    _ => Receiver::EdgeTx,
-                });
-                decoder = Some(match header.protocol {
-                    Protocol::Ppm => Watcher::Ppm(ReceiverDecoder::new(receiver, TIMED_EDGE)),
-                    Protocol::Sbus => {
-                        let r = sbus_receiver(receiver)?;
-                        Watcher::Sbus {
-                            receiver: r,
-                            uart: uart::Reader::new(header.idle.unwrap_or(Level::High)),
-                            framer: Framer::new(r),
-                        }
-                    }
-                    Protocol::Crsf => anyhow::bail!("ppm-watch does not decode CRSF traces yet"),
-                });
+                decoder = Some(header.reader(cli.receiver)?);
             }
             let d = decoder.as_mut().expect("made above");
             let t = if cli.actual {
@@ -256,7 +206,7 @@ fn follow(cli: &Cli) -> Result<()> {
             } else {
                 edge.scheduled_ns
             };
-            if let Some(shown) = d.push(&header, t, edge.level) {
+            if let Some(shown) = d.push(t, edge.level).map(|r| header.show(&r)) {
                 silent = false;
                 if last_print.is_none_or(|p| p.elapsed() >= cli.every) {
                     println!("{shown}");

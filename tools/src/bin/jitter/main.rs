@@ -21,6 +21,7 @@ use ppm_shared::frame::Level;
 use ppm_shared::ipc::{self, TimingSnapshot, HIST_BUCKETS};
 use ppm_shared::receiver::{Receiver, ReceiverChoice, ReceiverDecoder, TIMED_EDGE};
 use ppm_shared::trace::Trace;
+use ppm_shared::wire::reader::{LineReader, Reading};
 use ppm_tools::analysis::{analyse_trace, Percentiles};
 use ppm_tools::cyclic::{parse_cyclictest_duration, LatencyStats};
 use std::io::Write;
@@ -390,16 +391,16 @@ fn attach_line(s: &TimingSnapshot, unit: u64) -> String {
 fn trace(path: &PathBuf, receiver: Option<Receiver>, plot: Option<&Path>) -> Result<()> {
     let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
     let t = Trace::read(std::io::BufReader::new(file))?;
-    let receiver = receiver.unwrap_or(t.default_receiver());
-    match t.protocol {
-        ppm_shared::frame::Protocol::Sbus => return sbus_trace(path, &t, receiver, plot),
-        ppm_shared::frame::Protocol::Ppm => {}
-        other => anyhow::bail!(
-            "{}: a trace of a {} output; jitter --trace reads PPM and SBUS traces",
-            path.display(),
-            other.name()
-        ),
+    let asked = receiver.or(match t.receiver {
+        Some(ReceiverChoice::One(r)) => Some(r),
+        _ => None,
+    });
+    let idle = t.idle_level.unwrap_or(Level::High);
+    let reader = LineReader::new(t.protocol, asked, idle, t.baud).map_err(anyhow::Error::msg)?;
+    if let Some(format) = reader.uart_format() {
+        return bytes_trace(path, &t, reader, format, plot);
     }
+    let receiver = receiver.unwrap_or(t.default_receiver());
     let r = analyse_trace(&t, receiver);
     println!("# jitter --trace {}", path.display());
     println!(
@@ -428,23 +429,38 @@ fn trace(path: &PathBuf, receiver: Option<Receiver>, plot: Option<&Path>) -> Res
     Ok(())
 }
 
-/// Analysis of an SBUS output's sim trace: its bit edges' error (every
-/// edge of a frame has its write's), the characters a UART receiver reads
-/// from the edges as written, and the frames the receiver's framing takes.
-fn sbus_trace(path: &Path, t: &Trace, receiver: Receiver, plot: Option<&Path>) -> Result<()> {
-    use ppm_shared::sbus::SbusReceiver;
-    let r = match receiver {
-        Receiver::EdgeTx => SbusReceiver::EdgeTx,
-        Receiver::Betaflight => SbusReceiver::Betaflight2026,
-        Receiver::ArduPilot => SbusReceiver::ArduPilot,
-        Receiver::OpenTx => {
-            anyhow::bail!("OpenTX's SBUS input is not modelled: use --receiver edgetx, betaflight or ardupilot")
-        }
-    };
+/// Analysis of the trace of a protocol of bytes (SBUS, CRSF): the edge
+/// error, the characters a UART in the wire's format reads, and the frames
+/// `reader`'s firmware takes and uses.
+fn bytes_trace(
+    path: &Path,
+    t: &Trace,
+    mut reader: LineReader,
+    format: ppm_shared::wire::UartFormat,
+    plot: Option<&Path>,
+) -> Result<()> {
     let mut errors: Vec<f64> = t.edges.iter().map(|e| e.error_ns() as f64).collect();
-    let chars = t.sbus_characters(true);
+    let idle = t.idle_level.unwrap_or(Level::High);
+    let edges: Vec<(u64, Level)> = t.edges.iter().map(|e| (e.actual_ns, e.level)).collect();
+    let chars = ppm_shared::wire::uart::decode(format, &edges, idle);
     let bad = chars.iter().filter(|c| !c.parity_ok || !c.stop_ok).count();
-    println!("# jitter --trace {} (SBUS)", path.display());
+    let (mut used, mut refused, mut last) = (0, 0, 0);
+    let mut count = |r: Option<Reading>| match r {
+        Some(Reading::Frame { .. }) => used += 1,
+        Some(Reading::Refused { .. }) => refused += 1,
+        None => {}
+    };
+    for &(at, level) in &edges {
+        count(reader.push(at, level));
+        last = at;
+    }
+    count(reader.idle(last + 1_000_000_000));
+    let protocol = t.protocol.name().to_uppercase();
+    println!(
+        "# jitter --trace {} ({protocol}, {})",
+        path.display(),
+        format.describe()
+    );
     println!(
         "edges {} characters {} ({bad} with a parity or stop bit error), by actual time",
         t.edges.len(),
@@ -455,15 +471,18 @@ fn sbus_trace(path: &Path, t: &Trace, receiver: Receiver, plot: Option<&Path>) -
         Percentiles::of(&mut errors).line(1_000.0)
     );
     println!(
-        "{} takes {} frames (by actual time, as its UART and framing read them)",
-        r.name(),
-        t.sbus_taken(r, true).len()
+        "{} takes {} frames and uses {used} (by actual time, as its UART and framing read them)",
+        reader.reads_as(),
+        used + refused
     );
     if let Some(out) = plot {
         let errors: Vec<f64> = t.edges.iter().map(|e| e.error_ns() as f64).collect();
         plot_values(
             out,
-            &format!("jitter --trace: edge error of {} SBUS edges", t.edges.len()),
+            &format!(
+                "jitter --trace: edge error of {} {protocol} edges",
+                t.edges.len()
+            ),
             &errors,
         )?;
     }
