@@ -432,3 +432,70 @@ fn telemetry_from_the_flight_controller_reaches_the_groundstation() {
 fn pty_path(output: &str) -> String {
     output.trim_start_matches("serial:").to_owned()
 }
+
+/// Nothing the flight controller sends can reach the line: while 256 KiB
+/// of random bytes pour in on the tty's receive side, ppmd writes every
+/// command, in order, as whole frames, and the telemetry reader counts the
+/// junk.
+#[test]
+fn a_flood_on_the_receive_side_changes_nothing_on_the_line() {
+    let sb = Sandbox::new("crsf-flood");
+    let pty = std::sync::Arc::new(Pty::open().expect("a pseudo-terminal"));
+    let output = format!("serial:{}", pty.slave.display());
+    let cfg = sb.config(&format!(
+        "[ppmd]\noutput = \"{output}\"\n{}",
+        crsf_config("betaflight")
+    ));
+    let cfg_s = cfg.to_str().unwrap();
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg_s], "ppmd");
+    ppmd.wait_for_log("telemetry: reading", Duration::from_secs(20));
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    let flood = {
+        let pty = pty.clone();
+        std::thread::spawn(move || {
+            // xorshift: no two runs alike, nothing to seed.
+            let mut x = ppm_shared::time::now_ns() | 1;
+            let mut sent = 0;
+            while sent < 256 * 1024 {
+                let chunk: Vec<u8> = (0..1024)
+                    .map(|_| {
+                        x ^= x << 13;
+                        x ^= x >> 7;
+                        x ^= x << 17;
+                        x as u8
+                    })
+                    .collect();
+                pty.send(&chunk).expect("writing to the pty");
+                sent += chunk.len();
+            }
+        })
+    };
+    let sent = send_60(&sb);
+    flood.join().expect("the flood");
+    std::thread::sleep(Duration::from_millis(300));
+    let st = status(sb.addr());
+    stop_all(&mut ppmd, &mut [&mut ingress]);
+    let pty = std::sync::Arc::try_unwrap(pty).unwrap_or_else(|_| panic!("the pty is shared"));
+    let chunks = pty.finish();
+    let bytes: Vec<u8> = chunks.iter().flat_map(|c| c.1.clone()).collect();
+    let frame_len = crsf::RC_FRAME_LEN + LinkStatistics::FRAME_LEN;
+    assert_eq!(bytes.len() % frame_len, 0, "whole frames only");
+    let r = CrsfReceiver::Betaflight;
+    let mut ail: Vec<u64> = bytes
+        .chunks(frame_len)
+        .map(|f| {
+            let raw = crsf::decode_rc(f[..crsf::RC_FRAME_LEN].try_into().unwrap()).expect("CRC");
+            (r.read_ns(raw[0]) + 500) / 1_000
+        })
+        .collect();
+    ail.dedup();
+    assert_eq!(ail, sent, "every command, in order");
+    let t = st.telemetry.expect("a telemetry member");
+    let dropped: u64 = t.bad.values().sum();
+    assert!(t.junk_bytes + dropped > 100_000, "{t:?}");
+    assert!(
+        ppmd.log_text().contains(" 0 write errors"),
+        "{}",
+        ppmd.log_text()
+    );
+}
