@@ -323,8 +323,22 @@ fn telemetry_from_the_flight_controller_reaches_the_groundstation() {
     let lines = gcs.join().expect("the groundstation");
     std::thread::sleep(Duration::from_millis(300));
     let st = status(sb.addr());
+    // The Python package's telemetry query: the same member.
+    let asked = python3(
+        &sb.dir,
+        ppm_tests::PYTHON_PACKAGE,
+        &[
+            "-c",
+            "import json, sys, ppm; print(json.dumps(ppm.Sender(sys.argv[1]).telemetry()))",
+            &sb.addr().to_string(),
+        ],
+    );
     stop_all(&mut ppmd, &mut [&mut ingress]);
     let _ = pty.finish();
+    let asked: serde_json::Value = serde_json::from_str(&asked).expect("JSON");
+    assert_eq!(asked["battery"]["voltage_v"], 16.8, "{asked}");
+    assert_eq!(asked["flight_mode"]["mode"], "ANGL", "{asked}");
+    assert_eq!(asked["frames"], 4 * rounds, "{asked}");
 
     let t = st.telemetry.expect("a telemetry member");
     assert_eq!(t.port, pty_path(&output));

@@ -32,10 +32,13 @@
 
 pub mod cli;
 pub mod peers;
+mod query;
 pub mod readback;
 pub mod seqfile;
 pub mod server;
 pub mod telemetry;
+
+pub use query::{pad_to_text, query, status_answer, Query, StatusAnswer};
 
 use ipnet::IpNet;
 use ppm_shared::auth::{self, AuthKey};
@@ -44,14 +47,11 @@ use ppm_shared::ipc::{LineSample, ReadbackSample, TelemetrySample, TimingSnapsho
 use ppm_shared::line::LineState;
 use ppm_shared::mavlink;
 use ppm_shared::mavlink::telemetry::MAV_SEVERITY_INFO;
-use ppm_shared::protocol::{
-    self, Command, Reject, RejectReason, SeqGate, To, STATUS_REPLY_MAX_RATIO,
-};
+use ppm_shared::protocol::{self, Command, Reject, RejectReason, SeqGate, To};
 use ppm_shared::status::{
     Datagrams, EdgeError, MavlinkStatus, PpmdStatus, PublishLatency, ReceiverStatus, Rejected,
     StatusReply,
 };
-use serde_json::Value;
 use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
 
@@ -156,96 +156,12 @@ pub enum Outcome {
     Stale,
     /// Rejected; the string is a log line when the rate limit allows one.
     Rejected(RejectReason, Option<String>),
-    /// A status query: answer it with [`Intake::status`] (nothing changed).
-    Status,
+    /// A query: answer a status query with [`Intake::status`], a
+    /// telemetry query with [`Intake::telemetry_answer`] (nothing changed).
+    Status(Query),
     /// MAVLink without a command: HEARTBEATs, a request for the
     /// parameters (nothing changed).
     NoCommand,
-}
-
-/// A read-only query a datagram may carry instead of a command.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Query {
-    /// `{"get": "status"}`: the counters and ppmd's timing summary.
-    Status,
-}
-
-/// Recognises a query, before a datagram is parsed as a command.
-///
-/// `None`: not a query (no `"get"` key in a JSON object), parse it as a
-/// command. `Some(Err(_))`: an object with a `get` key that is not exactly
-/// `{"get": "status"}`, rejected as `bad_shape`. The parsed keys decide, so
-/// `{"\u0067et": "status"}` is a status query; a command that cannot have a
-/// `get` key ([`protocol::may_have_key`]) is not parsed twice.
-pub fn query(datagram: &[u8]) -> Option<Result<Query, Reject>> {
-    if !protocol::may_have_key(datagram, "get") {
-        return None;
-    }
-    // Not JSON, or with a key twice: the command's parse says why.
-    let Ok(Value::Object(map)) = protocol::json(datagram) else {
-        return None;
-    };
-    let get = map.get("get")?;
-    let bad = |detail: String| {
-        Some(Err(Reject {
-            reason: RejectReason::BadShape,
-            detail,
-        }))
-    };
-    if let Some(k) = map.keys().find(|k| *k != "get") {
-        return bad(format!(
-            "unexpected key `{k}` beside `get`: a status query is {{\"get\": \"status\"}} alone"
-        ));
-    }
-    match get.as_str() {
-        Some("status") => Some(Ok(Query::Status)),
-        _ => bad(format!(
-            "unknown query {get}: the only query is {{\"get\": \"status\"}}"
-        )),
-    }
-}
-
-/// What a status query gets ([`status_answer`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum StatusAnswer {
-    /// The whole reply.
-    Full,
-    /// `{"pad_to": N}`: the query must be at least N bytes for the reply.
-    PadTo(usize),
-    /// Nothing: even `{"pad_to": N}` would be more than 3 times the query.
-    Nothing,
-}
-
-/// The text of [`StatusAnswer::PadTo`].
-pub fn pad_to_text(n: usize) -> String {
-    format!(r#"{{"pad_to":{n}}}"#)
-}
-
-/// What a status query of `query_len` bytes from `from` gets, when the
-/// reply is `reply_len` bytes: the reply when `from` lies in `status_allow`
-/// or the reply is at most [`STATUS_REPLY_MAX_RATIO`] times the query;
-/// otherwise `{"pad_to": N}` (N the query size that would earn the reply),
-/// or nothing when even that is too large. A spoofed query never makes
-/// the ingress send more than 3 times what it received.
-pub fn status_answer(
-    reply_len: usize,
-    query_len: usize,
-    from: IpAddr,
-    status_allow: &[IpNet],
-) -> StatusAnswer {
-    if in_blocks(status_allow, from) {
-        return StatusAnswer::Full;
-    }
-    let cap = query_len.saturating_mul(STATUS_REPLY_MAX_RATIO);
-    if reply_len <= cap {
-        return StatusAnswer::Full;
-    }
-    let need = reply_len.div_ceil(STATUS_REPLY_MAX_RATIO);
-    if pad_to_text(need).len() <= cap {
-        StatusAnswer::PadTo(need)
-    } else {
-        StatusAnswer::Nothing
-    }
 }
 
 /// True when `ip` lies in one of `nets`, or `nets` is empty (no allowlist).
@@ -257,7 +173,7 @@ pub fn allowed(nets: &[IpNet], ip: IpAddr) -> bool {
 
 /// True when `ip` lies in one of `nets` (none when `nets` is empty); an
 /// IPv4 sender seen on a dual-stack socket matches IPv4 blocks.
-fn in_blocks(nets: &[IpNet], ip: IpAddr) -> bool {
+pub(crate) fn in_blocks(nets: &[IpNet], ip: IpAddr) -> bool {
     let canonical = ip.to_canonical();
     nets.iter()
         .any(|n| n.contains(&ip) || n.contains(&canonical))
@@ -446,6 +362,14 @@ impl Intake {
         }
     }
 
+    /// The answer to `{"get": "telemetry"}` at CLOCK_MONOTONIC
+    /// `now_mono_ns`: `{"name": ..., "telemetry": ...}`, the status reply's
+    /// member alone (`null` for an output without telemetry).
+    pub fn telemetry_answer(&self, now_mono_ns: u64) -> String {
+        let t = self.telemetry.as_ref().map(|t| t.status(now_mono_ns));
+        serde_json::json!({ "name": self.name, "telemetry": t }).to_string()
+    }
+
     /// An event [`Intake::readback`] gave could not be sent.
     pub fn readback_event_not_sent(&mut self) {
         if let Some(rb) = &mut self.readback {
@@ -499,9 +423,9 @@ impl Intake {
             }
         } else {
             match query(datagram) {
-                Some(Ok(Query::Status)) => {
+                Some(Ok(q)) => {
                     self.counters.status_requests += 1;
-                    return Outcome::Status;
+                    return Outcome::Status(q);
                 }
                 Some(Err(r)) => Err(r),
                 None => self.command(datagram).map_err(|r| {

@@ -13,7 +13,7 @@
 //! Its tests are in `src/server/tests.rs`.
 
 use crate::seqfile::SeqFile;
-use crate::{pad_to_text, status_answer, Intake, Outcome, ReceiveThread, StatusAnswer};
+use crate::{pad_to_text, status_answer, Intake, Outcome, Query, ReceiveThread, StatusAnswer};
 use anyhow::{Context, Result};
 use iceoryx2::port::update_connections::UpdateConnections;
 use mio::net::UdpSocket;
@@ -109,8 +109,8 @@ pub struct Server {
     thread: ReceiveThread,
     buf: Vec<u8>,
     cmsg: Vec<u8>,
-    /// Status queries of this wake-up: their sources and sizes.
-    status_to: Vec<(SocketAddr, usize)>,
+    /// Queries of this wake-up: their sources, sizes and what they ask.
+    status_to: Vec<(SocketAddr, usize, Query)>,
     /// `ingress.status_allow`.
     status_allow: Vec<ipnet::IpNet>,
     ppmd_snapshot: Option<TimingSnapshot>,
@@ -191,10 +191,10 @@ impl Server {
             {
                 Outcome::Rejected(_, Some(line)) => log::warn!("{line}"),
                 Outcome::Stale => log::debug!("stale command from {from} dropped"),
-                Outcome::Status if self.status_to.len() < MAX_STATUS_PER_WAKE => {
-                    self.status_to.push((from, n))
+                Outcome::Status(q) if self.status_to.len() < MAX_STATUS_PER_WAKE => {
+                    self.status_to.push((from, n, q))
                 }
-                Outcome::Status => self.intake.status_dropped(),
+                Outcome::Status(_) => self.intake.status_dropped(),
                 _ => {}
             }
         }
@@ -242,20 +242,36 @@ impl Server {
             if let Some(sub) = &self.stats {
                 newest_snapshot(sub, &mut self.ppmd_snapshot);
             }
-            let reply = self
-                .intake
-                .status(
-                    self.started.elapsed(),
-                    &self.thread,
-                    now_ns(),
-                    self.ppmd_snapshot.as_ref(),
-                )
-                .to_json();
-            for (to, query_len) in self.status_to.drain(..) {
+            let now = now_ns();
+            let status = self
+                .status_to
+                .iter()
+                .any(|q| q.2 == Query::Status)
+                .then(|| {
+                    self.intake
+                        .status(
+                            self.started.elapsed(),
+                            &self.thread,
+                            now,
+                            self.ppmd_snapshot.as_ref(),
+                        )
+                        .to_json()
+                });
+            let telemetry = self
+                .status_to
+                .iter()
+                .any(|q| q.2 == Query::Telemetry)
+                .then(|| self.intake.telemetry_answer(now));
+            for (to, query_len, q) in self.status_to.drain(..) {
                 if !self.reply_budget.take() {
                     self.intake.status_dropped();
                     continue;
                 }
+                let reply = match q {
+                    Query::Status => status.as_deref(),
+                    Query::Telemetry => telemetry.as_deref(),
+                }
+                .unwrap_or_default();
                 let short;
                 let answer =
                     match status_answer(reply.len(), query_len, to.ip(), &self.status_allow) {

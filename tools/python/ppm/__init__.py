@@ -68,6 +68,8 @@ VALUE_MAX_US = 2500.0
 MAX_CHANNELS = 16
 #: The status query as udp-ingress recognises it.
 STATUS_QUERY = b'{"get":"status"}'
+#: The telemetry query: the status reply's ``telemetry`` member alone.
+TELEMETRY_QUERY = b'{"get":"telemetry"}'
 #: The size status queries are padded to, as ppm's other tools pad theirs: a
 #: third of the largest reply (4200 bytes), which is never more than 3 times
 #: the query, so any source gets it.
@@ -359,24 +361,36 @@ class Sender:
         when no reply comes within ``timeout`` seconds, and at once when the
         target refuses the query (nothing listens there).
         """
+        return self._query(STATUS_QUERY, timeout)
+
+    def telemetry(self, timeout: float = 1.0) -> Optional[Dict[str, Any]]:
+        """Asks udp-ingress for the flight controller's telemetry (a CRSF
+        output on a serial port) and returns the status reply's
+        ``telemetry`` member (``battery``, ``attitude``, ``gps``,
+        ``flight_mode``, ...: see docs/status.md), or None for an output
+        without telemetry. Padded, retried and raising as :meth:`status`.
+        """
+        return self._query(TELEMETRY_QUERY, timeout).get("telemetry")
+
+    def _query(self, query: bytes, timeout: float) -> Dict[str, Any]:
         if not timeout > 0:
             raise ValueError(f"timeout must be more than 0 s, got {timeout!r}")
         with socket.socket(self._family, socket.SOCK_DGRAM) as s:
             s.settimeout(timeout)
             s.connect(self.address)  # only the target's reply; "nothing listens" is reported
-            reply = self._ask(s, STATUS_QUERY_PADDED_LEN, timeout)
+            reply = self._ask(s, query, STATUS_QUERY_PADDED_LEN, timeout)
             if set(reply) == {"pad_to"}:
                 n = reply["pad_to"]
-                if isinstance(n, bool) or not isinstance(n, int) or not len(STATUS_QUERY) <= n <= 65_000:
+                if isinstance(n, bool) or not isinstance(n, int) or not len(query) <= n <= 65_000:
                     raise PpmError(f"{self.target} asked for a status query of {n!r} bytes")
-                reply = self._ask(s, max(n, STATUS_QUERY_PADDED_LEN), timeout)
+                reply = self._ask(s, query, max(n, STATUS_QUERY_PADDED_LEN), timeout)
                 if set(reply) == {"pad_to"}:
                     raise PpmError(f"{self.target} still answers {reply} to a query of {n} bytes")
             return reply
 
-    def _ask(self, s: socket.socket, size: int, timeout: float) -> Dict[str, Any]:
+    def _ask(self, s: socket.socket, query: bytes, size: int, timeout: float) -> Dict[str, Any]:
         try:
-            s.send(status_query(size))
+            s.send(query.ljust(size, b" "))
             data = s.recv(65_536)
         except socket.timeout:
             raise StatusTimeout(

@@ -234,8 +234,8 @@ class Signing(unittest.TestCase):
 
 
 class Status(unittest.TestCase):
-    def serve(self, answers: list) -> tuple:
-        """A stand-in ingress answering each query with the next of `answers`;
+    def serve(self, answers: list, query: bytes = b'{"get":"status"}') -> tuple:
+        """A stand-in ingress answering each `query` with the next of `answers`;
         returns its target and the list of query sizes it got."""
         rx = Receiver()
         self.addCleanup(rx.close)
@@ -245,7 +245,7 @@ class Status(unittest.TestCase):
             for a in answers:
                 q, peer = rx.socket.recvfrom(65_536)
                 sizes.append(len(q))
-                self.assertEqual(q.rstrip(b" "), b'{"get":"status"}')
+                self.assertEqual(q.rstrip(b" "), query)
                 rx.socket.sendto(a, peer)
 
         t = threading.Thread(target=run, daemon=True)
@@ -259,6 +259,17 @@ class Status(unittest.TestCase):
         with ppm.Sender(target) as s:
             self.assertEqual(s.status(), json.loads(full))
         self.assertEqual(sizes, [1400, 1500])
+
+    def test_telemetry_is_the_member_alone(self) -> None:
+        member = {"state": "receiving", "battery": {"voltage_v": 16.8}}
+        answer = json.dumps({"name": "plane", "telemetry": member}).encode()
+        target, sizes = self.serve([b'{"pad_to":1500}', answer], b'{"get":"telemetry"}')
+        with ppm.Sender(target) as s:
+            self.assertEqual(s.telemetry(), member)
+        self.assertEqual(sizes, [1400, 1500])
+        target, _ = self.serve([b'{"name": "plane", "telemetry": null}'], b'{"get":"telemetry"}')
+        with ppm.Sender(target) as s:
+            self.assertIsNone(s.telemetry())
 
     def test_answer_without_pad_to(self) -> None:
         target, sizes = self.serve([b'{"datagrams": {}}'])

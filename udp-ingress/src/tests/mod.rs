@@ -140,7 +140,7 @@ fn escaped_keys_are_the_keys_they_spell() {
     let t = Instant::now();
     assert_eq!(
         i.offer(br#"{"\u0067et":"status"}"#, from(), 1, 1, t),
-        Outcome::Status
+        Outcome::Status(Query::Status)
     );
     assert_eq!(i.counters().status_requests, 1);
     assert_eq!(i.counters().received, 0);
@@ -215,7 +215,7 @@ fn other_sources_are_dropped_before_parsing_and_logged_rate_limited() {
     assert_eq!(i.offer(b"[1100]", insider, 1, 1, t), Outcome::Accepted);
     assert_eq!(
         i.offer(br#"{"get":"status"}"#, insider, 1, 1, t),
-        Outcome::Status
+        Outcome::Status(Query::Status)
     );
     let c = i.counters();
     assert_eq!(

@@ -94,7 +94,7 @@ fn with_a_key_only_signed_commands_with_a_new_seq_apply() {
     assert_eq!(reason(offer(br#"{"msg":"[1500]"}"#)), BadShape);
     assert_eq!(
         offer(br#"{"get":"status"}"#),
-        Outcome::Status,
+        Outcome::Status(Query::Status),
         "unsigned, read-only"
     );
     assert_eq!(i.last_seq(), Some(102));

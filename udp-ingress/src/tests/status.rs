@@ -3,7 +3,7 @@
 //! counters.
 
 use super::*;
-use serde_json::json;
+use serde_json::{json, Value};
 
 #[test]
 fn status_query_is_recognised_before_parsing() {
@@ -33,6 +33,48 @@ fn status_query_is_recognised_before_parsing() {
     let d = detail(br#"{"get":"status","seq":1}"#);
     assert!(d.contains("`seq`"), "{d}");
     assert!(detail(br#"{"ail":1500,"get":"status"}"#).contains("`ail`"));
+    assert_eq!(query(br#"{"get":"telemetry"}"#), Some(Ok(Query::Telemetry)));
+    assert!(detail(br#"{"get":"config"}"#).contains(r#"{"get": "telemetry"}"#));
+}
+
+#[test]
+fn a_telemetry_query_gets_the_member_alone() {
+    let mut i = Intake::new(
+        "plane",
+        Config::default().validate().unwrap(),
+        Duration::from_secs(1),
+    );
+    let t = Instant::now();
+    assert_eq!(
+        i.offer(br#"{"get": "telemetry"}"#, from(), 1, 1, t),
+        Outcome::Status(Query::Telemetry)
+    );
+    assert_eq!(i.counters().status_requests, 1);
+    // An output without telemetry: null.
+    assert_eq!(
+        i.telemetry_answer(5),
+        r#"{"name":"plane","telemetry":null}"#
+    );
+    // With it, the status reply's member, to the byte.
+    let mut i = i.with_telemetry("/dev/ttyAMA0".into());
+    let mut s = ppm_shared::ipc::TelemetrySample::default();
+    let mut f = vec![0xC8, 0x07, 0x21];
+    f.extend_from_slice(b"ANGL\0");
+    f.push(ppm_shared::crsf::crc8(&f[2..]));
+    let decoded = ppm_shared::crsf::telemetry::decode_frame(&f).unwrap();
+    s.take(&f, &decoded, 1_000_000);
+    s.published_mono_ns = 1_000_000;
+    i.telemetry(s);
+    let answer: serde_json::Value = serde_json::from_str(&i.telemetry_answer(2_000_000)).unwrap();
+    let reply = wire(&i.status(
+        Duration::from_secs(1),
+        &ReceiveThread::default(),
+        2_000_000,
+        None,
+    ));
+    assert_eq!(answer["telemetry"], reply["telemetry"]);
+    assert_eq!(answer["telemetry"]["flight_mode"]["mode"], "ANGL");
+    assert_eq!(answer["telemetry"]["state"], "receiving");
 }
 
 #[test]
@@ -62,7 +104,7 @@ fn status_query_is_counted_apart_and_changes_nothing() {
     let before = i.counters().clone();
     assert_eq!(
         i.offer(br#"{"get":"status"}"#, from(), 2, 2, t),
-        Outcome::Status
+        Outcome::Status(Query::Status)
     );
     assert_eq!(
         i.counters(),
