@@ -5,7 +5,7 @@
 
 use clap::Parser;
 use ppm_shared::config::{
-    validate_name, Config, ConfigError, Inert, OutputSpec, Plan, Program, Timing,
+    validate_name, Config, ConfigError, ConfigFile, Inert, OutputSpec, Plan, Program, Timing,
 };
 use ppm_shared::daemon::DaemonArgs;
 use std::path::PathBuf;
@@ -73,9 +73,9 @@ impl Cli {
     /// `--allow-degraded` and `--timing` reach every output, and
     /// `--frame-log` sets the one output's frame log (with several, each
     /// output's entry names its own).
-    pub fn apply(&self, mut cfg: Config) -> Result<Config, ConfigError> {
+    pub fn apply(&self, mut cfg: ConfigFile) -> Result<ConfigFile, ConfigError> {
         if let Some(name) = self.name.as_deref() {
-            cfg = cfg.select(Some(name))?;
+            cfg = cfg.select(Some(name))?.into();
         }
         apply_cli_outputs(&mut cfg, &self.output)?;
         cfg.rt.allow_degraded |= self.allow_degraded;
@@ -83,8 +83,9 @@ impl Cli {
             cfg.ppm.timing = t;
             cfg.set.note_option("ppm.timing", "--timing");
         }
+        let degraded = cfg.rt.allow_degraded;
         for out in cfg.outputs.iter_mut().map(|e| &mut e.config) {
-            out.rt.allow_degraded = cfg.rt.allow_degraded;
+            out.rt.allow_degraded = degraded;
             if let Some(t) = self.timing {
                 out.ppm.timing = t;
                 out.set.note_option("ppm.timing", "--timing");
@@ -107,7 +108,7 @@ impl Cli {
 /// `ppmd.output`; `NAME=SPEC` (repeatable) sets output NAME's, or, when
 /// the file has no `[[outputs]]`, makes one output per argument with the
 /// file's settings.
-pub fn apply_cli_outputs(cfg: &mut Config, args: &[String]) -> Result<(), ConfigError> {
+pub fn apply_cli_outputs(cfg: &mut ConfigFile, args: &[String]) -> Result<(), ConfigError> {
     let named: Vec<Option<(&str, &str)>> = args.iter().map(|a| split_named_output(a)).collect();
     match (
         named.iter().all(Option::is_some),
@@ -142,7 +143,7 @@ pub fn apply_cli_outputs(cfg: &mut Config, args: &[String]) -> Result<(), Config
             }
             if cfg.outputs.is_empty() {
                 for (name, spec) in pairs {
-                    let mut c = cfg.clone();
+                    let mut c = cfg.config.clone();
                     c.name = name.to_string();
                     c.ppmd.output = spec.to_string();
                     c.set.note_option("ppmd.output", "--output");
@@ -188,11 +189,11 @@ mod tests {
     #[test]
     fn cli_outputs() {
         let args = |a: &[&str]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-        let mut c = Config::default();
+        let mut c = ConfigFile::default();
         apply_cli_outputs(&mut c, &args(&["gpio:0:18"])).unwrap();
         assert_eq!(c.ppmd.output, "gpio:0:18");
         assert!(c.outputs.is_empty());
-        let mut c = Config::default();
+        let mut c = ConfigFile::default();
         apply_cli_outputs(&mut c, &args(&["a=sim:a.trace", "b=sim"])).unwrap();
         let outs = Plan::resolve(&c).unwrap().outputs;
         assert_eq!(outs.len(), 2);
@@ -225,7 +226,8 @@ mod tests {
             let e = apply_cli_outputs(&mut c, &args(bad)).unwrap_err();
             assert!(e.to_string().contains(says), "{bad:?}: {e}");
         }
-        let e = apply_cli_outputs(&mut Config::default(), &args(&["sim", "sim:x"])).unwrap_err();
+        let e =
+            apply_cli_outputs(&mut ConfigFile::default(), &args(&["sim", "sim:x"])).unwrap_err();
         assert!(e.to_string().contains("more than once"), "{e}");
         assert_eq!(split_named_output("sim:/a=b"), None);
         assert_eq!(split_named_output("a=sim:/x"), Some(("a", "sim:/x")));
@@ -250,7 +252,7 @@ mod tests {
             "--output",
             "sim:x.trace",
         ])
-        .apply(Config::default())
+        .apply(ConfigFile::default())
         .unwrap();
         assert_eq!(c.ppm.timing, Timing::Follow);
         assert!(c.rt.allow_degraded);

@@ -28,7 +28,9 @@ fn value<'a>(d: &'a [(String, String)], key: &str) -> &'a str {
 }
 
 fn production() -> Config {
-    Config::parse(&read("deploy/ppm.toml")).expect("deploy/ppm.toml parses")
+    Config::parse(&read("deploy/ppm.toml"))
+        .expect("deploy/ppm.toml parses")
+        .config
 }
 
 #[test]

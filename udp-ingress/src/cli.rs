@@ -4,7 +4,8 @@
 
 use clap::Parser;
 use ppm_shared::config::{
-    parse_net, Config, ConfigError, Inert, IngressCpu, OutputPlan, Plan, Program, Shared,
+    parse_net, Config, ConfigError, ConfigFile, Inert, IngressCpu, OutputPlan, Plan, Program,
+    Shared,
 };
 use ppm_shared::daemon::DaemonArgs;
 use std::net::SocketAddr;
@@ -69,7 +70,7 @@ impl Cli {
         if !file.outputs.is_empty() {
             Plan::resolve(&file)?;
         }
-        let mut cfg = file.select(self.name.as_deref())?;
+        let mut cfg = ConfigFile::from(file.select(self.name.as_deref())?);
         if let Some(listen) = self.listen {
             cfg.ingress.listen = listen;
             cfg.set.note_option("ingress.listen", "--listen");

@@ -2,7 +2,7 @@
 //! here, `[ppm]` by [`FrameModel::build`]. Errors name the key.
 
 use super::schema::{Config, CpuChoice, FailsafeAction, IngressSection, OutputSpec};
-use super::ConfigError;
+use super::{ConfigError, OutputPlan};
 use crate::frame::FrameModel;
 use crate::frame::PpmSection;
 use crate::mavlink;
@@ -14,6 +14,14 @@ impl Config {
     /// `[[outputs]]` file is checked whole by [`Plan::resolve`](super::Plan::resolve))
     /// and builds its frame model.
     pub fn validate(&self) -> Result<FrameModel, ConfigError> {
+        self.lower().map(|p| p.model)
+    }
+
+    /// Checks every key of this configuration as one output's and lowers
+    /// it, each value parsed once, into the output's plan: what the
+    /// programs run (the frame model, the parsed line, allowlists,
+    /// read-back and MAVLink settings).
+    pub(crate) fn lower(&self) -> Result<OutputPlan, ConfigError> {
         validate_name(&self.name)?;
         let i = &self.ingress;
         if !(4096..=16 * 1024 * 1024).contains(&i.recv_buffer_bytes) {
@@ -22,8 +30,8 @@ impl Config {
                 format!("{} is outside 4096..=16777216 bytes", i.recv_buffer_bytes),
             ));
         }
-        self.allow()?;
-        self.status_allow()?;
+        let allow = self.allow()?;
+        let status_allow = self.status_allow()?;
         if i.priority > 99 {
             return Err(ConfigError::invalid(
                 "ingress.priority",
@@ -60,7 +68,7 @@ impl Config {
         let spec = self.ppm.protocol.spec();
         (spec.check_line)(line_kind(&output), self.ppm.idle_level, &self.ppmd.output)
             .map_err(|(key, message)| ConfigError::invalid(key, message))?;
-        self.readback_plan()?;
+        let readback = self.readback_plan()?;
         for (key, action) in [
             ("failsafe.action", self.failsafe.action),
             ("failsafe.startup", self.failsafe.startup),
@@ -130,8 +138,20 @@ impl Config {
             ));
         }
         let model = FrameModel::build(&self.resolved_ppm(&output))?;
-        self.mavlink_settings(&model)?;
-        Ok(model)
+        Ok(OutputPlan {
+            name: self.name.clone(),
+            mavlink: self.mavlink_settings(&model)?,
+            model,
+            output,
+            frame_log: self.ppmd.frame_log.clone(),
+            readback,
+            ingress: self.ingress.clone(),
+            allow,
+            status_allow,
+            seq_file: self.seq_file(),
+            failsafe: self.failsafe.clone(),
+            keys: self.set.clone(),
+        })
     }
 
     /// `[mavlink]` against the output's channels (`model`, from

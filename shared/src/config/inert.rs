@@ -6,6 +6,7 @@
 //! with what governs instead ([`Config::inert_keys`]). Only keys the file
 //! sets are named: a key left at its default is never one the user meant.
 
+use super::merge::ConfigFile;
 use super::schema::{Config, OutputSpec, SpinMargin};
 use crate::signal::Timing;
 use crate::wire::Protocol;
@@ -40,7 +41,7 @@ impl std::fmt::Display for Inert {
     }
 }
 
-impl Config {
+impl ConfigFile {
     /// The keys this file sets that do nothing in it (each once, naming
     /// the outputs it does nothing for when there are several), for
     /// program `by`. Call it on the configuration the program runs (its
@@ -88,7 +89,9 @@ impl Config {
             })
             .collect()
     }
+}
 
+impl Config {
     /// The inert keys of this one output's configuration, for `by`.
     fn inert_output_keys(&self, by: Program) -> Vec<(&'static str, String)> {
         let set = |key: &str| self.set.in_file(key);

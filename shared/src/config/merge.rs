@@ -8,6 +8,45 @@ use super::schema::Config;
 use super::ConfigError;
 use std::path::PathBuf;
 
+/// A configuration file as parsed: its top-level sections (`config`: the
+/// one output a file without `[[outputs]]` describes, and what every entry
+/// inherits) and its `[[outputs]]` entries, each a whole [`Config`] of its
+/// own. A [`Config`] is one output's sections and holds no outputs; the
+/// file's shared keys (`rt`, `ipc`, ...) are read from `config` (which it
+/// dereferences to).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ConfigFile {
+    /// The top-level sections.
+    pub config: Config,
+    /// `[[outputs]]`: several outputs driven by one ppmd (see
+    /// [`OutputEntry`]). Empty when the file has no `[[outputs]]`: it then
+    /// describes one output, `config`.
+    pub outputs: Vec<OutputEntry>,
+}
+
+impl From<Config> for ConfigFile {
+    /// A file of one output, `config`.
+    fn from(config: Config) -> ConfigFile {
+        ConfigFile {
+            config,
+            outputs: Vec::new(),
+        }
+    }
+}
+
+impl std::ops::Deref for ConfigFile {
+    type Target = Config;
+    fn deref(&self) -> &Config {
+        &self.config
+    }
+}
+
+impl std::ops::DerefMut for ConfigFile {
+    fn deref_mut(&mut self) -> &mut Config {
+        &mut self.config
+    }
+}
+
 /// One output of a configuration with several: an `[[outputs]]` entry, or
 /// one made on ppmd's command line (`--output NAME=SPEC`).
 #[derive(Debug, Clone, PartialEq)]
@@ -84,7 +123,7 @@ impl OutputEntry {
 impl Config {
     /// Parses configuration text (see [`Config::load`]): the top-level
     /// sections, and each `[[outputs]]` entry laid over them.
-    pub fn parse(text: &str) -> Result<Config, ConfigError> {
+    pub fn parse(text: &str) -> Result<ConfigFile, ConfigError> {
         let parse_error = |message: String| ConfigError::Parse {
             path: PathBuf::from("<text>"),
             message: message.trim_end().replace('\n', " | "),
@@ -112,8 +151,9 @@ impl Config {
             }
         }
         if entries.is_empty() {
-            return Ok(cfg);
+            return Ok(cfg.into());
         }
+        let mut file = ConfigFile::from(cfg);
         for key in [
             "name",
             "ppmd.output",
@@ -172,24 +212,26 @@ impl Config {
             let mut out: Config = toml::Value::Table(merged)
                 .try_into()
                 .map_err(|e: toml::de::Error| parse_error(format!("outputs[{i}]: {e}")))?;
-            out.set = cfg.set.clone();
+            out.set = file.set.clone();
             for key in &keys {
                 out.set.note(key.clone(), entry_key(i, key));
             }
-            cfg.outputs.push(OutputEntry {
+            file.outputs.push(OutputEntry {
                 config: out,
                 origin: Origin::Entry(keys),
             });
         }
-        Ok(cfg)
+        Ok(file)
     }
+}
 
+impl ConfigFile {
     /// The outputs this configuration describes: its `[[outputs]]` entries,
     /// or the configuration itself when it has none.
     pub fn entries(&self) -> Vec<OutputEntry> {
         if self.outputs.is_empty() {
             vec![OutputEntry {
-                config: self.clone(),
+                config: self.config.clone(),
                 origin: Origin::Whole,
             }]
         } else {
@@ -207,7 +249,7 @@ impl Config {
     /// several); without entries, `name` renames the file's one output.
     pub fn select(&self, name: Option<&str>) -> Result<Config, ConfigError> {
         if self.outputs.is_empty() {
-            let mut c = self.clone();
+            let mut c = self.config.clone();
             if let Some(n) = name {
                 c.name = n.to_string();
             }

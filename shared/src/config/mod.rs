@@ -39,7 +39,7 @@ pub use crate::signal::{CHANNEL_MAX_US, CHANNEL_MIN_US, SYNC_MAX_US, SYNC_MIN_US
 pub use check::{parse_net, validate_name};
 pub use inert::{Inert, Program};
 pub use keys::{KeyName, SetKeys};
-pub use merge::{OutputEntry, MAX_OUTPUTS};
+pub use merge::{ConfigFile, OutputEntry, MAX_OUTPUTS};
 pub use plan::{OutputPlan, Plan, ReadbackPlan, Shared};
 pub use schema::{
     Config, CpuChoice, FailsafeAction, FailsafeSection, IngressCpu, IngressSection, IpcSection,

@@ -4,7 +4,7 @@
 //! output could set differently.
 
 use super::keys::SetKeys;
-use super::merge::{OutputEntry, MAX_OUTPUTS};
+use super::merge::{ConfigFile, OutputEntry, MAX_OUTPUTS};
 use super::schema::{Config, FailsafeSection, IngressSection, IpcSection, OutputSpec, RtSection};
 use super::ConfigError;
 use crate::frame::FrameModel;
@@ -77,7 +77,7 @@ impl Plan {
     /// names, listen addresses, lines, trace, frame-log and seq files. Errors
     /// name the key (`outputs[1].ppm.channels`, or the top-level key an
     /// output inherits).
-    pub fn resolve(cfg: &Config) -> Result<Plan, ConfigError> {
+    pub fn resolve(cfg: &ConfigFile) -> Result<Plan, ConfigError> {
         let entries = cfg.entries();
         if entries.len() > MAX_OUTPUTS {
             return Err(ConfigError::invalid(
@@ -92,8 +92,8 @@ impl Plan {
         let mut outputs = Vec::with_capacity(entries.len());
         for (i, entry) in entries.iter().enumerate() {
             let c = &entry.config;
-            let model = c.validate().map_err(|e| entry.locate(i, e))?;
-            if several && matches!(c.output(), Ok(OutputSpec::Spi { .. })) {
+            let plan = c.lower().map_err(|e| entry.locate(i, e))?;
+            if several && matches!(plan.output, OutputSpec::Spi { .. }) {
                 return Err(entry.locate(
                     i,
                     ConfigError::invalid(
@@ -108,7 +108,7 @@ impl Plan {
             for (j, other) in entries[..i].iter().enumerate() {
                 clash(entry, other, j).map_err(|e| entry.locate(i, e))?;
             }
-            outputs.push(OutputPlan::new(c, model)?);
+            outputs.push(plan);
         }
         Ok(Plan {
             shared: Shared {
@@ -126,8 +126,8 @@ impl Plan {
     /// The plan of a configuration of one output (a file without
     /// `[[outputs]]`, or the one output udp-ingress's `--name` picked
     /// with [`Config::select`]): the shared settings and that output.
-    pub fn resolve_one(cfg: &Config) -> Result<(Shared, OutputPlan), ConfigError> {
-        let Plan { shared, outputs } = Plan::resolve(&cfg.select(None)?)?;
+    pub fn resolve_one(cfg: &ConfigFile) -> Result<(Shared, OutputPlan), ConfigError> {
+        let Plan { shared, outputs } = Plan::resolve(&cfg.select(None)?.into())?;
         let [output] = <[OutputPlan; 1]>::try_from(outputs)
             .expect("a configuration without [[outputs]] has one output");
         Ok((shared, output))
@@ -210,24 +210,6 @@ pub struct ReadbackPlan {
 }
 
 impl OutputPlan {
-    /// The plan of validated output `c`, whose frame model is `model`.
-    fn new(c: &Config, model: FrameModel) -> Result<OutputPlan, ConfigError> {
-        Ok(OutputPlan {
-            name: c.name.clone(),
-            mavlink: c.mavlink_settings(&model)?,
-            model,
-            output: c.output()?,
-            frame_log: c.ppmd.frame_log.clone(),
-            readback: c.readback_plan()?,
-            ingress: c.ingress.clone(),
-            allow: c.allow()?,
-            status_allow: c.status_allow()?,
-            seq_file: c.seq_file(),
-            failsafe: c.failsafe.clone(),
-            keys: c.set.clone(),
-        })
-    }
-
     /// The tty whose receive side carries what the flight controller sends
     /// back (CRSF telemetry): a `serial:` output of a protocol that has
     /// telemetry; `None` for every other output.

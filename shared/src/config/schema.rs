@@ -3,7 +3,7 @@
 //! [`merge`](super::merge)) parses its text.
 
 use super::keys::SetKeys;
-use super::merge::OutputEntry;
+use super::merge::ConfigFile;
 use super::ConfigError;
 use crate::frame::PpmSection;
 use crate::mavlink::Thrust;
@@ -38,11 +38,6 @@ pub struct Config {
     pub ipc: IpcSection,
     /// MAVLink commands on the command socket.
     pub mavlink: MavlinkSection,
-    /// `[[outputs]]`: several outputs driven by one ppmd, each seen as a
-    /// whole configuration (see [`OutputEntry`]). Empty when the file has
-    /// no `[[outputs]]`: the file then describes one output.
-    #[serde(skip)]
-    pub outputs: Vec<OutputEntry>,
     /// The keys the file set, and the keys a command-line option gave
     /// (not a setting: ignored by `==`).
     #[serde(skip)]
@@ -61,7 +56,6 @@ impl Default for Config {
             failsafe: FailsafeSection::default(),
             ipc: IpcSection::default(),
             mavlink: MavlinkSection::default(),
-            outputs: Vec::new(),
             set: SetKeys::default(),
         }
     }
@@ -553,7 +547,7 @@ impl Config {
     /// [`CONFIG_MAX_BYTES`](crate::files::CONFIG_MAX_BYTES)) and parses a
     /// configuration file. The PPM settings are checked by
     /// [`Config::validate`].
-    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+    pub fn load(path: &Path) -> Result<ConfigFile, ConfigError> {
         let text =
             crate::files::read_small(path, crate::files::CONFIG_MAX_BYTES).map_err(|source| {
                 ConfigError::Read {
@@ -571,7 +565,7 @@ impl Config {
     }
 
     /// Reads `path` when given, else the defaults (every key has one).
-    pub fn load_or_default(path: Option<&Path>) -> Result<Config, ConfigError> {
-        path.map_or_else(|| Ok(Config::default()), Config::load)
+    pub fn load_or_default(path: Option<&Path>) -> Result<ConfigFile, ConfigError> {
+        path.map_or_else(|| Ok(ConfigFile::default()), Config::load)
     }
 }

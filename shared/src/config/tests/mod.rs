@@ -45,7 +45,7 @@ fn example_file_lists_the_defaults() {
         ppm.follow_sync_max_us.take(),
         Some(ppm_defaults::FOLLOW_SYNC_MAX_US)
     );
-    assert_eq!(parsed, Config::default());
+    assert_eq!(parsed, ConfigFile::default());
 }
 
 /// A config path naming a FIFO, a device or a huge file is refused at
@@ -83,7 +83,7 @@ fn config_files_that_are_not_small_regular_files_are_refused_at_once() {
 
 #[test]
 fn empty_file_is_the_default() {
-    assert_eq!(Config::parse("").unwrap(), Config::default());
+    assert_eq!(Config::parse("").unwrap(), ConfigFile::default());
 }
 
 #[test]
@@ -724,6 +724,6 @@ fn a_readback_resolves_into_its_plan() {
     let rb = plan.readback.unwrap();
     assert_eq!(rb.capture, CaptureSettings::default());
     assert_eq!(rb.matching, MatchSettings::default());
-    let (_, plan) = crate::config::Plan::resolve_one(&Config::default()).unwrap();
+    let (_, plan) = crate::config::Plan::resolve_one(&ConfigFile::default()).unwrap();
     assert_eq!(plan.readback, None);
 }

@@ -119,6 +119,6 @@ fn select_picks_one_output() {
         "{e}"
     );
     // Without [[outputs]] --name renames the one output.
-    assert_eq!(Config::default().select(Some("x")).unwrap().name, "x");
-    assert_eq!(Config::default().output_names(), ["ppm"]);
+    assert_eq!(ConfigFile::default().select(Some("x")).unwrap().name, "x");
+    assert_eq!(ConfigFile::default().output_names(), ["ppm"]);
 }

@@ -238,8 +238,9 @@ fn stop_flag() -> Result<Arc<AtomicBool>> {
     Ok(stop)
 }
 
+/// The `--config` file's top-level sections (its `ipc.root`, ...).
 fn load_config(cli: &Cli) -> Result<Config> {
-    Ok(Config::load_or_default(cli.config.as_deref())?)
+    Ok(Config::load_or_default(cli.config.as_deref())?.config)
 }
 
 fn unit_ns(cli: &Cli) -> u64 {
