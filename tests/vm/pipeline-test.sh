@@ -316,8 +316,9 @@ timing = "follow"
 CONF
 # The 16550 cannot make 420000 baud: without rt.allow_degraded ppmd
 # refuses to start (crsf_refused_exit.txt, crsf_refused.log).
-ppmd --config /tmp/crsf.toml --output serial:/dev/ttyS2 2> /out/crsf_refused.log
-echo $? > /out/crsf_refused_exit.txt
+refused=0
+ppmd --config /tmp/crsf.toml --output serial:/dev/ttyS2 2> /out/crsf_refused.log || refused=$?
+echo "$refused" > /out/crsf_refused_exit.txt
 printf '[rt]\nallow_degraded = true\n' >> /tmp/crsf.toml
 cat /sys/class/tty/ttyS2/uartclk > /out/crsf_uartclk.txt 2>&1 || true
 tty-settings /dev/ttyS2 > /out/crsf_tty_before.txt 2>&1 || true
