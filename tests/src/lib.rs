@@ -503,13 +503,14 @@ pub fn unit_directives(unit: &str) -> Vec<(String, String)> {
 
 /// Every program the workspace builds, in the order the docs list them
 /// (and the package ships them).
-pub const PROGRAMS: [&str; 10] = [
+pub const PROGRAMS: [&str; 11] = [
     "ppmd",
     "udp-ingress",
     "ppm-send",
     "ppm-status",
     "ppm-watch",
     "ppm-capture",
+    "ppm-web",
     "jitter",
     "timing-bench",
     "ppm-bench",

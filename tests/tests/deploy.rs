@@ -139,6 +139,44 @@ fn units_share_the_root_and_read_the_config() {
     assert!(value(&d, "Wants").contains("network-online.target"));
 }
 
+/// The web view's unit: the same user, shared-memory root and
+/// configuration as the daemons, the package's binary, no restart into a
+/// configuration error, and nothing that would split the shared memory.
+#[test]
+fn the_web_unit_reads_what_the_daemons_share() {
+    let cfg = production();
+    let d = directives("ppm-web.service");
+    assert_eq!(
+        value(&d, "ExecStart"),
+        format!("/usr/local/bin/ppm-web --config {CONFIG_PATH}")
+    );
+    assert_eq!(
+        std::path::Path::new("/run").join(value(&d, "RuntimeDirectory")),
+        cfg.ipc.root
+    );
+    for (key, want) in [
+        ("Type", "simple"),
+        ("User", "ppm"),
+        ("Group", "ppm"),
+        ("Restart", "always"),
+        ("RestartPreventExitStatus", "78"),
+        ("RuntimeDirectoryPreserve", "yes"),
+        ("PrivateTmp", "yes"),
+        ("ProtectSystem", "strict"),
+        ("NoNewPrivileges", "yes"),
+        ("CapabilityBoundingSet", ""),
+        ("WantedBy", "multi-user.target"),
+    ] {
+        assert_eq!(value(&d, key), want, "ppm-web.service: {key}");
+    }
+    for key in ["PrivateDevices", "PrivateIPC", "DynamicUser", "RemoveIPC"] {
+        assert!(
+            d.iter().all(|(k, _)| k != key),
+            "ppm-web.service: {key} would split the shared memory"
+        );
+    }
+}
+
 #[test]
 fn readme_installs_what_the_units_run() {
     let readme = read("docs/deployment.md");

@@ -3,7 +3,8 @@
 //! info in the -dbgsym package, the units running /usr/bin with the
 //! sandbox of deploy/, the user and groups through sysusers.d before the
 //! udev rules are applied, /etc/ppm/ppm.toml as the one conffile, the docs
-//! and the licenses. Needs cargo-deb (`tools/package` installs it) and
+//! and the licenses; the web view's unit shipped but neither enabled nor
+//! started. Needs cargo-deb (`tools/package` installs it) and
 //! Debian's dpkg-deb and aarch64 binutils.
 
 use ppm_tests::{arm64_package, run_ok, PROGRAMS};
@@ -69,6 +70,7 @@ fn the_arm64_package_holds_everything_a_pi_needs() {
         "ppmd.service",
         "udp-ingress.service",
         "udp-ingress@.service",
+        "ppm-web.service",
     ] {
         let packaged =
             std::fs::read_to_string(tree.join("usr/lib/systemd/system").join(unit)).unwrap();
@@ -83,6 +85,9 @@ fn the_arm64_package_holds_everything_a_pi_needs() {
         assert!(packaged.contains("ExecStart=/usr/bin/"), "{unit}");
         assert!(!packaged.contains("/usr/local/"), "{unit}");
     }
+
+    let web = std::fs::read_to_string(tree.join("usr/lib/systemd/system/ppm-web.service")).unwrap();
+    assert!(web.contains("ExecStart=/usr/bin/ppm-web --config /etc/ppm/ppm.toml"));
 
     // The user and groups, the udev rules, the one conffile.
     let sysusers = std::fs::read_to_string(tree.join("usr/lib/sysusers.d/ppm.conf")).unwrap();
@@ -118,6 +123,18 @@ fn the_arm64_package_holds_everything_a_pi_needs() {
     assert!(at("systemd-sysusers") < at("udevadm trigger"));
     assert!(at("udevadm trigger") < at("deb-systemd-invoke $_dh_action ppmd.service"));
     assert!(postinst.contains("deb-systemd-helper enable udp-ingress.service"));
+    // The web view is shipped, neither enabled nor started: enabled again
+    // on upgrade only where the admin had enabled it, restarted only where
+    // it runs.
+    let enable = at("deb-systemd-helper enable ppm-web.service");
+    assert!(at("deb-systemd-helper debian-installed ppm-web.service") < enable);
+    assert!(at("deb-systemd-helper --quiet was-enabled ppm-web.service") < enable);
+    assert!(postinst.contains("deb-systemd-invoke try-restart ppm-web.service"));
+    assert!(
+        !postinst.contains("$_dh_action ppm-web.service")
+            && !postinst.contains("deb-systemd-invoke start ppm-web.service"),
+        "{postinst}"
+    );
     let prerm = std::fs::read_to_string(control.join("prerm")).unwrap();
     assert!(
         prerm.contains("deb-systemd-invoke stop ppmd.service"),

@@ -18,6 +18,7 @@ pub mod plot;
 pub mod radio;
 pub mod send;
 pub mod status;
+pub mod web;
 
 use anyhow::{bail, Result};
 use std::time::Duration;
