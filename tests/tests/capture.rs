@@ -121,6 +121,20 @@ fn ppm_capture_names_an_input_this_machine_does_not_have() {
         err.contains("`spi:/dev/spidev0.0` is not an input"),
         "{err}"
     );
+    // A bad option is a usage error: status 2, naming it.
+    for (args, says) in [
+        (["--channels", "17"], "17 is not in 1..=16"),
+        (["--idle-level", "mid"], "possible values: low, high"),
+    ] {
+        let out = Command::new(bin("ppm-capture"))
+            .args(["--input", "sim:/nonexistent"])
+            .args(args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{err}");
+        assert!(err.contains(says), "{err}");
+    }
 }
 
 fn tempdir(label: &str) -> std::path::PathBuf {

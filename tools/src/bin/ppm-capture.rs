@@ -31,10 +31,10 @@ struct Cli {
     #[arg(long, value_name = "FILE")]
     log: Option<PathBuf>,
     /// The input's idle level, low or high (default: found from the signal).
-    #[arg(long, value_name = "LEVEL")]
+    #[arg(long, value_name = "LEVEL", value_parser = ["low", "high"])]
     idle_level: Option<String>,
     /// Channels in a frame, 1..=16 (default: found from the signal).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=16))]
     channels: Option<u8>,
     /// Stop after this long (default: at Ctrl-C).
     #[arg(long, value_parser = parse_duration)]
@@ -60,13 +60,9 @@ fn settings(cli: &Cli) -> Result<CaptureSettings> {
         None => None,
         Some("low") => Some(Level::Low),
         Some("high") => Some(Level::High),
+        // clap takes only low and high.
         Some(other) => bail!("--idle-level {other}: use low or high"),
     };
-    if let Some(n) = cli.channels {
-        if !(1..=16).contains(&n) {
-            bail!("--channels {n}: a frame has 1..=16 channels");
-        }
-    }
     Ok(CaptureSettings {
         idle,
         channels: cli.channels,
