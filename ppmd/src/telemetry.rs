@@ -134,6 +134,12 @@ impl Opened {
             let before = reader.counts().frames;
             match wait_readable(&self.file, wait) {
                 Ok(Readable::Yes) => match self.file.read(&mut buf) {
+                    // Readable with nothing to read: the tty hung up (a USB
+                    // adaptor unplugged). Wait, rather than poll at once.
+                    Ok(0) => {
+                        let e = io::Error::from_raw_os_error(libc::EIO);
+                        self.failed(&mut failing, &e);
+                    }
                     Ok(n) => {
                         if failing {
                             log::info!(
@@ -208,10 +214,14 @@ fn wait_readable(file: &File, wait: Duration) -> io::Result<Readable> {
         Ok(0) => Ok(Readable::Quiet),
         Ok(_) => {
             let r = fds[0].revents().unwrap_or(PollFlags::empty());
-            if r.contains(PollFlags::POLLIN) {
+            // A hang-up comes with POLLIN on a real tty (read then gives
+            // 0 bytes): it counts first.
+            if r.intersects(PollFlags::POLLHUP | PollFlags::POLLERR | PollFlags::POLLNVAL) {
+                Ok(Readable::HungUp)
+            } else if r.contains(PollFlags::POLLIN) {
                 Ok(Readable::Yes)
             } else {
-                Ok(Readable::HungUp)
+                Ok(Readable::Quiet)
             }
         }
         // Interrupted: look again (a read finds nothing, harmlessly).
@@ -239,5 +249,61 @@ impl Telemetry {
 impl Drop for Telemetry {
     fn drop(&mut self) {
         self.finish();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+    use std::os::fd::FromRawFd;
+
+    /// A pseudo-terminal pair: the master end, and the slave's path.
+    fn pty() -> (File, PathBuf) {
+        // SAFETY: plain libc calls on a descriptor this function owns; the
+        // name buffer outlives ptsname_r, which NUL-terminates within it.
+        unsafe {
+            let fd = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY | libc::O_CLOEXEC);
+            assert!(fd >= 0, "posix_openpt");
+            assert_eq!(libc::grantpt(fd), 0);
+            assert_eq!(libc::unlockpt(fd), 0);
+            let mut name = [0 as libc::c_char; 128];
+            assert_eq!(libc::ptsname_r(fd, name.as_mut_ptr(), name.len()), 0);
+            let path = std::ffi::CStr::from_ptr(name.as_ptr());
+            (
+                File::from_raw_fd(fd),
+                PathBuf::from(path.to_string_lossy().into_owned()),
+            )
+        }
+    }
+
+    /// The wait tells bytes, quiet and a hang-up apart: a port whose other
+    /// end went away is not "readable" (which would make the thread spin).
+    #[test]
+    fn the_wait_tells_bytes_quiet_and_a_hang_up_apart() {
+        let (mut master, slave) = pty();
+        // Raw, as the line sets it (a cooked tty holds bytes until a newline).
+        let format = ppm_shared::wire::UartFormat {
+            baud: 420_000,
+            parity: ppm_shared::wire::uart::Parity::None,
+            stop_bits: 1,
+        };
+        let _line = crate::line::serial::SerialLine::open(&slave, format).expect("the line");
+        let opened = Opened::open("t", "", &slave).expect("opening the slave");
+        let wait = Duration::from_millis(20);
+        assert!(matches!(
+            wait_readable(&opened.file, wait),
+            Ok(Readable::Quiet)
+        ));
+        master.write_all(&[0xC8]).unwrap();
+        assert!(matches!(
+            wait_readable(&opened.file, wait),
+            Ok(Readable::Yes)
+        ));
+        drop(master);
+        assert!(matches!(
+            wait_readable(&opened.file, wait),
+            Ok(Readable::HungUp)
+        ));
     }
 }

@@ -116,7 +116,7 @@ impl Trace {
                 trace.channels = Some(v.trim().split(',').count());
             }
             if let Some(v) = text.trim().strip_prefix("# baud ") {
-                trace.baud = v.trim().parse().ok();
+                trace.baud = v.trim().parse().ok().filter(|&b: &u32| b > 0);
             }
             match parse_line(&text) {
                 None => {}

@@ -164,7 +164,7 @@ fn crsf_on_the_simulated_line_reads_back_as_8n1_at_420000() {
     );
     assert!(
         text.contains(&format!(
-            "betaflight takes {frames} frames and uses {frames}"
+            "betaflight takes {frames} frames of channels and uses {frames}"
         )),
         "{text}"
     );

@@ -802,6 +802,18 @@ fn the_server_is_read_only_and_says_what_is_wrong() {
         assert_eq!(code, 405, "{method}: {text}");
         assert!(text.contains("Allow: GET, HEAD"), "{text}");
     }
+    // Asked by a name that is not this machine's address (DNS rebinding): 421.
+    let mut c = TcpStream::connect(&addr).unwrap();
+    c.set_read_timeout(Some(10 * SECOND)).unwrap();
+    write!(
+        c,
+        "GET /api/state HTTP/1.1\r\nHost: evil.example:5080\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut text = String::new();
+    c.read_to_string(&mut text).unwrap();
+    assert!(text.starts_with("HTTP/1.1 421"), "{text}");
+    assert!(!text.contains("outputs"), "{text}");
 
     // A port in use: 75, and the message says so.
     let run = |args: &[&str]| {

@@ -9,7 +9,7 @@
 //!
 //! Logic only, without I/O; its tests are in `src/telemetry/tests.rs`.
 
-use ppm_shared::crsf::report::{TelemetryStatus, FLIGHT_MODE};
+use ppm_shared::crsf::report::{printable, TelemetryStatus, FLIGHT_MODE};
 use ppm_shared::crsf::Telemetry as Decoded;
 use ppm_shared::ipc::TelemetrySample;
 
@@ -45,7 +45,7 @@ impl Telemetry {
             return None;
         }
         self.mode = Some(f.as_bytes().to_vec());
-        Some(String::from_utf8_lossy(f.as_bytes()).into_owned())
+        Some(printable(f.as_bytes()))
     }
 
     /// The newest sample seen, if any.

@@ -171,6 +171,22 @@ pub struct LinkStatus {
     pub age_ms: f64,
 }
 
+/// A flight mode's text as shown (status replies, STATUSTEXT): printable
+/// ASCII, every other byte `?` (the firmware send ASCII; a control byte
+/// from the port has no place in a display or a log).
+pub fn printable(bytes: &[u8]) -> String {
+    bytes
+        .iter()
+        .map(|&c| {
+            if c == b' ' || c.is_ascii_graphic() {
+                c as char
+            } else {
+                '?'
+            }
+        })
+        .collect()
+}
+
 /// ms between `then` and `now` (ns), never negative.
 fn ms(now_ns: u64, then_ns: u64) -> f64 {
     now_ns.saturating_sub(then_ns) as f64 / 1e6
@@ -256,17 +272,7 @@ impl TelemetryStatus {
                 }
                 Telemetry::FlightMode(f) => {
                     out.flight_mode = Some(FlightModeStatus {
-                        mode: f
-                            .as_bytes()
-                            .iter()
-                            .map(|&c| {
-                                if c == b' ' || c.is_ascii_graphic() {
-                                    c as char
-                                } else {
-                                    '?'
-                                }
-                            })
-                            .collect(),
+                        mode: printable(f.as_bytes()),
                         age_ms,
                     })
                 }

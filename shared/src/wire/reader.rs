@@ -78,6 +78,8 @@ impl LineReader {
         idle: Level,
         baud: Option<u32>,
     ) -> Result<LineReader, String> {
+        // A rate of 0 (a damaged header) is no rate: the protocol's own.
+        let baud = baud.filter(|&b| b > 0);
         let format = |f: UartFormat| UartFormat {
             baud: baud.unwrap_or(f.baud),
             ..f
@@ -166,18 +168,7 @@ impl LineReader {
             } => {
                 let c = uart.push(at_ns, level)?;
                 let taken = framer.push(c.byte, c.end_ns)?;
-                match receiver.verdict(&taken) {
-                    crsf::Verdict::Used { channels_ns } => Some(Reading::Frame {
-                        at_ns: taken.at_ns,
-                        channels_ns: channels_ns.to_vec(),
-                        complete: true,
-                    }),
-                    crsf::Verdict::LinkStatistics(_) => None,
-                    crsf::Verdict::Ignored => Some(Reading::Refused {
-                        at_ns: taken.at_ns,
-                        why: "frame ignored (not RC channels to the flight controller)",
-                    }),
-                }
+                crsf_reading(*receiver, &taken)
             }
         }
     }
@@ -206,11 +197,33 @@ impl LineReader {
                 let t = framer.idle(now_ns)?;
                 Some(sbus_reading(*receiver, &t))
             }
-            LineReader::Crsf { uart, .. } => {
-                uart.finish();
-                None
+            LineReader::Crsf {
+                receiver,
+                uart,
+                framer,
+            } => {
+                let c = uart.finish()?;
+                let taken = framer.push(c.byte, c.end_ns)?;
+                crsf_reading(*receiver, &taken)
             }
         }
+    }
+}
+
+/// What CRSF receiver `r` makes of frame `t` (its link statistics are no
+/// reading).
+fn crsf_reading(r: CrsfReceiver, t: &crsf::Taken) -> Option<Reading> {
+    match r.verdict(t) {
+        crsf::Verdict::Used { channels_ns } => Some(Reading::Frame {
+            at_ns: t.at_ns,
+            channels_ns: channels_ns.to_vec(),
+            complete: true,
+        }),
+        crsf::Verdict::LinkStatistics(_) => None,
+        crsf::Verdict::Ignored => Some(Reading::Refused {
+            at_ns: t.at_ns,
+            why: "frame ignored (not RC channels to the flight controller)",
+        }),
     }
 }
 
@@ -234,5 +247,57 @@ fn sbus_reading(r: SbusReceiver, t: &sbus::Taken) -> Reading {
             at_ns: t.at_ns,
             why: "failsafe",
         },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The edges of `bytes` on a line idling high, 8N1 at 420 000 baud,
+    /// from `start_ns`.
+    fn crsf_edges(bytes: &[u8], start_ns: u64) -> Vec<(u64, Level)> {
+        uart::edges(CRSF_UART, bytes, start_ns, Level::High).collect()
+    }
+
+    /// Every RC frame of a stream reads back, the last one too (its CRC is
+    /// the character still being read when the stream ends); link
+    /// statistics are no reading; a trace of EdgeTX is refused by name.
+    #[test]
+    fn a_crsf_stream_reads_back_to_its_last_frame() {
+        let raw: [u16; 16] = std::array::from_fn(|i| 200 + 100 * i as u16);
+        let rc = crsf::encode_rc(&raw);
+        let link = crsf::LinkStatistics::WIRED.encode();
+        let mut edges = Vec::new();
+        for k in 0..3u64 {
+            let start = 1_000_000 + k * 4_000_000;
+            edges.extend(crsf_edges(&rc, start));
+            if k < 2 {
+                edges.extend(crsf_edges(&link, start + 700_000));
+            }
+        }
+        let mut r = LineReader::new(
+            Protocol::Crsf,
+            Some(Receiver::Betaflight),
+            Level::High,
+            None,
+        )
+        .unwrap();
+        assert_eq!(r.uart_format(), Some(CRSF_UART));
+        let mut frames: Vec<Reading> = edges.iter().filter_map(|&(t, l)| r.push(t, l)).collect();
+        frames.extend(r.idle(20_000_000));
+        assert_eq!(frames.len(), 3, "{frames:?}");
+        for f in &frames {
+            let Reading::Frame { channels_ns, .. } = f else {
+                panic!("{f:?}")
+            };
+            let want: Vec<u64> = raw
+                .iter()
+                .map(|&v| CrsfReceiver::Betaflight.read_ns(v))
+                .collect();
+            assert_eq!(channels_ns, &want);
+        }
+        let e = LineReader::new(Protocol::Crsf, Some(Receiver::EdgeTx), Level::High, None);
+        assert!(e.unwrap_err().contains("edgetx takes no CRSF"));
     }
 }

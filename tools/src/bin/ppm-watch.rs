@@ -97,7 +97,7 @@ impl Header {
         } else if let Some(v) = line.trim().strip_prefix("# protocol ") {
             self.protocol = v.trim().parse().unwrap_or(self.protocol);
         } else if let Some(v) = line.trim().strip_prefix("# baud ") {
-            self.baud = v.trim().parse().ok();
+            self.baud = v.trim().parse().ok().filter(|&b: &u32| b > 0);
         }
     }
 

@@ -43,6 +43,29 @@ pub fn allowed(allow: &[ipnet::IpNet], client: IpAddr) -> bool {
     allow.iter().any(|net| net.contains(&client))
 }
 
+/// Whether a request's `Host` header names ppm-web the way a browser on
+/// an allowed machine does: an IP address (v4, or v6 in brackets) or
+/// `localhost`, with or without a port. Any other name is refused: a page
+/// the browser loaded from a domain that later resolves to this address
+/// (DNS rebinding) would send that domain's name, and could otherwise read
+/// `/api/state` through the allowed browser. No `Host` (HTTP/1.0) is taken.
+pub fn host_ok(host: Option<&str>) -> bool {
+    let Some(host) = host.map(str::trim) else {
+        return true;
+    };
+    let name = if let Some(rest) = host.strip_prefix('[') {
+        match rest.split_once(']') {
+            Some((v6, port)) if port.is_empty() || port.starts_with(':') => {
+                return v6.parse::<std::net::Ipv6Addr>().is_ok()
+            }
+            _ => return false,
+        }
+    } else {
+        host.rsplit_once(':').map_or(host, |(n, _)| n)
+    };
+    name.eq_ignore_ascii_case("localhost") || name.parse::<std::net::Ipv4Addr>().is_ok()
+}
+
 /// Serves requests from `server` until it is unblocked, answering with the
 /// newest state of `reader`.
 pub fn serve(server: &Server, reader: &Reader, allow: &[ipnet::IpNet]) {
@@ -111,6 +134,20 @@ fn answer(request: Request, reader: &Reader, allow: &[ipnet::IpNet]) -> std::io:
             &[],
         );
     }
+    let host = request
+        .headers()
+        .iter()
+        .find(|h| h.field.equiv("Host"))
+        .map(|h| h.value.as_str().to_string());
+    if !host_ok(host.as_deref()) {
+        return respond(
+            request,
+            421,
+            text,
+            b"421 misdirected request: ask ppm-web by its IP address (http://127.0.0.1:5080/, or the board's address), or as localhost; other host names are refused (a page elsewhere could rename itself to this address)\n",
+            &[],
+        );
+    }
     if !matches!(request.method(), Method::Get | Method::Head) {
         return respond(
             request,
@@ -152,6 +189,28 @@ mod tests {
             ("::ffff:192.168.1.5", false),
         ] {
             assert_eq!(allowed(&allow, client.parse().unwrap()), ok, "{client}");
+        }
+    }
+
+    #[test]
+    fn only_addresses_and_localhost_are_hosts() {
+        for (host, ok) in [
+            (Some("127.0.0.1:5080"), true),
+            (Some("192.168.1.20:5080"), true),
+            (Some("192.168.1.20"), true),
+            (Some("localhost:5080"), true),
+            (Some("LOCALHOST"), true),
+            (Some("[::1]:5080"), true),
+            (Some("[fd00::21]"), true),
+            (None, true),
+            (Some("evil.example:5080"), false),
+            (Some("raspberrypi.local:5080"), false),
+            (Some("127.0.0.1.nip.io"), false),
+            (Some("[::1"), false),
+            (Some("[::1]x"), false),
+            (Some(""), false),
+        ] {
+            assert_eq!(host_ok(host), ok, "{host:?}");
         }
     }
 

@@ -22,6 +22,11 @@ fn each_new_flight_mode_is_told_once() {
     assert_eq!(t.seen(with_mode(b"!FS!")).as_deref(), Some("!FS!"));
     assert_eq!(t.seen(with_mode(b"ACRO")).as_deref(), Some("ACRO"));
     assert_eq!(statustext("plane", "ACRO"), "ppm plane: flight mode ACRO");
+    // Control bytes from the port never reach a groundstation's log.
+    assert_eq!(
+        t.seen(with_mode(b"A\x1b[2J\r\n")).as_deref(),
+        Some("A?[2J??")
+    );
 }
 
 #[test]

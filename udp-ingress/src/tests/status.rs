@@ -222,8 +222,8 @@ fn the_largest_reply_fits_the_documented_bound() {
         text.len()
     );
     // A CRSF serial output has telemetry instead (never both: a read-back
-    // needs PPM): every kind, a flight mode of 59 bytes, a port path of 64
-    // characters.
+    // needs PPM): every kind, a flight mode of 60 quotes (each escaped in
+    // JSON, no NUL), a port path of 64 characters.
     reply.as_object_mut().unwrap().remove("readback");
     reply["telemetry"] = serde_json::to_value(widest_telemetry()).unwrap();
     widest(&mut reply);
@@ -252,7 +252,7 @@ fn widest_telemetry() -> ppm_shared::crsf::report::TelemetryStatus {
         frame(0x08, &[0x80; 8]),
         frame(0x02, &[0x80; 15]),
         frame(0x1E, &[0x80; 6]),
-        frame(0x21, &[0x01; 59]),
+        frame(0x21, &[b'"'; 60]),
         frame(0x07, &[0x80; 2]),
         frame(0x09, &[0x12, 0x34, 0x80]),
         link,
@@ -266,7 +266,7 @@ fn widest_telemetry() -> ppm_shared::crsf::report::TelemetryStatus {
         t.link_statistics.is_some() && t.baro_altitude.is_some(),
         "{t:?}"
     );
-    assert_eq!(t.flight_mode.as_ref().unwrap().mode.len(), 59);
+    assert_eq!(t.flight_mode.as_ref().unwrap().mode.len(), 60);
     t
 }
 

@@ -472,7 +472,7 @@ fn bytes_trace(
         Percentiles::of(&mut errors).line(1_000.0)
     );
     println!(
-        "{} takes {} frames and uses {used} (by actual time, as its UART and framing read them)",
+        "{} takes {} frames of channels and uses {used} (by actual time, as its UART and framing read them)",
         reader.reads_as(),
         used + refused
     );
