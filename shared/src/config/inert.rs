@@ -3,7 +3,7 @@
 //! under grid timing, PPM's pulse keys under SBUS, `ppmd.spi_hz` without a
 //! PPM `spi:` output, and so on. Taking them silently would let a user
 //! believe they act; the program that would use each says so at start,
-//! with what governs instead ([`Config::inert_keys`]). Only keys the file
+//! with what governs instead ([`ConfigFile::inert_keys`]). Only keys the file
 //! sets are named: a key left at its default is never one the user meant.
 
 use super::merge::ConfigFile;

@@ -125,7 +125,7 @@ impl Plan {
 
     /// The plan of a configuration of one output (a file without
     /// `[[outputs]]`, or the one output udp-ingress's `--name` picked
-    /// with [`Config::select`]): the shared settings and that output.
+    /// with [`ConfigFile::select`]): the shared settings and that output.
     pub fn resolve_one(cfg: &ConfigFile) -> Result<(Shared, OutputPlan), ConfigError> {
         let Plan { shared, outputs } = Plan::resolve(&cfg.select(None)?.into())?;
         let [output] = <[OutputPlan; 1]>::try_from(outputs)
