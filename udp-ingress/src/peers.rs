@@ -32,6 +32,7 @@
 use ppm_shared::crsf::report;
 use ppm_shared::crsf::Telemetry;
 use ppm_shared::ipc::TelemetrySample;
+use ppm_shared::mavlink::telemetry;
 use ppm_shared::mavlink::{
     self, CommandLong, Header, Message, COMMAND_ACK, HEARTBEAT, PARAM_VALUE, PROTOCOL_VERSION,
     RC_CHANNELS, SERVO_OUTPUT_RAW, STATUSTEXT,
@@ -463,9 +464,18 @@ impl Peers {
             };
             self.telemetry[k] = (count, Some(now + TELEMETRY_MIN_EVERY));
             let (spec, payload): (&mavlink::Spec, Vec<u8>) = match t {
-                Telemetry::Battery(b) => (&mavlink::SYS_STATUS, report::sys_status(&b).to_vec()),
-                Telemetry::Attitude(a) => (&mavlink::ATTITUDE, report::attitude(&a, at).to_vec()),
-                Telemetry::Gps(g) => (&mavlink::GPS_RAW_INT, report::gps_raw_int(&g, at).to_vec()),
+                Telemetry::Battery(b) => (
+                    &mavlink::SYS_STATUS,
+                    telemetry::crsf_sys_status(&b).to_vec(),
+                ),
+                Telemetry::Attitude(a) => (
+                    &mavlink::ATTITUDE,
+                    telemetry::crsf_attitude(&a, at).to_vec(),
+                ),
+                Telemetry::Gps(g) => (
+                    &mavlink::GPS_RAW_INT,
+                    telemetry::crsf_gps_raw_int(&g, at).to_vec(),
+                ),
                 _ => continue,
             };
             for i in 0..self.peers.len() {

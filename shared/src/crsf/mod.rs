@@ -25,6 +25,7 @@
 //!   controller about the radio link.
 //! - [`telemetry`]: a streaming reader of what a flight controller sends back
 //!   (battery, GPS, attitude, flight mode, vario, barometric altitude).
+//! - [`sample`]: that telemetry as ppmd publishes it for udp-ingress.
 //! - [`report`]: that telemetry as the groundstation gets it (the status
 //!   reply's `telemetry` member, MAVLink SYS_STATUS, ATTITUDE, GPS_RAW_INT).
 
@@ -32,6 +33,7 @@ pub mod framing;
 pub mod link;
 pub mod receiver;
 pub mod report;
+pub mod sample;
 pub mod telemetry;
 
 #[cfg(test)]

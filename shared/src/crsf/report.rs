@@ -1,17 +1,15 @@
 //! CRSF telemetry as the groundstation gets it: the status reply's
 //! `telemetry` member ([`TelemetryStatus`], built from ppmd's newest
-//! [`TelemetrySample`]) and the MAVLink messages that carry the same values
-//! ([`sys_status`], [`attitude`], [`gps_raw_int`]).
+//! [`TelemetrySample`]). The MAVLink messages that carry the same values
+//! are [`crate::mavlink::telemetry`]'s (`crsf_sys_status`, ...).
 //!
 //! The units are the frames' (see [`super::telemetry`]) turned into SI or
 //! the usual display units without rounding: a value shown is the value the
 //! flight controller sent.
 
-use super::telemetry::{Attitude, Battery, Gps, Telemetry, KINDS};
+use super::sample::TelemetrySample;
+use super::telemetry::{Telemetry, KINDS};
 use super::LinkStatistics;
-use crate::ipc::TelemetrySample;
-use crate::mavlink::telemetry::{GPS_FIX_TYPE_3D_FIX, GPS_FIX_TYPE_NO_FIX};
-use crate::mavlink::GpsRawInt;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -316,42 +314,4 @@ fn link_status(l: &LinkStatistics, age_ms: f64) -> LinkStatus {
         downlink_link_quality: l.downlink_link_quality,
         age_ms,
     }
-}
-
-/// SYS_STATUS' payload for battery `b`: voltage in mV (0.1 V x 100),
-/// current in cA (0.1 A x 10, at most `i16::MAX`), remaining (at most
-/// 100 %).
-pub fn sys_status(b: &Battery) -> [u8; 43] {
-    let mv = (u32::from(b.voltage_dv) * 100).min(u32::from(u16::MAX - 1)) as u16;
-    let ca = (u32::from(b.current_da) * 10).min(i16::MAX as u32) as i16;
-    crate::mavlink::sys_status_payload(mv, ca, b.remaining_pct.min(100) as i8)
-}
-
-/// ATTITUDE's payload for `a`, read at `at_ns` (CLOCK_MONOTONIC: its
-/// `time_boot_ms`, as RC_CHANNELS').
-pub fn attitude(a: &Attitude, at_ns: u64) -> [u8; 28] {
-    let [pitch, roll, yaw] = a.radians().map(|v| v as f32);
-    crate::mavlink::attitude_payload((at_ns / 1_000_000) as u32, roll, pitch, yaw)
-}
-
-/// GPS_RAW_INT's payload for `g`, read at `at_ns`. CRSF carries no fix
-/// type: a frame with satellites is called a 3D fix, one with none no fix
-/// (the satellites are the only sign of one the frame has). Ground speed turns from km/h x 10 to cm/s
-/// (x 100 / 36, rounded; at most 65534, as `u16::MAX` is "unknown").
-pub fn gps_raw_int(g: &Gps, at_ns: u64) -> [u8; 52] {
-    crate::mavlink::gps_raw_int_payload(&GpsRawInt {
-        time_usec: at_ns / 1_000,
-        lat: g.latitude_e7,
-        lon: g.longitude_e7,
-        alt_mm: g.altitude_m.saturating_mul(1_000),
-        vel_cms: ((u32::from(g.groundspeed_kmh10) * 100 + 18) / 36).min(u32::from(u16::MAX - 1))
-            as u16,
-        cog_cdeg: g.heading_cdeg,
-        fix_type: if g.satellites > 0 {
-            GPS_FIX_TYPE_3D_FIX
-        } else {
-            GPS_FIX_TYPE_NO_FIX
-        },
-        satellites: g.satellites,
-    })
 }

@@ -10,6 +10,7 @@
 //! pymavlink's.
 
 use super::Spec;
+use crate::crsf::telemetry::{Attitude, Battery, Gps};
 
 /// `SERVO_OUTPUT_RAW`: what ppm's line carried (ArduPilot sends its outputs
 /// in it). servo9..16 are MAVLink 2 extensions.
@@ -185,4 +186,42 @@ pub fn gps_raw_int_payload(g: &GpsRawInt) -> [u8; 52] {
     p[28] = g.fix_type;
     p[29] = g.satellites;
     p
+}
+
+/// SYS_STATUS' payload for battery `b`: voltage in mV (0.1 V x 100),
+/// current in cA (0.1 A x 10, at most `i16::MAX`), remaining (at most
+/// 100 %).
+pub fn crsf_sys_status(b: &Battery) -> [u8; 43] {
+    let mv = (u32::from(b.voltage_dv) * 100).min(u32::from(u16::MAX - 1)) as u16;
+    let ca = (u32::from(b.current_da) * 10).min(i16::MAX as u32) as i16;
+    sys_status_payload(mv, ca, b.remaining_pct.min(100) as i8)
+}
+
+/// ATTITUDE's payload for `a`, read at `at_ns` (CLOCK_MONOTONIC: its
+/// `time_boot_ms`, as RC_CHANNELS').
+pub fn crsf_attitude(a: &Attitude, at_ns: u64) -> [u8; 28] {
+    let [pitch, roll, yaw] = a.radians().map(|v| v as f32);
+    attitude_payload((at_ns / 1_000_000) as u32, roll, pitch, yaw)
+}
+
+/// GPS_RAW_INT's payload for `g`, read at `at_ns`. CRSF carries no fix
+/// type: a frame with satellites is called a 3D fix, one with none no fix
+/// (the satellites are the only sign of one the frame has). Ground speed turns from km/h x 10 to cm/s
+/// (x 100 / 36, rounded; at most 65534, as `u16::MAX` is "unknown").
+pub fn crsf_gps_raw_int(g: &Gps, at_ns: u64) -> [u8; 52] {
+    gps_raw_int_payload(&GpsRawInt {
+        time_usec: at_ns / 1_000,
+        lat: g.latitude_e7,
+        lon: g.longitude_e7,
+        alt_mm: g.altitude_m.saturating_mul(1_000),
+        vel_cms: ((u32::from(g.groundspeed_kmh10) * 100 + 18) / 36).min(u32::from(u16::MAX - 1))
+            as u16,
+        cog_cdeg: g.heading_cdeg,
+        fix_type: if g.satellites > 0 {
+            GPS_FIX_TYPE_3D_FIX
+        } else {
+            GPS_FIX_TYPE_NO_FIX
+        },
+        satellites: g.satellites,
+    })
 }

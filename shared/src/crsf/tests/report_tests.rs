@@ -5,10 +5,10 @@
 //! sequence 0, MAVLink 2).
 
 use super::super::report::{self, TelemetryStatus};
+use super::super::sample::TelemetrySample;
 use super::super::telemetry::{decode_frame, KINDS, KIND_NAMES};
 use super::super::*;
 use super::telemetry_tests::{ATTITUDE, BARO, BATTERY, FLIGHT_MODE, GPS, PING, VARIO};
-use crate::ipc::TelemetrySample;
 use crate::mavlink;
 
 /// SYS_STATUS: 16 800 mV, 1230 cA, 75 %.
@@ -199,21 +199,36 @@ fn mavlink_messages_are_pymavlinks() {
     let at_ns = 5_123_000_999;
     let frame = |spec, payload: &[u8]| mavlink::frame(2, (0, 1, 1), spec, payload);
     assert_eq!(
-        frame(&mavlink::SYS_STATUS, &report::sys_status(&b)),
+        frame(
+            &mavlink::SYS_STATUS,
+            &crate::mavlink::telemetry::crsf_sys_status(&b)
+        ),
         V2_SYS_STATUS
     );
     assert_eq!(
-        frame(&mavlink::ATTITUDE, &report::attitude(&a, at_ns)),
+        frame(
+            &mavlink::ATTITUDE,
+            &crate::mavlink::telemetry::crsf_attitude(&a, at_ns)
+        ),
         V2_ATTITUDE
     );
     assert_eq!(
-        frame(&mavlink::GPS_RAW_INT, &report::gps_raw_int(&g, at_ns)),
+        frame(
+            &mavlink::GPS_RAW_INT,
+            &crate::mavlink::telemetry::crsf_gps_raw_int(&g, at_ns)
+        ),
         V2_GPS_RAW_INT
     );
     // Every one reads back through ppm's own MAVLink parser's checks.
     for f in [
-        frame(&mavlink::SYS_STATUS, &report::sys_status(&b)),
-        frame(&mavlink::GPS_RAW_INT, &report::gps_raw_int(&g, at_ns)),
+        frame(
+            &mavlink::SYS_STATUS,
+            &crate::mavlink::telemetry::crsf_sys_status(&b),
+        ),
+        frame(
+            &mavlink::GPS_RAW_INT,
+            &crate::mavlink::telemetry::crsf_gps_raw_int(&g, at_ns),
+        ),
     ] {
         assert_eq!(f.len(), usize::from(f[1]) + 12);
     }
@@ -227,7 +242,7 @@ fn mavlink_values_clamp_instead_of_wrapping() {
         used_mah: 0,
         remaining_pct: 255,
     };
-    let p = report::sys_status(&b);
+    let p = crate::mavlink::telemetry::crsf_sys_status(&b);
     assert_eq!(u16::from_le_bytes([p[14], p[15]]), u16::MAX - 1);
     assert_eq!(i16::from_le_bytes([p[16], p[17]]), i16::MAX);
     assert_eq!(p[30], 100);
@@ -239,7 +254,7 @@ fn mavlink_values_clamp_instead_of_wrapping() {
         altitude_m: -1_000,
         satellites: 0,
     };
-    let p = report::gps_raw_int(&g, 0);
+    let p = crate::mavlink::telemetry::crsf_gps_raw_int(&g, 0);
     assert_eq!(
         i32::from_le_bytes(p[16..20].try_into().unwrap()),
         -1_000_000
