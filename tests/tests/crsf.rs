@@ -229,10 +229,7 @@ fn crsf_on_a_serial_port_is_rc_frames_and_link_statistics() {
 
 /// A CRSF frame from the flight controller: `kind`, `payload`, its CRC.
 fn fc_frame(kind: u8, payload: &[u8]) -> Vec<u8> {
-    let mut f = vec![0xC8, payload.len() as u8 + 2, kind];
-    f.extend_from_slice(payload);
-    f.push(crsf::crc8(&f[2..]));
-    f
+    crsf::frame(crsf::ADDRESS_FLIGHT_CONTROLLER, kind, payload)
 }
 
 /// The groundstation: pymavlink sends its HEARTBEAT every 0.2 s for 4 s

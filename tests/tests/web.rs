@@ -720,10 +720,7 @@ fn the_page_shows_a_flight_controllers_telemetry() {
     let (mut web, addr) = start_web(&sb, &cfg);
     let mut b = Browser::open(&sb.dir, &format!("http://{addr}/"));
     let frame = |kind: u8, payload: &[u8]| {
-        let mut f = vec![0xC8, payload.len() as u8 + 2, kind];
-        f.extend_from_slice(payload);
-        f.push(ppm_shared::crsf::crc8(&f[2..]));
-        f
+        ppm_shared::crsf::frame(ppm_shared::crsf::ADDRESS_FLIGHT_CONTROLLER, kind, payload)
     };
     // 16.8 V, 12.3 A, 75 %; roll -0.5 rad (-29 deg); "ANGL".
     let mut burst = frame(0x08, &[0x00, 0xA8, 0x00, 0x7B, 0x00, 0x04, 0xD2, 0x4B]);

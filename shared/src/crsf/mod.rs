@@ -147,6 +147,25 @@ pub fn crc_holds(frame: &[u8]) -> bool {
         && crc8(&frame[2..frame.len() - 1]) == frame[frame.len() - 1]
 }
 
+/// A whole frame from `address` of type `kind` with `payload`, its `len`
+/// field and CRC filled in: what a device on the bus writes (a flight
+/// controller's telemetry, starting 0xC8). Allocates: for tools and tests,
+/// not the timing loop (whose frames are [`encode_rc`]'s and
+/// [`LinkStatistics::encode`]'s). Panics on a payload over 60 bytes, more
+/// than a frame holds.
+pub fn frame(address: u8, kind: u8, payload: &[u8]) -> Vec<u8> {
+    assert!(
+        payload.len() <= usize::from(MAX_LEN_FIELD) - 2,
+        "a CRSF payload of {} bytes",
+        payload.len()
+    );
+    let mut f = Vec::with_capacity(payload.len() + 4);
+    f.extend_from_slice(&[address, payload.len() as u8 + 2, kind]);
+    f.extend_from_slice(payload);
+    f.push(crc8(&f[2..]));
+    f
+}
+
 /// An RC_CHANNELS_PACKED frame to the flight controller: `raw` channel
 /// values (each clamped to [`RAW_MAX`], so no value wraps into another),
 /// packed 11 bits each, least significant bit first.

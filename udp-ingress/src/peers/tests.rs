@@ -755,10 +755,7 @@ fn a_request_for_the_protocol_version_gets_mavlink_2() {
 
 /// A CRSF frame from the flight controller: `kind`, `payload`, its CRC.
 fn crsf_frame(kind: u8, payload: &[u8]) -> Vec<u8> {
-    let mut f = vec![0xC8, payload.len() as u8 + 2, kind];
-    f.extend_from_slice(payload);
-    f.push(ppm_shared::crsf::crc8(&f[2..]));
-    f
+    ppm_shared::crsf::frame(ppm_shared::crsf::ADDRESS_FLIGHT_CONTROLLER, kind, payload)
 }
 
 /// A telemetry sample holding `frames`, read at `at_ns`, counted as

@@ -2,10 +2,9 @@ use super::*;
 
 /// A sample whose newest flight mode frame says `mode`.
 fn with_mode(mode: &[u8]) -> TelemetrySample {
-    let mut f = vec![0xC8, mode.len() as u8 + 3, 0x21];
-    f.extend_from_slice(mode);
-    f.push(0);
-    f.push(ppm_shared::crsf::crc8(&f[2..]));
+    let mut text = mode.to_vec();
+    text.push(0);
+    let f = ppm_shared::crsf::frame(ppm_shared::crsf::ADDRESS_FLIGHT_CONTROLLER, 0x21, &text);
     let mut s = TelemetrySample::default();
     let t = ppm_shared::crsf::telemetry::decode_frame(&f).expect("a flight mode frame");
     s.take(&f, &t, 5);

@@ -58,9 +58,7 @@ fn a_telemetry_query_gets_the_member_alone() {
     // With it, the status reply's member, to the byte.
     let mut i = i.with_telemetry("/dev/ttyAMA0".into());
     let mut s = ppm_shared::ipc::TelemetrySample::default();
-    let mut f = vec![0xC8, 0x07, 0x21];
-    f.extend_from_slice(b"ANGL\0");
-    f.push(ppm_shared::crsf::crc8(&f[2..]));
+    let f = ppm_shared::crsf::frame(0xC8, 0x21, b"ANGL\0");
     let decoded = ppm_shared::crsf::telemetry::decode_frame(&f).unwrap();
     s.take(&f, &decoded, 1_000_000);
     s.published_mono_ns = 1_000_000;
@@ -237,13 +235,8 @@ fn the_largest_reply_fits_the_documented_bound() {
 
 /// The telemetry member with every kind, its text at its longest.
 fn widest_telemetry() -> ppm_shared::crsf::report::TelemetryStatus {
-    use ppm_shared::crsf::{crc8, LinkStatistics, TelemetryReader};
-    let frame = |kind: u8, payload: &[u8]| {
-        let mut f = vec![0xC8, payload.len() as u8 + 2, kind];
-        f.extend_from_slice(payload);
-        f.push(crc8(&f[2..]));
-        f
-    };
+    use ppm_shared::crsf::{LinkStatistics, TelemetryReader};
+    let frame = |kind: u8, payload: &[u8]| ppm_shared::crsf::frame(0xC8, kind, payload);
     let mut s = ppm_shared::ipc::TelemetrySample::default();
     let mut r = TelemetryReader::new();
     let mut link = LinkStatistics::WIRED.encode().to_vec();
