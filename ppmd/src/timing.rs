@@ -72,6 +72,7 @@ impl Subscribed {
                 meter: &mut p.meter,
                 log: p.log.as_mut(),
             },
+            sync: None,
         }
     }
 }

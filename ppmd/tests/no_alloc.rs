@@ -433,6 +433,7 @@ fn two_outputs_on_a_bank_do_not_allocate() {
                             meter: &mut m0,
                             log: Some(producer),
                         },
+                        sync: None,
                     },
                     Output {
                         model: &follow,
@@ -444,6 +445,7 @@ fn two_outputs_on_a_bank_do_not_allocate() {
                             meter: &mut m1,
                             log: None,
                         },
+                        sync: None,
                     },
                 ];
                 let mut banks: [&mut dyn Bank; 1] = [&mut bank];

@@ -61,6 +61,7 @@ use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 
 mod decide;
 mod emit;
+pub mod module;
 mod pace;
 mod record;
 mod wire;
@@ -169,6 +170,9 @@ pub struct Output<'a> {
     pub line: LineRef<'a>,
     /// Its counters, histograms and frame log.
     pub rec: Recording<'a>,
+    /// The timing corrections of the ExpressLRS module it drives, which
+    /// its grid follows; `None` for every other output.
+    pub sync: Option<&'a module::ModuleTiming>,
 }
 
 /// Runs one output on the [`SystemClock`], spinning `margin` before each
@@ -193,6 +197,7 @@ pub fn run(
         source,
         line,
         rec: Recording { stats, meter, log },
+        sync: None,
     }];
     run_outputs(&SystemClock, margin, &mut outputs, &mut [], stop);
 }

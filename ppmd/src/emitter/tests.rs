@@ -244,6 +244,7 @@ fn output<'a>(
             meter: &mut kit.meter,
             log: None,
         },
+        sync: None,
     }
 }
 

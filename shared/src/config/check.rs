@@ -69,6 +69,13 @@ impl Config {
         (spec.check_line)(line_kind(&output), self.ppm.idle_level, &self.ppmd.output)
             .map_err(|(key, message)| ConfigError::invalid(key, message))?;
         let readback = self.readback_plan()?;
+        let pilot = self.pilot_plan()?;
+        if pilot.is_some() && readback.is_some() {
+            return Err(ConfigError::invalid(
+                "ppmd.pilot",
+                "an output reads either its radio back (ppmd.readback) or a pilot's radio (ppmd.pilot), not both: the takeover state each reports is the output's one state; remove one",
+            ));
+        }
         for (key, action) in [
             ("failsafe.action", self.failsafe.action),
             ("failsafe.startup", self.failsafe.startup),
@@ -145,6 +152,7 @@ impl Config {
             output,
             frame_log: self.ppmd.frame_log.clone(),
             readback,
+            pilot,
             ingress: self.ingress.clone(),
             allow,
             status_allow,
@@ -330,6 +338,58 @@ impl Config {
                 window_ns: r.window_ms as u64 * 1_000_000,
                 frames: r.frames,
             },
+        }))
+    }
+
+    /// The pilot's radio `ppmd.pilot` and `[pilot]` describe, checked:
+    /// errors name the key.
+    pub fn pilot_plan(&self) -> Result<Option<super::PilotPlan>, ConfigError> {
+        let Some(input) = &self.ppmd.pilot else {
+            return Ok(None);
+        };
+        let input: crate::capture::InputSpec = input
+            .parse()
+            .map_err(|m| ConfigError::invalid("ppmd.pilot", m))?;
+        let p = &self.pilot;
+        let Some(switch) = p.switch_channel else {
+            return Err(ConfigError::invalid(
+                "pilot.switch_channel",
+                "ppmd.pilot needs the channel of the pilot's radio that carries the takeover switch (1..=16, as the radio numbers its trainer output's channels): set pilot.switch_channel",
+            ));
+        };
+        let channels = p.channels.unwrap_or(16);
+        for (key, v, lo, hi, unit) in [
+            ("pilot.channels", u32::from(channels), 1, 16, ""),
+            (
+                "pilot.switch_channel",
+                u32::from(switch),
+                1,
+                u32::from(channels.clamp(1, 16)),
+                "",
+            ),
+            (
+                "pilot.switch_above_us",
+                p.switch_above_us,
+                900,
+                2_100,
+                " us",
+            ),
+        ] {
+            if !(lo..=hi).contains(&v) {
+                return Err(ConfigError::invalid(
+                    key,
+                    format!("{v}{unit} is outside {lo}..={hi}"),
+                ));
+            }
+        }
+        Ok(Some(super::PilotPlan {
+            input,
+            capture: crate::capture::CaptureSettings {
+                idle: p.idle_level,
+                channels: p.channels,
+            },
+            switch_channel: usize::from(switch) - 1,
+            switch_above_ns: u64::from(p.switch_above_us) * 1_000,
         }))
     }
 

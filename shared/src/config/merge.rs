@@ -160,11 +160,12 @@ impl Config {
             "ppmd.frame_log",
             "ppmd.readback",
             "ppmd.readback_log",
+            "ppmd.pilot",
         ] {
             if lookup(&table, key).is_some() {
                 return Err(ConfigError::invalid(
                     key,
-                    "with [[outputs]] every output sets its own `name`, `output`, `frame_log`, `readback` and `readback_log` in its entry; remove the top-level key",
+                    "with [[outputs]] every output sets its own `name`, `output`, `frame_log`, `readback`, `readback_log` and `pilot` in its entry; remove the top-level key",
                 ));
             }
         }
@@ -180,7 +181,7 @@ impl Config {
                         keys.push("name".into());
                         merged.insert(k, v);
                     }
-                    "output" | "frame_log" | "readback" | "readback_log" => {
+                    "output" | "frame_log" | "readback" | "readback_log" | "pilot" => {
                         keys.push(format!("ppmd.{k}"));
                         let ppmd = merged
                             .entry("ppmd")
@@ -198,7 +199,7 @@ impl Config {
                     }
                     _ => {
                         return Err(parse_error(format!(
-                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log, readback, readback_log and the sections [outputs.ppm], [outputs.ingress], [outputs.failsafe] and [outputs.mavlink] (rt, ipc, readback, frame_log_max_mb, trace_max_mb and spi_hz are shared: set them at the top level)"
+                            "outputs[{i}]: unknown key `{k}`; an output entry takes name, output, frame_log, readback, readback_log, pilot and the sections [outputs.ppm], [outputs.ingress], [outputs.failsafe] and [outputs.mavlink] (rt, ipc, readback, pilot, frame_log_max_mb, trace_max_mb and spi_hz are shared: set them at the top level)"
                         )))
                     }
                 }

@@ -40,10 +40,10 @@ pub use check::{parse_net, validate_name};
 pub use inert::{Inert, Program};
 pub use keys::{KeyName, SetKeys};
 pub use merge::{ConfigFile, OutputEntry, MAX_OUTPUTS};
-pub use plan::{OutputPlan, Plan, ReadbackPlan, Shared};
+pub use plan::{OutputPlan, PilotPlan, Plan, ReadbackPlan, Shared};
 pub use schema::{
     Config, CpuChoice, FailsafeAction, FailsafeSection, IngressCpu, IngressSection, IpcSection,
-    OutputSpec, PpmdSection, ReadbackSection, RtSection, SpinMargin, DEFAULT_NAME,
+    OutputSpec, PilotSection, PpmdSection, ReadbackSection, RtSection, SpinMargin, DEFAULT_NAME,
 };
 use std::path::PathBuf;
 

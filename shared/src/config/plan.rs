@@ -53,6 +53,8 @@ pub struct OutputPlan {
     pub frame_log: Option<PathBuf>,
     /// Its read-back (`ppmd.readback`), if any.
     pub readback: Option<ReadbackPlan>,
+    /// Its pilot's radio (`ppmd.pilot`), if any.
+    pub pilot: Option<PilotPlan>,
     /// Its `[ingress]`.
     pub ingress: IngressSection,
     /// `ingress.allow`, parsed.
@@ -207,6 +209,22 @@ pub struct ReadbackPlan {
     pub capture: crate::capture::CaptureSettings,
     /// How frames read are judged.
     pub matching: crate::capture::MatchSettings,
+}
+
+/// An output's pilot's radio: `ppmd.pilot` and `[pilot]`, checked. The
+/// radio's trainer signal (PPM) is read like a read-back's; while its
+/// takeover switch is on, the pilot's channels go out instead of the
+/// groundstation's.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PilotPlan {
+    /// The input read.
+    pub input: crate::capture::InputSpec,
+    /// What the decoder is told.
+    pub capture: crate::capture::CaptureSettings,
+    /// The takeover switch's channel, 0-based (`pilot.switch_channel` less 1).
+    pub switch_channel: usize,
+    /// The pilot flies while the switch channel reads above this, ns.
+    pub switch_above_ns: u64,
 }
 
 impl OutputPlan {

@@ -30,6 +30,9 @@ pub struct Config {
     pub ppmd: PpmdSection,
     /// How frames read back from the radio are read and judged.
     pub readback: ReadbackSection,
+    /// How the pilot's radio (`ppmd.pilot`) is read and its takeover
+    /// switch judged.
+    pub pilot: PilotSection,
     /// Real-time setup of ppmd's timing thread.
     pub rt: RtSection,
     /// What ppmd does when commands stop.
@@ -52,6 +55,7 @@ impl Default for Config {
             ingress: IngressSection::default(),
             ppmd: PpmdSection::default(),
             readback: ReadbackSection::default(),
+            pilot: PilotSection::default(),
             rt: RtSection::default(),
             failsafe: FailsafeSection::default(),
             ipc: IpcSection::default(),
@@ -153,6 +157,11 @@ pub struct PpmdSection {
     /// Read-back log: one JSON line per frame read and per read-back state
     /// change, appended to this file. Default: none.
     pub readback_log: Option<PathBuf>,
+    /// The pilot's radio of this output: an input carrying a radio's
+    /// trainer signal (PPM) whose takeover switch (`pilot.switch_channel`)
+    /// makes ppmd send the pilot's channels instead of the groundstation's:
+    /// `"gpio:CHIP:LINE"`, `"gpio:LINE"` or `"sim:PATH"`. Default: none.
+    pub pilot: Option<String>,
 }
 
 impl Default for PpmdSection {
@@ -165,6 +174,7 @@ impl Default for PpmdSection {
             spi_hz: 1_000_000,
             readback: None,
             readback_log: None,
+            pilot: None,
         }
     }
 }
@@ -197,6 +207,35 @@ impl Default for ReadbackSection {
             tolerance_us: 10,
             window_ms: 100,
             frames: 2,
+            idle_level: None,
+            channels: None,
+        }
+    }
+}
+
+/// `[pilot]`: how the pilot's radio (`ppmd.pilot`) is read and when its
+/// takeover switch gives the pilot the controls (see docs/crsf.md).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PilotSection {
+    /// The channel (1..=16) of the pilot's radio that carries the takeover
+    /// switch. No default: a takeover switch is named, never guessed.
+    pub switch_channel: Option<u8>,
+    /// The pilot flies while the switch channel reads above this, us,
+    /// 900..=2100. Default 1500.
+    pub switch_above_us: u32,
+    /// The input's idle level, `"low"` or `"high"`. Default: found from
+    /// the signal.
+    pub idle_level: Option<crate::signal::Level>,
+    /// Channels in a frame read, 1..=16. Default: found from the signal.
+    pub channels: Option<u8>,
+}
+
+impl Default for PilotSection {
+    fn default() -> Self {
+        PilotSection {
+            switch_channel: None,
+            switch_above_us: 1_500,
             idle_level: None,
             channels: None,
         }

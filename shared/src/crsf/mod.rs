@@ -21,6 +21,8 @@
 //! - [`receiver`]: how each firmware turns a raw value into microseconds, the
 //!   encoder's inverse ([`raw_for`]), and what each does with a frame it took.
 //! - [`framing`]: each firmware's byte-stream framing ([`Framer`]).
+//! - [`module`]: the handset side, to an ExpressLRS transmitter module: its
+//!   timing corrections and its framing.
 //! - [`link`]: LINK_STATISTICS (0x14), the frame a receiver sends the flight
 //!   controller about the radio link.
 //! - [`telemetry`]: a streaming reader of what a flight controller sends back
@@ -31,6 +33,7 @@
 
 pub mod framing;
 pub mod link;
+pub mod module;
 pub mod receiver;
 pub mod report;
 pub mod sample;
@@ -170,8 +173,14 @@ pub fn frame(address: u8, kind: u8, payload: &[u8]) -> Vec<u8> {
 /// values (each clamped to [`RAW_MAX`], so no value wraps into another),
 /// packed 11 bits each, least significant bit first.
 pub fn encode_rc(raw: &[u16; CHANNELS]) -> [u8; RC_FRAME_LEN] {
+    encode_rc_to(ADDRESS_FLIGHT_CONTROLLER, raw)
+}
+
+/// [`encode_rc`] to `address`: a flight controller's (0xC8), or a
+/// transmitter module's (0xEE) from a handset.
+pub fn encode_rc_to(address: u8, raw: &[u16; CHANNELS]) -> [u8; RC_FRAME_LEN] {
     let mut out = [0u8; RC_FRAME_LEN];
-    out[0] = ADDRESS_FLIGHT_CONTROLLER;
+    out[0] = address;
     out[1] = (RC_PAYLOAD_LEN + 2) as u8;
     out[2] = TYPE_RC_CHANNELS_PACKED;
     crate::sbus::pack_channels(raw, &mut out[3..3 + RC_PAYLOAD_LEN]);
@@ -189,7 +198,12 @@ pub fn rc_channels(payload: &[u8; RC_PAYLOAD_LEN]) -> [u16; CHANNELS] {
 /// 0x16, CRC holding); `None` otherwise. Firmware checks less:
 /// [`CrsfReceiver::verdict`].
 pub fn decode_rc(frame: &[u8; RC_FRAME_LEN]) -> Option<[u16; CHANNELS]> {
-    let ok = frame[0] == ADDRESS_FLIGHT_CONTROLLER
+    decode_rc_to(ADDRESS_FLIGHT_CONTROLLER, frame)
+}
+
+/// [`decode_rc`] of a frame to `address`.
+pub fn decode_rc_to(address: u8, frame: &[u8; RC_FRAME_LEN]) -> Option<[u16; CHANNELS]> {
+    let ok = frame[0] == address
         && usize::from(frame[1]) == RC_PAYLOAD_LEN + 2
         && frame[2] == TYPE_RC_CHANNELS_PACKED
         && crc_holds(frame);

@@ -155,6 +155,7 @@ fn run_block(
                         meter,
                         log: None,
                     },
+                    sync: None,
                 },
             )
             .collect();

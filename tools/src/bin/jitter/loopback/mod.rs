@@ -385,6 +385,7 @@ fn drive(
                 meter: &mut meter,
                 log: None,
             },
+            sync: None,
         }];
         emitter::run_outputs(&SystemClock, plan.margin, &mut outputs, &mut [], stop);
     }

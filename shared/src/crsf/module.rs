@@ -1,0 +1,163 @@
+//! The handset side of CRSF: what a radio sends an ExpressLRS (or
+//! Crossfire) transmitter module in its bay, and what the module answers.
+//!
+//! - RC frames go to the module's address, 0xEE, with the flight
+//!   controller's layout ([`super::encode_rc_to`]).
+//! - Every 200 ms the module answers with a timing correction
+//!   ([`Correction`]): `EA 0D 3A EA EE 10 RATE OFFSET CRC` (ExpressLRS
+//!   `CRSFHandset::sendSyncPacketToTX`; type 0x3A, sub-type 0x10), `RATE`
+//!   the period it wants between RC frames and `OFFSET` how long before its
+//!   radio's packet timer the last RC frames were whole, less a 100 us
+//!   margin, both signed 32-bit big-endian in tenths of a microsecond
+//!   (EdgeTX `telemetry/crossfire.cpp` reads them so).
+//! - [`HandsetParser`] frames bytes as the module does
+//!   (`CRSFHandset::handleInput`): the frames ppm writes are checked with it.
+
+use super::{crc8, ADDRESS_RADIO_TRANSMITTER, ADDRESS_TRANSMITTER, MAX_FRAME_LEN};
+
+/// Frame type of the handset's commands and the module's answers
+/// (`CRSF_FRAMETYPE_HANDSET`).
+pub const TYPE_HANDSET: u8 = 0x3A;
+/// Sub-type of a timing correction (`CRSF_HANDSET_SUBCMD_TIMING`).
+pub const SUBTYPE_TIMING: u8 = 0x10;
+/// How often the module sends a correction, ms
+/// (`OpenTXsyncPacketInterval`).
+pub const CORRECTION_EVERY_MS: u64 = 200;
+/// The margin the module keeps: OFFSET is the measured lead less this, in
+/// tenths of a microsecond (`OpenTXsyncOffsetSafeMargin`, 100 us).
+pub const SAFE_MARGIN_TENTHS: i32 = 1_000;
+/// The module's default line rate from a handset (EdgeTX's default for
+/// an external ExpressLRS module; the module searches this first).
+pub const HANDSET_BAUD: u32 = 400_000;
+
+/// A timing correction from the module.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Correction {
+    /// The period the module wants between RC frames, 0.1 us.
+    pub rate_tenths: i32,
+    /// How long before the module's packet timer the RC frames were whole,
+    /// less the module's 100 us margin, 0.1 us: the next period should be
+    /// longer by this (shorter when negative).
+    pub offset_tenths: i32,
+}
+
+impl Correction {
+    /// The bytes of a whole frame's payload (after the type byte), if it
+    /// is a timing correction: `EA EE 10 RATE OFFSET` (9 + 2 bytes; a
+    /// longer payload is read, the specification lets frames grow).
+    pub fn from_payload(payload: &[u8]) -> Option<Correction> {
+        if payload.len() < 11 || payload[2] != SUBTYPE_TIMING {
+            return None;
+        }
+        let at = |i: usize| {
+            i32::from_be_bytes([payload[i], payload[i + 1], payload[i + 2], payload[i + 3]])
+        };
+        Some(Correction {
+            rate_tenths: at(3),
+            offset_tenths: at(7),
+        })
+    }
+
+    /// The whole frame a module sends (starting 0xEA, to the handset).
+    pub fn encode(&self) -> [u8; 15] {
+        let mut f = [0u8; 15];
+        f[0] = ADDRESS_RADIO_TRANSMITTER;
+        f[1] = 13;
+        f[2] = TYPE_HANDSET;
+        f[3] = ADDRESS_RADIO_TRANSMITTER;
+        f[4] = ADDRESS_TRANSMITTER;
+        f[5] = SUBTYPE_TIMING;
+        f[6..10].copy_from_slice(&self.rate_tenths.to_be_bytes());
+        f[10..14].copy_from_slice(&self.offset_tenths.to_be_bytes());
+        f[14] = crc8(&f[2..14]);
+        f
+    }
+
+    /// The period asked for, ns (0 when it is not positive).
+    pub fn rate_ns(&self) -> u64 {
+        u64::try_from(self.rate_tenths).map_or(0, |t| t * 100)
+    }
+
+    /// The offset, ns.
+    pub fn offset_ns(&self) -> i64 {
+        i64::from(self.offset_tenths) * 100
+    }
+}
+
+/// The module's reading of a handset's bytes, ported from ExpressLRS
+/// `CRSFHandset::handleInput` and `alignBufferToSync`: bytes are buffered
+/// (at most 64), the buffer is aligned to its first 0xEE or 0xC8, a frame
+/// whose total length (`len + 2`) is outside 4..=64 is dropped at that
+/// byte, and a whole frame is taken when its CRC holds (a bad one is
+/// counted and its bytes dropped). No time-out: the module frames by bytes
+/// alone.
+#[derive(Debug, Clone)]
+pub struct HandsetParser {
+    buf: [u8; MAX_FRAME_LEN],
+    n: usize,
+    /// Frames whose CRC held (`GoodPktsCount`).
+    pub good: u64,
+    /// Frames whose CRC did not (`BadPktsCount`).
+    pub bad: u64,
+}
+
+impl Default for HandsetParser {
+    fn default() -> Self {
+        HandsetParser {
+            buf: [0; MAX_FRAME_LEN],
+            n: 0,
+            good: 0,
+            bad: 0,
+        }
+    }
+}
+
+impl HandsetParser {
+    /// Reads `bytes` as they arrive; `on` gets every frame taken.
+    pub fn feed(&mut self, mut bytes: &[u8], mut on: impl FnMut(&[u8])) {
+        while !bytes.is_empty() {
+            let take = bytes.len().min(MAX_FRAME_LEN - self.n);
+            self.buf[self.n..self.n + take].copy_from_slice(&bytes[..take]);
+            self.n += take;
+            bytes = &bytes[take..];
+            self.align(0);
+            // handleInput takes at most one frame per call, and is called
+            // again while bytes wait; looping here is the same.
+            while self.n >= 3 {
+                let total = usize::from(self.buf[1]) + 2;
+                if !(4..=MAX_FRAME_LEN).contains(&total) {
+                    self.align(1);
+                    continue;
+                }
+                if self.n < total {
+                    break;
+                }
+                if crc8(&self.buf[2..total - 1]) == self.buf[total - 1] {
+                    self.good += 1;
+                    on(&self.buf[..total]);
+                } else {
+                    self.bad += 1;
+                }
+                self.buf.copy_within(total..self.n, 0);
+                self.n -= total;
+                self.align(0);
+            }
+        }
+    }
+
+    /// `alignBufferToSync(start)`: the buffer from its first 0xEE or 0xC8
+    /// at or after `start`, or empty.
+    fn align(&mut self, start: usize) {
+        match self.buf[start.min(self.n)..self.n]
+            .iter()
+            .position(|&b| b == ADDRESS_TRANSMITTER || b == super::ADDRESS_FLIGHT_CONTROLLER)
+        {
+            Some(i) => {
+                let i = i + start;
+                self.buf.copy_within(i..self.n, 0);
+                self.n -= i;
+            }
+            None => self.n = 0,
+        }
+    }
+}
