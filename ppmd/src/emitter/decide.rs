@@ -117,7 +117,12 @@ pub(super) fn decide_frame<C: Clock + ?Sized>(
     p.prev_pulse = Some(start + last_pulse);
     match &mut p.pace {
         Pace::Follow(f) => f.last_pulse = Some(start + last_pulse),
-        Pace::Grid(g) => g.placed(model, stats, start, last_pulse),
+        Pace::Grid(g) => g.placed(
+            model,
+            stats,
+            (start, last_pulse),
+            out.sync.map(|s| (s, clk.now_ns())),
+        ),
     }
 }
 

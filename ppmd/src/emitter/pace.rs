@@ -4,6 +4,7 @@
 //! due. The lead-in pulse after silence and the gaps it keeps out of are
 //! here too.
 
+use super::module::{ModuleTiming, Taken, PERIOD_MAX_NS, STALE_NS};
 use super::record::{add, Stats};
 use super::{Progress, LEAD_IN_NS, READY_NS, TRAINER_WRAP_NS};
 use crate::clock::Clock;
@@ -63,6 +64,10 @@ pub(super) struct Grid {
     /// Gap from the previous frame's last pulse to `next_start`; 0 when
     /// the frame there follows silence or skipped frames (it gets a lead-in).
     pub prev_sync_ns: u64,
+    /// A module's newest timing correction the grid follows.
+    pub correction: Option<Taken>,
+    /// What is left of its offset to add to coming periods, ns.
+    pub lag_ns: i64,
 }
 
 /// Follow timing's state.
@@ -382,9 +387,18 @@ impl Grid {
     /// sync before it. A frame of bytes (SBUS) moved so late that the next grid start
     /// would leave less than the receivers' least idle line after it skips
     /// grid starts (counted as overruns) instead of sending frames closer.
-    pub fn placed(&mut self, model: &FrameModel, stats: &Stats, start: u64, last_pulse: u64) {
+    ///
+    /// An output that drives a transmitter module (`module`: its
+    /// corrections, and the time now) steps by [`Grid::period_ns`].
+    pub fn placed(
+        &mut self,
+        model: &FrameModel,
+        stats: &Stats,
+        (start, last_pulse): (u64, u64),
+        module: Option<(&ModuleTiming, u64)>,
+    ) {
         let grid_start = self.next_start.expect("placed on the grid");
-        let mut next = grid_start + model.frame_ns();
+        let mut next = grid_start + self.period_ns(model, module);
         let end = start + last_pulse;
         if model.wire().kind() == FrameKind::Bytes {
             while next < end + model.sync_window_ns().0 {
@@ -394,6 +408,42 @@ impl Grid {
         }
         self.next_start = Some(next);
         self.prev_sync_ns = next - end;
+    }
+}
+
+impl Grid {
+    /// The step from this grid start to the next: `ppm.frame_us`; for an
+    /// output that drives a transmitter module, the period its newest
+    /// timing correction asks for (while the correction is under
+    /// [`STALE_NS`] old), with the correction's offset added once, as
+    /// EdgeTX does (`ModuleSyncStatus::getAdjustedRefreshRate`): a step is
+    /// kept within the frame's time on the wire and its least idle line,
+    /// and [`PERIOD_MAX_NS`], and what the bounds hold back of the offset
+    /// is added to the steps after it. Reads the correction without
+    /// waiting: one being written now is read at the next frame.
+    pub fn period_ns(&mut self, model: &FrameModel, module: Option<(&ModuleTiming, u64)>) -> u64 {
+        let Some((timing, now)) = module else {
+            return model.frame_ns();
+        };
+        if let Some(t) = timing.get() {
+            if self.correction.is_none_or(|c| c.number != t.number) {
+                self.correction = Some(t);
+                self.lag_ns = t.offset_ns;
+            }
+        }
+        let least = model.wire().frame_wire_ns() + model.sync_window_ns().0;
+        let rate = match self.correction {
+            Some(c) if now.saturating_sub(c.at_ns) <= STALE_NS && c.rate_ns > 0 => {
+                c.rate_ns.clamp(least, PERIOD_MAX_NS)
+            }
+            _ => {
+                self.lag_ns = 0;
+                return model.frame_ns();
+            }
+        };
+        let step = (rate as i64 + self.lag_ns).clamp(least as i64, PERIOD_MAX_NS as i64);
+        self.lag_ns -= step - rate as i64;
+        step as u64
     }
 }
 

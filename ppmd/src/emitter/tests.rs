@@ -23,6 +23,7 @@ use std::sync::Arc;
 
 mod follow;
 mod grid;
+mod module;
 mod properties;
 mod sbus;
 

@@ -70,6 +70,15 @@ impl Config {
             .map_err(|(key, message)| ConfigError::invalid(key, message))?;
         let readback = self.readback_plan()?;
         let pilot = self.pilot_plan()?;
+        if self.ppm.protocol == crate::wire::Protocol::Crsf
+            && self.ppm.crsf_target == crate::wire::crsf::CrsfTarget::Module
+            && pilot.is_none()
+        {
+            return Err(ConfigError::invalid(
+                "ppmd.pilot",
+                "ppm.crsf_target = \"module\" drives a transmitter module directly, with no radio and no trainer switch between ppm and the link, so a person must be able to take over: read a pilot's radio (its trainer output, PPM) with ppmd.pilot = \"gpio:LINE\" and name its takeover switch with pilot.switch_channel (see docs/crsf.md)",
+            ));
+        }
         if pilot.is_some() && readback.is_some() {
             return Err(ConfigError::invalid(
                 "ppmd.pilot",

@@ -18,7 +18,8 @@
 //! | 0x21 flight mode | text, NUL-terminated | `crsfFrameFlightMode`, `calc_flight_mode` |
 //!
 //! Device ping (0x28) and device information (0x29) are counted and not
-//! decoded; other types are counted as `other`. A payload longer than its
+//! decoded; a transmitter module's timing correction (0x3A) is counted as
+//! `other` and kept for [`TelemetryReader::take_timing`]; other types are counted as `other`. A payload longer than its
 //! layout is read (the specification lets frames grow); a shorter one is
 //! counted as `bad_payload`.
 //!
@@ -359,6 +360,9 @@ pub struct TelemetryReader {
     /// Bytes buffered: a frame in progress.
     n: usize,
     counts: TelemetryCounts,
+    /// The newest timing correction a transmitter module sent, not yet
+    /// taken ([`TelemetryReader::take_timing`]).
+    timing: Option<super::module::Correction>,
 }
 
 impl Default for TelemetryReader {
@@ -374,7 +378,15 @@ impl TelemetryReader {
             buf: [0; MAX_FRAME_LEN],
             n: 0,
             counts: TelemetryCounts::default(),
+            timing: None,
         }
+    }
+
+    /// The newest timing correction (0x3A, sub-type 0x10) a transmitter
+    /// module sent since the last call, if any. Such frames are counted
+    /// as `other`; they carry no telemetry.
+    pub fn take_timing(&mut self) -> Option<super::module::Correction> {
+        self.timing.take()
     }
 
     /// What it has seen so far.
@@ -481,6 +493,13 @@ impl TelemetryReader {
             TYPE_LINK_STATISTICS => (&mut c.link_statistics, LinkStatistics::PAYLOAD_LEN),
             TYPE_DEVICE_PING | TYPE_DEVICE_INFO => {
                 c.device += 1;
+                return None;
+            }
+            super::module::TYPE_HANDSET => {
+                c.other += 1;
+                if let Some(t) = super::module::Correction::from_payload(p) {
+                    self.timing = Some(t);
+                }
                 return None;
             }
             _ => {

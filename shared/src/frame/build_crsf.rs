@@ -6,9 +6,10 @@ use super::build::{model, resolve_channels, Wire};
 use super::{us_to_ns, FrameModel, InvalidKey, PpmSection, LATE_EDGE_GUARD_US};
 use crate::crsf::{self, CrsfReceiver};
 use crate::receiver::{Receiver, ReceiverChoice};
+use crate::signal::Timing;
 use crate::wire::crsf::{
-    CrsfFor, CrsfWire, BAUD_DEFAULT, BAUD_RANGE, FOLLOW_GAP_MAX_DEFAULT_US, GAP_LEAST_US,
-    GAP_MARGIN_US, GAP_MAX_US, RESYNC_US,
+    CrsfFor, CrsfTarget, CrsfWire, BAUD_DEFAULT, BAUD_RANGE, FOLLOW_GAP_MAX_DEFAULT_US,
+    GAP_LEAST_US, GAP_MARGIN_US, GAP_MAX_US, MODULE_BAUD_DEFAULT, MODULE_GAP_LEAST_US, RESYNC_US,
 };
 use crate::wire::WireModel;
 
@@ -45,6 +46,9 @@ pub(crate) fn build(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
                 crsf::CHANNELS
             ),
         ));
+    }
+    if ppm.crsf_target == CrsfTarget::Module {
+        return build_module(ppm, encode_for);
     }
     let baud = ppm.crsf_baud.unwrap_or(BAUD_DEFAULT);
     if !(BAUD_RANGE.0..=BAUD_RANGE.1).contains(&baud) {
@@ -116,4 +120,66 @@ pub(crate) fn build(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
             wire: WireModel::Crsf(wire),
         },
     ))
+}
+
+/// A CRSF model to an ExpressLRS transmitter module (`ppm.crsf_target =
+/// "module"`): RC frames to 0xEE alone, at `ppm.crsf_baud` (400 000 by
+/// default), on a grid whatever `ppm.timing` says (the module wants frames
+/// at its own rate, which the grid follows), every `ppm.frame_us` (4000 by
+/// default) until the module's first timing correction. The values are
+/// encoded for the flight controller behind the module's link
+/// (`ppm.receiver`): ExpressLRS passes the raw values on.
+fn build_module(ppm: &PpmSection, encode_for: CrsfFor) -> Result<FrameModel, InvalidKey> {
+    let baud = ppm.crsf_baud.unwrap_or(MODULE_BAUD_DEFAULT);
+    if !(BAUD_RANGE.0..=BAUD_RANGE.1).contains(&baud) {
+        return Err(InvalidKey::new(
+            "ppm.crsf_baud",
+            format!(
+                "{baud} is outside {}..={}: an ExpressLRS module takes 400000 (the default), 115200, 921600, 1870000 or 2250000 from a handset",
+                BAUD_RANGE.0, BAUD_RANGE.1
+            ),
+        ));
+    }
+    let wire = CrsfWire::module(encode_for, baud);
+    let (names, limits) = resolve_channels(ppm)?;
+    let (lo, hi) = encode_for.value_range_us();
+    for l in &limits {
+        let (key, v, rule, nearest) = if l.min_us < lo as f64 {
+            (&l.min_key, l.min_us, "raise", lo)
+        } else if l.max_us > hi as f64 {
+            (&l.max_key, l.max_us, "lower", hi)
+        } else {
+            continue;
+        };
+        return Err(InvalidKey::new(
+            key,
+            format!("{v} us: the CRSF values every firmware of ppm.receiver = \"{}\" reads are {lo}..={hi} us: {rule} {key} to {nearest} us", encode_for.name()),
+        ));
+    }
+    let least = MODULE_GAP_LEAST_US as f64;
+    let wire_us = wire.frame_wire_ns() as f64 / 1e3;
+    let period = ppm.frame_us();
+    let (period_lo, period_hi) = ((wire_us + least).ceil(), GAP_MAX_US);
+    if !period.is_finite() || period < period_lo || period > period_hi {
+        return Err(InvalidKey::new(
+            "ppm.frame_us",
+            format!(
+                "{period} us: the period of CRSF frames to a module before its first timing correction must be {period_lo}..={period_hi} us at {baud} baud (an RC frame takes {wire_us} us on the wire; 4000 is the default, EdgeTX's at 400000 baud)"
+            ),
+        ));
+    }
+    let mut m = model(
+        ppm,
+        names,
+        &limits,
+        Wire {
+            frame_ns: us_to_ns(period),
+            follow_sync_ns: (us_to_ns(least), us_to_ns(GAP_MAX_US)),
+            sync_window_ns: (us_to_ns(least), us_to_ns(GAP_MAX_US)),
+            late_edge_guard_ns: us_to_ns(LATE_EDGE_GUARD_US),
+            wire: WireModel::Crsf(wire),
+        },
+    );
+    m.timing = Timing::Grid;
+    Ok(m)
 }

@@ -78,6 +78,10 @@ pub struct PpmSection {
     /// ExpressLRS receivers use, not the TBS specification's 416666
     /// (ArduPilot's default; 0.8 % apart, which every UART takes).
     pub crsf_baud: Option<u32>,
+    /// CRSF only: what the line drives: `"flight_controller"` (default: a
+    /// flight controller's receiver port) or `"module"` (an ExpressLRS
+    /// transmitter module, as a radio drives one in its bay).
+    pub crsf_target: crate::wire::crsf::CrsfTarget,
 }
 
 impl Default for PpmSection {
@@ -99,6 +103,7 @@ impl Default for PpmSection {
             follow_sync_max_us: None,
             late_edge_guard_us: LATE_EDGE_GUARD_US,
             crsf_baud: None,
+            crsf_target: crate::wire::crsf::CrsfTarget::FlightController,
         }
     }
 }

@@ -53,6 +53,38 @@ pub const FOLLOW_GAP_MAX_DEFAULT_US: f64 = 20_000.0;
 /// The grid period by default, us: 250 Hz.
 pub const PERIOD_DEFAULT_US: f64 = 4_000.0;
 
+/// What a CRSF line drives (`ppm.crsf_target`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CrsfTarget {
+    /// A flight controller's receiver port: RC frames to 0xC8, each
+    /// followed by link statistics, at 420 000 baud by default.
+    #[default]
+    FlightController,
+    /// An ExpressLRS transmitter module, as a radio drives one: RC frames
+    /// to 0xEE alone, at 400 000 baud by default, on a grid that follows
+    /// the module's timing corrections.
+    Module,
+}
+
+impl CrsfTarget {
+    /// As in the configuration.
+    pub fn name(self) -> &'static str {
+        match self {
+            CrsfTarget::FlightController => "flight_controller",
+            CrsfTarget::Module => "module",
+        }
+    }
+}
+
+/// `ppm.crsf_baud`'s default to a module: what EdgeTX sends an external
+/// ExpressLRS module at by default, the first rate the module tries.
+pub const MODULE_BAUD_DEFAULT: u32 = crsf::module::HANDSET_BAUD;
+/// The least idle line between frames to a module, us: the module frames
+/// by bytes alone (no time-out), so this only leaves it room to answer
+/// (a half-duplex module turns the line around after each good frame).
+pub const MODULE_GAP_LEAST_US: u64 = 100;
+
 /// The firmware the values are encoded for (`ppm.receiver`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum CrsfFor {
@@ -118,12 +150,50 @@ pub struct CrsfWire {
     pub(crate) encode_for: CrsfFor,
     /// The line rate, `ppm.crsf_baud`.
     pub(crate) baud: u32,
+    /// What the line drives.
+    pub(crate) target: CrsfTarget,
 }
 
 impl CrsfWire {
     /// The settings: values for `encode_for`, at `baud`.
     pub fn new(encode_for: CrsfFor, baud: u32) -> CrsfWire {
-        CrsfWire { encode_for, baud }
+        CrsfWire {
+            encode_for,
+            baud,
+            target: CrsfTarget::FlightController,
+        }
+    }
+
+    /// The settings to a transmitter module: values for the flight
+    /// controller behind its link (`encode_for`), at `baud`.
+    pub fn module(encode_for: CrsfFor, baud: u32) -> CrsfWire {
+        CrsfWire {
+            encode_for,
+            baud,
+            target: CrsfTarget::Module,
+        }
+    }
+
+    /// What the line drives.
+    pub fn target(&self) -> CrsfTarget {
+        self.target
+    }
+
+    /// The address RC frames go to.
+    fn address(&self) -> u8 {
+        match self.target {
+            CrsfTarget::FlightController => crsf::ADDRESS_FLIGHT_CONTROLLER,
+            CrsfTarget::Module => crsf::ADDRESS_TRANSMITTER,
+        }
+    }
+
+    /// Bytes of a frame of bytes: [`FRAME_LEN`] to a flight controller,
+    /// the RC frame alone to a module (which sends the link statistics).
+    pub fn frame_len(&self) -> usize {
+        match self.target {
+            CrsfTarget::FlightController => FRAME_LEN,
+            CrsfTarget::Module => crsf::RC_FRAME_LEN,
+        }
     }
 
     /// The firmware the values are encoded for.
@@ -140,13 +210,14 @@ impl CrsfWire {
         }
     }
 
-    /// How long a frame of bytes ([`FRAME_LEN`]) takes on the wire, ns.
+    /// How long a frame of bytes ([`Self::frame_len`]) takes on the wire, ns.
     pub fn frame_wire_ns(&self) -> u64 {
-        self.uart().wire_ns(FRAME_LEN)
+        self.uart().wire_ns(self.frame_len())
     }
 
     /// See [`super::WireModel::encode_bytes`]: the RC frame, then
-    /// [`LinkStatistics::WIRED`]. CRSF has no failsafe flag.
+    /// [`LinkStatistics::WIRED`] (to a module: the RC frame to 0xEE alone).
+    /// CRSF has no failsafe flag.
     pub(crate) fn encode(
         &self,
         values_ns: &[u64; MAX_CHANNELS],
@@ -156,7 +227,10 @@ impl CrsfWire {
         for (r, &ns) in raw.iter_mut().zip(values_ns) {
             *r = self.encode_for.raw(ns);
         }
-        out[..crsf::RC_FRAME_LEN].copy_from_slice(&crsf::encode_rc(&raw));
+        out[..crsf::RC_FRAME_LEN].copy_from_slice(&crsf::encode_rc_to(self.address(), &raw));
+        if self.target == CrsfTarget::Module {
+            return crsf::RC_FRAME_LEN;
+        }
         out[crsf::RC_FRAME_LEN..FRAME_LEN].copy_from_slice(&LinkStatistics::WIRED.encode());
         FRAME_LEN
     }
@@ -167,7 +241,7 @@ impl CrsfWire {
         let Some(Ok(rc)) = bytes.get(..crsf::RC_FRAME_LEN).map(<[u8; 26]>::try_from) else {
             return 0;
         };
-        let Some(raw) = crsf::decode_rc(&rc) else {
+        let Some(raw) = crsf::decode_rc_to(self.address(), &rc) else {
             return 0;
         };
         let r = self.encode_for.reads_as();

@@ -273,11 +273,18 @@ impl WireModel {
         match self {
             WireModel::Ppm(p) => format!("pulse {} us", p.pulse_ns as f64 / 1e3),
             WireModel::Sbus(s) => format!("SBUS encoded for {}", s.choice.encode_for().name()),
-            WireModel::Crsf(c) => format!(
-                "CRSF encoded for {}, {}, link statistics after every RC frame",
-                c.encode_for.name(),
-                c.uart().describe()
-            ),
+            WireModel::Crsf(c) => match c.target() {
+                crsf::CrsfTarget::FlightController => format!(
+                    "CRSF encoded for {}, {}, link statistics after every RC frame",
+                    c.encode_for.name(),
+                    c.uart().describe()
+                ),
+                crsf::CrsfTarget::Module => format!(
+                    "CRSF to an ExpressLRS module (0xEE), values for {}, {}, following the module's timing",
+                    c.encode_for.name(),
+                    c.uart().describe()
+                ),
+            },
         }
     }
 }
