@@ -14,6 +14,7 @@
 //! `truncated` (a flight controller sends each frame back to back, and
 //! Betaflight's own receive side resets after 1.75 ms of quiet).
 
+use crate::emitter::module::ModuleTiming;
 use anyhow::{Context, Result};
 use ppm_shared::crsf::TelemetryReader;
 use ppm_shared::ipc::{self, TelemetrySample};
@@ -43,6 +44,7 @@ pub struct Opened {
     tag: String,
     port: PathBuf,
     file: File,
+    module: Option<Arc<ModuleTiming>>,
 }
 
 impl Opened {
@@ -64,7 +66,15 @@ impl Opened {
             tag: tag.to_owned(),
             port: port.to_owned(),
             file,
+            module: None,
         })
+    }
+
+    /// The port is a transmitter module's: its timing corrections are left
+    /// in `timing`, which the timing loop's grid follows.
+    pub fn module(mut self, timing: Arc<ModuleTiming>) -> Opened {
+        self.module = Some(timing);
+        self
     }
 
     /// Starts the thread, which publishes under the shared-memory `root`
@@ -119,8 +129,12 @@ impl Opened {
     }
 
     fn run(mut self, publisher: &ipc::Publisher<TelemetrySample>, stop: &AtomicBool) {
+        let from = match self.module {
+            Some(_) => "the transmitter module: link statistics and timing corrections",
+            None => "the flight controller",
+        };
         log::info!(
-            "{}telemetry: reading {} (CRSF from the flight controller)",
+            "{}telemetry: reading {} (CRSF from {from})",
             self.tag,
             self.port.display()
         );
@@ -151,6 +165,19 @@ impl Opened {
                         }
                         let now = now_ns();
                         reader.feed(&buf[..n], |frame, t| sample.take(frame, &t, now));
+                        if let Some(timing) = &self.module {
+                            if let Some(c) = reader.take_timing() {
+                                if timing.count() == 0 {
+                                    log::info!(
+                                        "{}telemetry: the module asks for a frame every {} us (offset {} us)",
+                                        self.tag,
+                                        c.rate_ns() as f64 / 1e3,
+                                        c.offset_ns() as f64 / 1e3
+                                    );
+                                }
+                                timing.set(c, now);
+                            }
+                        }
                     }
                     Err(e) if e.kind() == io::ErrorKind::WouldBlock => {}
                     Err(e) if e.kind() == io::ErrorKind::Interrupted => {}

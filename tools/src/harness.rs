@@ -216,8 +216,18 @@ pub struct Pty {
 impl Pty {
     /// Opens a pair and starts reading its master end.
     pub fn open() -> std::io::Result<Pty> {
+        Pty::open_answering(|_, _| Vec::new())
+    }
+
+    /// [`Pty::open`], with a device at the master end that answers:
+    /// `answer` gets every chunk read with when it arrived, and what it
+    /// returns is written back at once (a module's answers after each of
+    /// a handset's frames).
+    pub fn open_answering(
+        mut answer: impl FnMut(u64, &[u8]) -> Vec<u8> + Send + 'static,
+    ) -> std::io::Result<Pty> {
         use nix::libc;
-        use std::io::Read;
+        use std::io::{Read, Write};
         use std::os::fd::{AsRawFd, FromRawFd};
         use std::sync::atomic::Ordering;
         // SAFETY: plain libc calls on a descriptor this function owns; the
@@ -254,7 +264,14 @@ impl Pty {
                 let ready = unsafe { libc::poll(&mut pfd, 1, 50) };
                 if ready == 1 {
                     match master.read(&mut buf) {
-                        Ok(n) if n > 0 => got.push((ppm_shared::time::now_ns(), buf[..n].to_vec())),
+                        Ok(n) if n > 0 => {
+                            let now = ppm_shared::time::now_ns();
+                            let reply = answer(now, &buf[..n]);
+                            if !reply.is_empty() {
+                                let _ = master.write_all(&reply);
+                            }
+                            got.push((now, buf[..n].to_vec()));
+                        }
                         // No slave open (EIO) yet or any more: wait.
                         _ => std::thread::sleep(Duration::from_millis(5)),
                     }

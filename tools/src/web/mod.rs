@@ -133,7 +133,11 @@ impl Settings {
                     min_us: (0..k).map(|i| f64::from(m.min_ns(i)) / 1e3).collect(),
                     max_us: (0..k).map(|i| f64::from(m.max_ns(i)) / 1e3).collect(),
                     model: m.fingerprint(),
-                    readback: o.readback.as_ref().map(|r| r.input.to_string()),
+                    readback: o
+                        .readback
+                        .as_ref()
+                        .map(|r| r.input.to_string())
+                        .or_else(|| o.pilot.as_ref().map(|p| p.input.to_string())),
                     status_to: status_address(o.ingress.listen),
                 }
             })

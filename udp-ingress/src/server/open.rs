@@ -387,6 +387,13 @@ impl Server {
             );
             intake = intake.with_readback(r.input.to_string());
         }
+        if let Some(p) = &cfg.pilot {
+            log::info!(
+                "pilot's radio {}: who flies is the read-back member of status replies (following: the groundstation; overridden: the pilot, whose takeover switch is on; no_input: no pilot's radio, so no command goes out); each change goes at once to the sender of the newest JSON command and as STATUSTEXT to MAVLink peers",
+                p.input
+            );
+            intake = intake.with_readback(p.input.to_string());
+        }
         if let Some(port) = cfg.telemetry_port() {
             log::info!(
                 "telemetry from the flight controller on {}: in status replies; SYS_STATUS, ATTITUDE and GPS_RAW_INT to MAVLink peers, a STATUSTEXT at each flight mode change",
