@@ -50,7 +50,10 @@ impl FrameLine for ModuleLine {
 /// Runs a module output for `until_ms` with `corrections` (after which
 /// frame, which correction); the frames and the steps between their
 /// starts, us.
-fn run_module(corrections: Vec<(usize, Correction)>, until_ms: u64) -> (Vec<(Vec<u8>, u64)>, Vec<u64>) {
+fn run_module(
+    corrections: Vec<(usize, Correction)>,
+    until_ms: u64,
+) -> (Vec<(Vec<u8>, u64)>, Vec<u64>) {
     let sim = Sim::new();
     let model = module_model();
     let timing = Arc::new(ModuleTiming::default());
@@ -108,7 +111,10 @@ fn every_frame_is_an_rc_frame_to_the_module_that_its_framing_takes() {
         let want = [1_100_000, 1_900_000, 1_500_000, 1_200_000];
         for (i, &r) in raw.iter().enumerate() {
             let got = crsf::CrsfReceiver::Betaflight.read_ns(r);
-            let want = want.get(i).copied().unwrap_or(u64::from(model.default_ns(i)));
+            let want = want
+                .get(i)
+                .copied()
+                .unwrap_or(u64::from(model.default_ns(i)));
             assert!(got.abs_diff(want) <= 320, "channel {i}: {got} for {want}");
         }
     }
@@ -119,10 +125,18 @@ fn the_grid_takes_the_module_rate_and_adds_its_offset_once() {
     let (_, steps) = run_module(vec![(10, correction(5_000, 1_000))], 400);
     // Frames 0..=11 were placed before the correction came (frame 11's
     // start was set when frame 10 was decided): 4 ms apart.
-    assert!(steps[..11].iter().all(|&s| s == 4_000), "{:?}", &steps[..12]);
+    assert!(
+        steps[..11].iter().all(|&s| s == 4_000),
+        "{:?}",
+        &steps[..12]
+    );
     // Frame 12 comes 5 ms + 1 ms after frame 11, then every 5 ms.
     assert_eq!(steps[11], 6_000, "{:?}", &steps[..14]);
-    assert!(steps[12..].iter().all(|&s| s == 5_000), "{:?}", &steps[12..]);
+    assert!(
+        steps[12..].iter().all(|&s| s == 5_000),
+        "{:?}",
+        &steps[12..]
+    );
     assert!(steps.len() > 60, "{} steps", steps.len());
 }
 
@@ -132,7 +146,11 @@ fn a_large_offset_is_spread_over_bounded_steps() {
     // wire (650 us at 400000 baud) and the 100 us idle line; the rest of
     // the offset is carried to the next steps, as EdgeTX carries its lag.
     let (_, steps) = run_module(vec![(5, correction(4_000, -10_000))], 100);
-    assert_eq!(&steps[5..11], &[4_000, 750, 750, 750, 3_750, 4_000], "{steps:?}");
+    assert_eq!(
+        &steps[5..11],
+        &[4_000, 750, 750, 750, 3_750, 4_000],
+        "{steps:?}"
+    );
     // The module asked 10 ms less in all: that is what the steps took.
     let taken: i64 = steps[6..10].iter().map(|&s| s as i64 - 4_000).sum();
     assert_eq!(taken, -10_000);
@@ -146,7 +164,11 @@ fn a_newer_correction_replaces_the_rate_and_its_offset_goes_once() {
     );
     assert_eq!(steps[6], 5_000, "{steps:?}");
     assert_eq!(steps[31], 2_300, "{:?}", &steps[28..35]);
-    assert!(steps[32..].iter().all(|&s| s == 2_000), "{:?}", &steps[32..]);
+    assert!(
+        steps[32..].iter().all(|&s| s == 2_000),
+        "{:?}",
+        &steps[32..]
+    );
 }
 
 #[test]
