@@ -4,8 +4,10 @@
 //! - RC frames go to the module's address, 0xEE, with the flight
 //!   controller's layout ([`super::encode_rc_to`]).
 //! - Every 200 ms the module answers with a timing correction
-//!   ([`Correction`]): `EA 0D 3A EA EE 10 RATE OFFSET CRC` (ExpressLRS
-//!   `CRSFHandset::sendSyncPacketToTX`; type 0x3A, sub-type 0x10), `RATE`
+//!   ([`Correction`]): `C8 0D 3A EA EE 10 RATE OFFSET CRC` (ExpressLRS
+//!   `CRSFHandset::sendSyncPacketToTX`; type 0x3A, sub-type 0x10, to 0xEA
+//!   from 0xEE; `forwardMessage` puts the sync byte 0xC8 first on a serial
+//!   port, whatever the destination), `RATE`
 //!   the period it wants between RC frames and `OFFSET` how long before its
 //!   radio's packet timer the last RC frames were whole, less a 100 us
 //!   margin, both signed 32-bit big-endian in tenths of a microsecond
@@ -58,10 +60,11 @@ impl Correction {
         })
     }
 
-    /// The whole frame a module sends (starting 0xEA, to the handset).
+    /// The whole frame a module sends: to the handset (0xEA), starting
+    /// with the sync byte 0xC8 as every frame on its serial port does.
     pub fn encode(&self) -> [u8; 15] {
         let mut f = [0u8; 15];
-        f[0] = ADDRESS_RADIO_TRANSMITTER;
+        f[0] = super::ADDRESS_FLIGHT_CONTROLLER;
         f[1] = 13;
         f[2] = TYPE_HANDSET;
         f[3] = ADDRESS_RADIO_TRANSMITTER;
@@ -158,6 +161,75 @@ impl HandsetParser {
                 self.n -= i;
             }
             None => self.n = 0,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::crsf::{encode_rc_to, TelemetryReader, RC_FRAME_LEN};
+
+    /// A module's correction for 5000 us and -1234.5 us, its CRC computed
+    /// apart from the crate (CRC-8/DVB-S2 in a few lines of Python).
+    const SYNC: [u8; 15] = [
+        0xC8, 0x0D, 0x3A, 0xEA, 0xEE, 0x10, 0x00, 0x00, 0xC3, 0x50, 0xFF, 0xFF, 0xCF, 0xC7, 0x4F,
+    ];
+
+    #[test]
+    fn a_correction_is_the_bytes_a_module_sends() {
+        let c = Correction {
+            rate_tenths: 50_000,
+            offset_tenths: -12_345,
+        };
+        assert_eq!(c.encode(), SYNC);
+        assert_eq!((c.rate_ns(), c.offset_ns()), (5_000_000, -1_234_500));
+        let mut reader = TelemetryReader::new();
+        reader.feed(&[0x00, 0x12], |_, _| panic!("no telemetry"));
+        reader.feed(&SYNC, |_, _| panic!("no telemetry"));
+        assert_eq!(reader.take_timing(), Some(c));
+        assert_eq!(reader.take_timing(), None, "taken once");
+        assert_eq!((reader.counts().other, reader.counts().bad_crc), (1, 0));
+        // Another sub-type, or a bad CRC: no correction.
+        let mut other = SYNC;
+        other[5] = 0x11;
+        other[14] = crc8(&other[2..14]);
+        let mut bad = SYNC;
+        bad[9] ^= 1;
+        reader.feed(&other, |_, _| {});
+        reader.feed(&bad, |_, _| {});
+        assert_eq!(reader.take_timing(), None);
+        assert_eq!(reader.counts().bad_crc, 1);
+        assert_eq!(Correction::from_payload(&SYNC[3..13]), None, "short");
+    }
+
+    #[test]
+    fn the_module_frames_rc_frames_after_junk_bad_lengths_and_bad_crcs() {
+        let raw: [u16; 16] = std::array::from_fn(|i| 172 + 100 * i as u16);
+        let rc = encode_rc_to(ADDRESS_TRANSMITTER, &raw);
+        assert_eq!(&rc[..3], &[0xEE, 24, 0x16]);
+        let mut bad_crc = rc;
+        bad_crc[RC_FRAME_LEN - 1] ^= 0x55;
+        let mut stream = vec![0x00, 0x17, 0x42];
+        stream.extend_from_slice(&rc);
+        // A start byte whose length is out of 4..=64: dropped at it.
+        stream.extend_from_slice(&[0xEE, 0x01]);
+        stream.extend_from_slice(&bad_crc);
+        stream.extend_from_slice(&rc);
+        stream.extend_from_slice(&SYNC);
+        // Fed a byte at a time and in one piece: the same frames.
+        for pieces in [1, stream.len()] {
+            let mut p = HandsetParser::default();
+            let mut taken = Vec::new();
+            for chunk in stream.chunks(pieces) {
+                p.feed(chunk, |f| taken.push(f.to_vec()));
+            }
+            assert_eq!(
+                taken,
+                [rc.to_vec(), rc.to_vec(), SYNC.to_vec()],
+                "pieces of {pieces}"
+            );
+            assert_eq!((p.good, p.bad), (3, 1));
         }
     }
 }

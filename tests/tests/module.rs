@@ -1,0 +1,321 @@
+//! CRSF to an ExpressLRS transmitter module, end to end with the real
+//! binaries: a simulated module on a pseudo-terminal that frames ppmd's
+//! bytes as ExpressLRS does (`CRSFHandset::handleInput`, ported), keeps its
+//! own radio packet timer and answers as the module does
+//! (`JustSentRFpacket`, `sendSyncPacketToTX`: a timing correction every
+//! 200 ms, and link statistics); a simulated pilot's radio (a PPM trace
+//! read through `ppmd.pilot = "sim:PATH"`) whose takeover switch gives the
+//! pilot the controls; the groundstation's commands over UDP.
+
+use ppm_shared::crsf::module::{Correction, HandsetParser, SAFE_MARGIN_TENTHS};
+use ppm_shared::crsf::{self, CrsfReceiver, LinkStatistics, ADDRESS_TRANSMITTER, RC_FRAME_LEN};
+use ppm_shared::time::now_ns;
+use ppm_tests::{at_50hz, status, stop_all, Pty, Sandbox, Sender};
+use std::io::Write;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::SeqCst};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+/// The module's packet interval, us: 200 Hz, not ppm's 4000 us default,
+/// so following it shows.
+const MODULE_INTERVAL_US: i64 = 5_000;
+/// The module's link statistics: -67 dBm, 98 %, 9 dB SNR, RF mode 5.
+const LINK: LinkStatistics = LinkStatistics {
+    uplink_rssi_ant1: 67,
+    uplink_rssi_ant2: 70,
+    uplink_link_quality: 98,
+    uplink_snr: 9,
+    active_antenna: 0,
+    rf_mode: 5,
+    uplink_tx_power: 3,
+    downlink_rssi: 60,
+    downlink_link_quality: 97,
+    downlink_snr: 7,
+};
+
+/// The simulated module: ExpressLRS's handset side, on the bytes as they
+/// arrive.
+#[derive(Default)]
+struct Module {
+    parser: HandsetParser,
+    /// `dataLastRecv`: when the newest good frame came.
+    last_recv: Option<u64>,
+    /// The radio's next packet, once frames come.
+    next_tick: Option<u64>,
+    /// `OpenTXsyncOffset`, `OpenTXsyncWindow`, tenths of a us.
+    offset: i64,
+    window: i64,
+    last_sync: Option<u64>,
+    /// Every packet tick: (when, how long before it the newest frame came, ns).
+    ticks: Vec<(u64, u64)>,
+    /// Every good frame: when it came, its bytes.
+    frames: Vec<(u64, Vec<u8>)>,
+}
+
+impl Module {
+    /// Bytes at `now`: the module's answer.
+    fn bytes(&mut self, now: u64, bytes: &[u8]) -> Vec<u8> {
+        self.ticks_until(now);
+        let mut frames = Vec::new();
+        self.parser.feed(bytes, |f| frames.push(f.to_vec()));
+        if frames.is_empty() {
+            return Vec::new();
+        }
+        self.last_recv = Some(now);
+        // The radio's timer runs on its own: its phase is anything.
+        self.next_tick.get_or_insert(now + 1_234_567);
+        self.frames.extend(frames.into_iter().map(|f| (now, f)));
+        // handleOutput: a correction when 200 ms have passed, then the
+        // link statistics.
+        if self.last_sync.is_some_and(|s| now - s < 200_000_000) {
+            return Vec::new();
+        }
+        self.last_sync = Some(now);
+        let c = Correction {
+            rate_tenths: (MODULE_INTERVAL_US * 10) as i32,
+            offset_tenths: (self.offset - i64::from(SAFE_MARGIN_TENTHS)) as i32,
+        };
+        let mut out = c.encode().to_vec();
+        // Every frame on the module's serial port starts 0xC8
+        // (`forwardMessage`).
+        out.extend(crsf::frame(
+            crsf::ADDRESS_FLIGHT_CONTROLLER,
+            crsf::TYPE_LINK_STATISTICS,
+            &LINK.encode()[3..3 + LinkStatistics::PAYLOAD_LEN],
+        ));
+        out
+    }
+
+    /// `JustSentRFpacket` at every packet tick up to `now`.
+    fn ticks_until(&mut self, now: u64) {
+        let (Some(last), Some(mut tick)) = (self.last_recv, self.next_tick) else {
+            return;
+        };
+        let interval = MODULE_INTERVAL_US as u64 * 1_000;
+        let size = (20_000 / MODULE_INTERVAL_US).max(1);
+        while tick <= now {
+            let delta_us = (tick.saturating_sub(last) / 1_000) as i64;
+            if delta_us >= MODULE_INTERVAL_US {
+                self.offset = -(delta_us % MODULE_INTERVAL_US) * 10;
+                self.window = 0;
+                self.last_sync = self.last_sync.map(|s| s.saturating_sub(200_000_000));
+            } else {
+                self.window = (self.window + 1).min(size);
+                self.offset = (self.offset * (self.window - 1) + delta_us * 10) / self.window;
+            }
+            self.ticks.push((tick, tick.saturating_sub(last)));
+            tick += interval;
+        }
+        self.next_tick = Some(tick);
+    }
+}
+
+/// The pilot's radio: 8 channels every 22.5 ms into `out` (a trace of
+/// the simulated line), channel 5 the takeover switch (2000 us while
+/// `takeover` is set, 1000 us otherwise); each edge written once its
+/// time has passed. Returns when `stop` is set.
+fn pilot_radio(out: &Path, takeover: &AtomicBool, flipped_at: &AtomicU64, stop: &AtomicBool) {
+    let mut file = std::fs::File::create(out).expect("creating the pilot's trace");
+    file.write_all(b"# idle_level 0\n").unwrap();
+    let mut next = now_ns();
+    let mut pending = std::collections::VecDeque::new();
+    let mut was = false;
+    while !stop.load(SeqCst) {
+        let now = now_ns();
+        let mut text = String::new();
+        while pending.front().is_some_and(|(t, _)| *t <= now) {
+            let (t, level) = pending.pop_front().unwrap();
+            text.push_str(&format!("{t} {t} {level}\n"));
+        }
+        if !text.is_empty() {
+            file.write_all(text.as_bytes()).unwrap();
+            file.flush().unwrap();
+        }
+        if now < next {
+            std::thread::sleep(Duration::from_nanos((next - now).min(500_000)));
+            continue;
+        }
+        let start = next;
+        next += 22_500_000;
+        let on = takeover.load(SeqCst);
+        if on != was {
+            was = on;
+            flipped_at.store(start, SeqCst);
+        }
+        let switch = if on { 2_000 } else { 1_000 };
+        let us = [1_600, 1_450, 1_100, 1_550, switch, 1_500, 1_500, 1_500];
+        pending.extend(ppm_tools::radio::frame_edges(start, &us));
+    }
+}
+
+/// `[ppm]` and the rest for a module on `pty`, with a pilot's radio in
+/// `pilot` (none: `None`).
+fn module_config(pty: &Path, pilot: Option<&Path>) -> String {
+    let pilot = pilot.map_or(String::new(), |p| {
+        format!("pilot = \"sim:{}\"\n", p.display())
+    });
+    format!(
+        "[ppm]\nprotocol = \"crsf\"\ncrsf_target = \"module\"\nreceiver = \"betaflight\"\n[ppmd]\noutput = \"serial:{}\"\n{pilot}[pilot]\nswitch_channel = 5\n[failsafe]\nstartup = \"silence\"\n",
+        pty.display()
+    )
+}
+
+/// ppmd refuses to drive a module without a pilot's radio: exit 78, the
+/// message naming `ppmd.pilot`, nothing written to the module.
+#[test]
+fn a_module_without_a_pilots_radio_does_not_start() {
+    let sb = Sandbox::new("module-refused");
+    let pty = Pty::open().expect("a pseudo-terminal");
+    let cfg = sb.config(&module_config(&pty.slave, None));
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg.to_str().unwrap()], "ppmd");
+    let status = ppmd.wait(Duration::from_secs(20));
+    let log = ppmd.log_text();
+    assert_eq!(status.code(), Some(78), "{log}");
+    assert!(
+        log.contains("`ppmd.pilot`") && log.contains("take over"),
+        "{log}"
+    );
+    assert!(pty.finish().is_empty(), "bytes reached the module");
+}
+
+/// The whole set-up: no frame before the pilot's radio is read; then the
+/// groundstation's commands, at the module's rate and phase; the pilot's
+/// sticks once the takeover switch is on, which the groundstation hears;
+/// the module's link statistics in the status reply.
+#[test]
+fn a_module_gets_the_groundstation_then_the_pilot_at_its_own_pace() {
+    let sb = Sandbox::new("module");
+    let module = Arc::new(Mutex::new(Module::default()));
+    let pty = {
+        let m = module.clone();
+        Pty::open_answering(move |now, bytes| m.lock().unwrap().bytes(now, bytes))
+            .expect("a pseudo-terminal")
+    };
+    let pilot_trace = sb.dir.join("pilot.trace");
+    let cfg = sb.config(&module_config(&pty.slave, Some(&pilot_trace)));
+    let cfg_s = cfg.to_str().unwrap();
+    let mut ppmd = sb.spawn("ppmd", &["--config", cfg_s], "ppmd");
+    ppmd.wait_for_log("telemetry: reading", Duration::from_secs(20));
+    let mut ingress = sb.start_ingress(&cfg, &[]);
+    let sender = Sender::new(sb.addr());
+    let command = b"[1300, 1700, 1000, 1200]";
+
+    // No pilot's radio yet: commands come, and none goes out.
+    at_50hz(50, |_| sender.send(command));
+    assert!(
+        module.lock().unwrap().frames.is_empty(),
+        "frames went out before a pilot could take over"
+    );
+
+    // The pilot's radio, switch off: the groundstation flies.
+    let (takeover, flipped, stop) = (
+        Arc::new(AtomicBool::new(false)),
+        Arc::new(AtomicU64::new(0)),
+        Arc::new(AtomicBool::new(false)),
+    );
+    let radio = {
+        let (t, f, s, p) = (
+            takeover.clone(),
+            flipped.clone(),
+            stop.clone(),
+            pilot_trace.clone(),
+        );
+        std::thread::spawn(move || pilot_radio(&p, &t, &f, &s))
+    };
+    at_50hz(200, |_| sender.send(command));
+    let settled = now_ns() - 1_500_000_000;
+    let st = status(sb.addr());
+
+    // The switch on: the pilot flies.
+    takeover.store(true, SeqCst);
+    at_50hz(50, |_| sender.send(command));
+    let st_pilot = status(sb.addr());
+    stop.store(true, SeqCst);
+    radio.join().unwrap();
+    stop_all(&mut ppmd, &mut [&mut ingress]);
+    drop(pty);
+    let m = module.lock().unwrap();
+
+    // Every frame is an RC frame to the module; Betaflight behind the
+    // link reads the groundstation's values, then the pilot's.
+    assert_eq!(m.parser.bad, 0);
+    let r = CrsfReceiver::Betaflight;
+    let mut seen: Vec<[u64; 4]> = m
+        .frames
+        .iter()
+        .map(|(_, f)| {
+            assert_eq!((f[0], f.len()), (ADDRESS_TRANSMITTER, RC_FRAME_LEN));
+            let raw = crsf::decode_rc_to(ADDRESS_TRANSMITTER, f[..].try_into().unwrap())
+                .expect("an RC frame to 0xEE");
+            std::array::from_fn(|i| (r.read_ns(raw[i]) + 500) / 1_000)
+        })
+        .collect();
+    seen.dedup();
+    assert_eq!(
+        seen,
+        [[1_300, 1_700, 1_000, 1_200], [1_600, 1_450, 1_100, 1_550]],
+        "the groundstation's command, then the pilot's sticks, nothing else"
+    );
+
+    // The module's pace: over the last 1.5 s before the switch, frames
+    // at its 5 ms (not ppm's 4 ms), and whole a little before its packet
+    // timer, as its corrections ask (the median lead; a module that is not
+    // followed sees leads spread over its whole interval).
+    let steady: Vec<u64> = m
+        .frames
+        .iter()
+        .map(|f| f.0)
+        .filter(|&t| t >= settled && t < settled + 1_500_000_000)
+        .collect();
+    assert!(
+        (270..=330).contains(&steady.len()),
+        "{} frames in 1.5 s at the module's 200 Hz",
+        steady.len()
+    );
+    let mut leads: Vec<u64> = m
+        .ticks
+        .iter()
+        .filter(|t| t.0 >= settled && t.0 < settled + 1_500_000_000)
+        .map(|t| t.1)
+        .collect();
+    leads.sort_unstable();
+    let median = leads[leads.len() / 2];
+    eprintln!(
+        "module: {} frames in 1.5 s; lead before its packet timer: p10 {} us, median {} us, p90 {} us",
+        steady.len(),
+        leads[leads.len() / 10] / 1_000,
+        median / 1_000,
+        leads[leads.len() * 9 / 10] / 1_000
+    );
+    assert!(
+        median < 1_500_000,
+        "median lead {median} ns of a 5 ms interval"
+    );
+
+    // Who flies reaches the groundstation, and the module's link.
+    let rb = st.readback.expect("the pilot's state");
+    assert_eq!(rb.state, "following", "{rb:?}");
+    assert_eq!(rb.input, format!("sim:{}", pilot_trace.display()));
+    let rb = st_pilot.readback.expect("the pilot's state");
+    assert_eq!(rb.state, "overridden", "{rb:?}");
+    assert_eq!(
+        &rb.ch_us[..5],
+        &[1_600.0, 1_450.0, 1_100.0, 1_550.0, 2_000.0]
+    );
+    let link = st
+        .telemetry
+        .expect("telemetry")
+        .link_statistics
+        .expect("link statistics");
+    assert_eq!(
+        (
+            link.rssi_dbm,
+            link.link_quality,
+            link.snr_db,
+            link.rf_mode,
+            link.downlink_link_quality
+        ),
+        (-67, 98, 9, 5, 97)
+    );
+}
