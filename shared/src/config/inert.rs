@@ -100,7 +100,22 @@ impl Config {
         let spec = ppm.protocol.spec();
         match by {
             Program::Ppmd => {
-                if ppm.timing == Timing::Follow && set("ppm.frame_us") {
+                let module = ppm.protocol == crate::wire::Protocol::Crsf
+                    && ppm.crsf_target == crate::wire::crsf::CrsfTarget::Module;
+                if module {
+                    for key in [
+                        "ppm.timing",
+                        "ppm.follow_sync_min_us",
+                        "ppm.follow_sync_max_us",
+                    ] {
+                        if set(key) {
+                            out.push((
+                                key,
+                                "under ppm.crsf_target = \"module\" frames follow the module's timing corrections (ppm.frame_us until the first), whatever ppm.timing says".into(),
+                            ));
+                        }
+                    }
+                } else if ppm.timing == Timing::Follow && set("ppm.frame_us") {
                     out.push((
                         "ppm.frame_us",
                         format!(
@@ -109,7 +124,7 @@ impl Config {
                         ),
                     ));
                 }
-                if ppm.timing == Timing::Grid {
+                if ppm.timing == Timing::Grid && !module {
                     for key in ["ppm.follow_sync_min_us", "ppm.follow_sync_max_us"] {
                         if set(key) {
                             out.push((
@@ -211,6 +226,21 @@ impl Config {
                 }
             }
         }
+        if !entries.iter().any(|e| e.config.ppmd.pilot.is_some()) {
+            for key in [
+                "pilot.switch_channel",
+                "pilot.switch_above_us",
+                "pilot.idle_level",
+                "pilot.channels",
+            ] {
+                if set(key) {
+                    out.push((
+                        key,
+                        "it sets how a pilot's radio is read and its takeover switch judged, and no output has one (ppmd.pilot)".into(),
+                    ));
+                }
+            }
+        }
         if entries
             .iter()
             .any(|e| e.config.ppmd.readback_log.is_some() && e.config.ppmd.readback.is_none())
@@ -278,6 +308,25 @@ mod tests {
         let mut c = Config::parse("[ppm]\nframe_us = 20500.0").unwrap();
         c.ppm.timing = Timing::Grid;
         assert!(c.inert_keys(Program::Ppmd).is_empty());
+    }
+
+    #[test]
+    fn module_keys_that_the_module_overrides_and_pilot_keys_without_a_pilot_are_named() {
+        let k = |t: &str| keys(t, Program::Ppmd);
+        let module = "[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\n";
+        assert_eq!(
+            k(&format!("{module}timing = 'follow'\nfollow_sync_max_us = 9000.0\nframe_us = 5000.0\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5")),
+            ["ppm.timing", "ppm.follow_sync_max_us"]
+        );
+        assert_eq!(
+            k("[pilot]\nswitch_channel = 5\nswitch_above_us = 1700\nchannels = 8"),
+            [
+                "pilot.switch_channel",
+                "pilot.switch_above_us",
+                "pilot.channels"
+            ]
+        );
+        assert!(k("[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5").is_empty());
     }
 
     #[test]

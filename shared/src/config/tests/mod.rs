@@ -490,6 +490,19 @@ fn invalid_keys_are_named() {
         ("[ppm]\nchannels = 17", "ppm.channels"),
         ("[ppmd]\nreadback = 'spi:/dev/spidev0.0'", "ppmd.readback"),
         ("[ppmd]\nreadback = 'gpio:'", "ppmd.readback"),
+        ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\n", "ppmd.pilot"),
+        ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\n[ppmd]\npilot = 'spi:/dev/spidev0.0'", "ppmd.pilot"),
+        ("[ppmd]\npilot = 'gpio:GPIO17'", "pilot.switch_channel"),
+        ("[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 0", "pilot.switch_channel"),
+        ("[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 17", "pilot.switch_channel"),
+        ("[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\nchannels = 4", "pilot.switch_channel"),
+        ("[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\nchannels = 17", "pilot.channels"),
+        ("[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\nswitch_above_us = 899", "pilot.switch_above_us"),
+        ("[ppmd]\npilot = 'gpio:GPIO17'\nreadback = 'gpio:GPIO27'\n[pilot]\nswitch_channel = 5", "ppmd.pilot"),
+        ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\ncrsf_baud = 9600\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.crsf_baud"),
+        ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\nframe_us = 700\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.frame_us"),
+        ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\nframe_us = 50001\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.frame_us"),
+        ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\nreceiver = 'edgetx'\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.receiver"),
         (
             "[ppm]\nprotocol = 'sbus'\n[ppmd]\nreadback = 'gpio:GPIO17'",
             "ppmd.readback",
@@ -684,6 +697,65 @@ fn mavlink_keys_resolve_against_the_channels_or_name_the_key() {
     let p = Plan::resolve(&c).unwrap();
     let ids: Vec<u8> = p.outputs.iter().map(|o| o.mavlink.system_id).collect();
     assert_eq!(ids, [2, 1]);
+}
+
+#[test]
+fn a_pilot_and_a_module_resolve_into_their_plan() {
+    use crate::capture::{CaptureSettings, InputSpec};
+    use crate::wire::crsf::CrsfTarget;
+    let c = Config::parse(
+        "[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\n[ppmd]\noutput = 'serial:/dev/ttyUSB0'\npilot = 'sim:pilot.trace'\n[pilot]\nswitch_channel = 6\nswitch_above_us = 1700\nidle_level = 'low'\nchannels = 8",
+    )
+    .unwrap();
+    let (_, plan) = crate::config::Plan::resolve_one(&c).unwrap();
+    assert_eq!(
+        plan.pilot,
+        Some(crate::config::PilotPlan {
+            input: InputSpec::Sim {
+                path: "pilot.trace".into()
+            },
+            capture: CaptureSettings {
+                idle: Some(crate::signal::Level::Low),
+                channels: Some(8)
+            },
+            switch_channel: 5,
+            switch_above_ns: 1_700_000,
+        })
+    );
+    assert_eq!(plan.readback, None);
+    let crate::wire::WireModel::Crsf(w) = plan.model.wire() else {
+        panic!("a CRSF model");
+    };
+    assert_eq!(w.target(), CrsfTarget::Module);
+    assert_eq!(w.uart().baud, 400_000);
+    assert_eq!(w.frame_len(), 26);
+    // A grid every 4 ms until the module's first correction, whatever
+    // ppm.timing (follow by default) says.
+    assert_eq!(plan.model.timing(), crate::signal::Timing::Grid);
+    assert_eq!(plan.model.frame_ns(), 4_000_000);
+    assert_eq!(
+        plan.telemetry_port(),
+        Some(std::path::Path::new("/dev/ttyUSB0"))
+    );
+    // A flight controller's CRSF: 420000, link statistics, ppm.timing.
+    let c = Config::parse("[ppm]\nprotocol = 'crsf'\n").unwrap();
+    let (_, plan) = crate::config::Plan::resolve_one(&c).unwrap();
+    let crate::wire::WireModel::Crsf(w) = plan.model.wire() else {
+        panic!("a CRSF model");
+    };
+    assert_eq!(
+        (w.target(), w.uart().baud, w.frame_len()),
+        (CrsfTarget::FlightController, 420_000, 40)
+    );
+    assert_eq!(plan.model.timing(), crate::signal::Timing::Follow);
+    assert_eq!(plan.pilot, None);
+    let e = Config::parse("[ppm]\ncrsf_target = 'fc'")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("`ppm.crsf_target`") && e.contains("`flight_controller` or `module`"),
+        "{e}"
+    );
 }
 
 #[test]
