@@ -42,6 +42,9 @@
 //! - [`meter`]: histograms of the loop's timing, handed over lock-free.
 //! - [`readback`]: the read-back thread: what the radio transmits, compared
 //!   with what the line carried.
+//! - [`pilot`]: a pilot's radio as a takeover input: its thread reads the
+//!   takeover switch, and [`pilot::PilotMux`] hands the loop the pilot's
+//!   channels or the groundstation's commands (none while it is not read).
 //! - [`telemetry`]: the telemetry thread of a CRSF serial output: what
 //!   the flight controller sends back, read, counted and published.
 //! - [`rotating`]: the log files' type: rotated at a size cap, fed by a
@@ -63,6 +66,7 @@ pub mod line;
 pub mod lines;
 pub mod meter;
 pub mod monitor;
+pub mod pilot;
 pub mod readback;
 pub mod rotating;
 pub mod rt;

@@ -92,6 +92,16 @@ fn run(cli: Cli) -> Result<()> {
         })
         .collect::<Result<Vec<_>>>()?;
 
+    // Pilots' radios, opened before the line moves too. Until their
+    // threads read them, their outputs send no groundstation command.
+    let pilot_inputs = outputs
+        .iter()
+        .filter_map(|o| {
+            let (plan, slot) = (o.plan.pilot.as_ref()?, o.pilot.clone()?);
+            Some(ppmd::pilot::Opened::open(&o.plan.name, &o.tag, plan).map(|p| (p, slot)))
+        })
+        .collect::<Result<Vec<_>>>()?;
+
     // The flight controller's telemetry (a CRSF serial: output), opened
     // before the line moves too.
     let ports = outputs
@@ -139,6 +149,18 @@ fn run(cli: Cli) -> Result<()> {
         }
     }
 
+    let mut pilots = Vec::new();
+    for (p, slot) in pilot_inputs {
+        match p.start(&shared.ipc.root, slot, obtained.cpu) {
+            Ok(p) => pilots.push(p),
+            Err(e) => {
+                stop.store(true, Relaxed);
+                let _ = timing.join();
+                return Err(e);
+            }
+        }
+    }
+
     let mut telemetry = Vec::new();
     for p in ports {
         match p.start(&shared.ipc.root, obtained.cpu) {
@@ -172,6 +194,9 @@ fn run(cli: Cli) -> Result<()> {
         .map_err(|_| anyhow!("the timing thread panicked"))??;
     for r in &mut readbacks {
         r.finish();
+    }
+    for p in &mut pilots {
+        p.finish();
     }
     for t in &mut telemetry {
         t.finish();

@@ -10,6 +10,7 @@ use crate::framelog;
 use crate::lines::{tag, OpenLine};
 use crate::meter::{self, MeterReader};
 use crate::monitor::{HdrLog, Monitor, Obtained, SnapshotPublisher, SNAPSHOT_EVERY_NS};
+use crate::pilot::PilotSlot;
 use crate::timing::TimedOutput;
 use anyhow::Result;
 use ppm_shared::config::{fault, FailsafeSection, OutputPlan, RtSection, Shared, SpinMargin};
@@ -56,6 +57,9 @@ pub struct Output<V = MeterReader> {
     /// Its command source's receive errors, left by the timing thread once
     /// the loop stopped.
     pub receive_errors: Arc<AtomicU64>,
+    /// What its pilot's thread tells the loop, when it has a pilot's radio
+    /// (`ppmd.pilot`); the timing thread's part holds it too.
+    pub pilot: Option<Arc<PilotSlot>>,
     several: bool,
     /// The main thread's view of its loop.
     view: V,
@@ -67,8 +71,9 @@ pub type Watched = Output<Monitor>;
 impl Output {
     /// Sets up output `plan`, one of `several` or not: opens its frame log,
     /// if any (and says so, rotated at the `shared` size), its meter and its
-    /// snapshot publisher. The timing thread's part takes the meter's and
-    /// the frame log's writing sides and the output's `line`.
+    /// snapshot publisher, and the slot of its pilot's radio, if any. The
+    /// timing thread's part takes the meter's and the frame log's writing
+    /// sides and the output's `line`.
     pub fn open(
         plan: OutputPlan,
         line: OpenLine,
@@ -96,6 +101,7 @@ impl Output {
         let publisher = SnapshotPublisher::open(&shared.ipc.root, &plan.name)?;
         let stats = Arc::new(Stats::default());
         let receive_errors = Arc::new(AtomicU64::new(0));
+        let pilot = plan.pilot.as_ref().map(|_| Arc::new(PilotSlot::default()));
         let timed = TimedOutput {
             name: plan.name.clone(),
             model: plan.model.clone(),
@@ -105,6 +111,7 @@ impl Output {
             log,
             line,
             receive_errors: receive_errors.clone(),
+            pilot: pilot.clone(),
         };
         let output = Output {
             plan,
@@ -113,6 +120,7 @@ impl Output {
             log_writer,
             publisher,
             receive_errors,
+            pilot,
             several,
             view: reader,
         };
@@ -141,6 +149,7 @@ impl Output {
             log_writer: self.log_writer,
             publisher: self.publisher,
             receive_errors: self.receive_errors,
+            pilot: self.pilot,
             several: self.several,
             view: monitor,
         }
@@ -241,6 +250,27 @@ mod tests {
     }
 
     #[test]
+    fn an_output_with_a_pilots_radio_shares_its_slot_with_the_timing_thread() {
+        let dir = std::env::temp_dir().join(format!("ppm-startup-pilot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let cfg = Config::parse(&format!(
+            "name = \"flown\"\n[ppmd]\npilot = \"sim:{}\"\n[pilot]\nswitch_channel = 5\n[ipc]\nroot = {:?}",
+            dir.join("radio.trace").display(),
+            dir.join("ipc").to_str().unwrap(),
+        ))
+        .unwrap();
+        let (shared, plan) = Plan::resolve_one(&cfg).unwrap();
+        assert_eq!(plan.pilot.as_ref().unwrap().switch_channel, 4);
+        let line = OpenLine::Banked { bank: 0, bit: 0 };
+        let (one, timed) = Output::open(plan, line, &shared, false).unwrap();
+        let (main, loop_) = (one.pilot.as_ref().unwrap(), timed.pilot.as_ref().unwrap());
+        assert!(Arc::ptr_eq(main, loop_));
+        assert_eq!(main.state(), crate::pilot::PilotState::NoInput);
+        drop((one, timed));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn an_output_hands_its_timed_part_over_and_is_watched() {
         let dir = std::env::temp_dir().join(format!("ppm-startup-test-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
@@ -260,6 +290,10 @@ mod tests {
         assert!(timed.log.is_some());
         assert!(matches!(timed.line, OpenLine::Banked { bank: 2, bit: 3 }));
         assert!(Arc::ptr_eq(&timed.stats, &one.stats));
+        assert!(
+            timed.pilot.is_none() && one.pilot.is_none(),
+            "no ppmd.pilot"
+        );
         timed.receive_errors.store(7, Relaxed);
         let mut one = one.watch(&obtained);
         assert_eq!(one.receive_errors.load(Relaxed), 7);

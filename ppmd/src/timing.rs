@@ -10,6 +10,7 @@ use crate::line::Bank;
 use crate::lines::OpenLine;
 use crate::meter::Meter;
 use crate::monitor::Obtained;
+use crate::pilot::{PilotMux, PilotSlot};
 use crate::rt::{RtSetup, Shortfall, RT_STACK_BYTES};
 use crate::source::{CommandSource, IpcSource};
 use anyhow::Result;
@@ -41,19 +42,27 @@ pub struct TimedOutput {
     /// Where its command source's receive errors are left once the loop
     /// stopped, for the main thread's summary.
     pub receive_errors: Arc<AtomicU64>,
+    /// Its pilot's radio, when it has one (`ppmd.pilot`): its commands then
+    /// go through a [`PilotMux`].
+    pub pilot: Option<Arc<PilotSlot>>,
 }
 
 /// One output on the timing thread once its command source is open.
 struct Subscribed {
     part: TimedOutput,
-    source: IpcSource,
+    source: Box<dyn CommandSource>,
 }
 
 impl TimedOutput {
-    /// Opens its command source under the shared-memory `root`.
+    /// Opens its command source under the shared-memory `root`: the
+    /// groundstation's, through its pilot's radio when it has one.
     fn subscribe(self, root: &Path) -> Result<Subscribed> {
         let follow = self.model.timing() == Timing::Follow;
-        let source = IpcSource::open(root, &self.name, follow)?;
+        let ground = Box::new(IpcSource::open(root, &self.name, follow)?);
+        let source: Box<dyn CommandSource> = match &self.pilot {
+            Some(slot) => Box::new(PilotMux::new(ground, slot.clone(), &self.model)),
+            None => ground,
+        };
         Ok(Subscribed { part: self, source })
     }
 }
@@ -65,7 +74,7 @@ impl Subscribed {
         Output {
             model: &p.model,
             cfg: p.ecfg,
-            source: &mut self.source,
+            source: &mut *self.source,
             line: p.line.line_ref(),
             rec: Recording {
                 stats: &p.stats,
