@@ -108,7 +108,11 @@ fn run(cli: Cli) -> Result<()> {
         .iter()
         .filter_map(|o| {
             let port = o.plan.telemetry_port()?;
-            Some(ppmd::telemetry::Opened::open(&o.plan.name, &o.tag, port))
+            let opened = ppmd::telemetry::Opened::open(&o.plan.name, &o.tag, port);
+            Some(opened.map(|t| match &o.module {
+                Some(timing) => t.module(timing.clone()),
+                None => t,
+            }))
         })
         .collect::<Result<Vec<_>>>()?;
 

@@ -5,6 +5,7 @@
 //! ([`Output::watch`]) and its last words at exit ([`Output::finish`]).
 
 use crate::clock::Margin;
+use crate::emitter::module::ModuleTiming;
 use crate::emitter::{EmitterConfig, Stats};
 use crate::framelog;
 use crate::lines::{tag, OpenLine};
@@ -59,6 +60,10 @@ pub struct Output<V = MeterReader> {
     pub receive_errors: Arc<AtomicU64>,
     /// What its pilot's thread tells the loop, when it has a pilot's radio
     /// (`ppmd.pilot`); the timing thread's part holds it too.
+    /// The timing corrections of the transmitter module it drives
+    /// (`ppm.crsf_target = "module"`): its telemetry thread leaves them,
+    /// its grid follows them.
+    pub module: Option<Arc<ModuleTiming>>,
     pub pilot: Option<Arc<PilotSlot>>,
     several: bool,
     /// The main thread's view of its loop.
@@ -102,6 +107,9 @@ impl Output {
         let stats = Arc::new(Stats::default());
         let receive_errors = Arc::new(AtomicU64::new(0));
         let pilot = plan.pilot.as_ref().map(|_| Arc::new(PilotSlot::default()));
+        let module = plan
+            .drives_module()
+            .then(|| Arc::new(ModuleTiming::default()));
         let timed = TimedOutput {
             name: plan.name.clone(),
             model: plan.model.clone(),
@@ -112,6 +120,7 @@ impl Output {
             line,
             receive_errors: receive_errors.clone(),
             pilot: pilot.clone(),
+            module: module.clone(),
         };
         let output = Output {
             plan,
@@ -121,6 +130,7 @@ impl Output {
             publisher,
             receive_errors,
             pilot,
+            module,
             several,
             view: reader,
         };
@@ -150,6 +160,7 @@ impl Output {
             publisher: self.publisher,
             receive_errors: self.receive_errors,
             pilot: self.pilot,
+            module: self.module,
             several: self.several,
             view: monitor,
         }

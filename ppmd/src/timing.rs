@@ -45,6 +45,9 @@ pub struct TimedOutput {
     /// Its pilot's radio, when it has one (`ppmd.pilot`): its commands then
     /// go through a [`PilotMux`].
     pub pilot: Option<Arc<PilotSlot>>,
+    /// The timing corrections of the transmitter module it drives, which
+    /// its grid follows.
+    pub module: Option<Arc<crate::emitter::module::ModuleTiming>>,
 }
 
 /// One output on the timing thread once its command source is open.
@@ -81,7 +84,7 @@ impl Subscribed {
                 meter: &mut p.meter,
                 log: p.log.as_mut(),
             },
-            sync: None,
+            sync: p.module.as_deref(),
         }
     }
 }

@@ -228,6 +228,12 @@ pub struct PilotPlan {
 }
 
 impl OutputPlan {
+    /// Whether it drives a transmitter module (`ppm.crsf_target =
+    /// "module"`), whose timing corrections its grid follows.
+    pub fn drives_module(&self) -> bool {
+        matches!(self.model.wire(), crate::wire::WireModel::Crsf(c) if c.target() == crate::wire::crsf::CrsfTarget::Module)
+    }
+
     /// The tty whose receive side carries what the flight controller sends
     /// back (CRSF telemetry): a `serial:` output of a protocol that has
     /// telemetry; `None` for every other output.

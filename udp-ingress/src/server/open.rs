@@ -334,16 +334,17 @@ impl Server {
             .then(|| Instant::now() + Duration::from_nanos(crate::PPMD_STALE_AFTER_NS));
         let stats = stats.map(|(sub, _)| sub);
         let line = subscribe_line(&node, &cfg.name);
-        let readback = cfg
-            .readback
-            .as_ref()
-            .and_then(|_| subscribe_readback(&node, &cfg.name));
+        // A read-back and a pilot's radio publish on the same service.
+        let reads_back = cfg.readback.is_some() || cfg.pilot.is_some();
+        let readback = reads_back
+            .then(|| subscribe_readback(&node, &cfg.name))
+            .flatten();
         let telemetry = cfg
             .telemetry_port()
             .and_then(|_| subscribe_telemetry(&node, &cfg.name));
-        let idle_every = match &cfg.readback {
-            Some(_) => READBACK_POLL_TIMEOUT,
-            None => POLL_TIMEOUT,
+        let idle_every = match reads_back {
+            true => READBACK_POLL_TIMEOUT,
+            false => POLL_TIMEOUT,
         };
 
         // The busy-polling loop never waits: it needs no poll.
