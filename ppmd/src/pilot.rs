@@ -487,7 +487,7 @@ impl Opened {
     /// Opens output `name`'s pilot input (`ppmd.pilot`); `tag` goes before
     /// its log lines. Errors name `ppmd.pilot`.
     pub fn open(name: &str, tag: &str, plan: &PilotPlan) -> Result<Opened> {
-        let source = input::open(&plan.input)
+        let source = input::open_as(&plan.input, input::PILOT_CONSUMER)
             .with_context(|| format!("{tag}ppmd.pilot: opening {}", plan.input))?;
         log::info!(
             "{tag}pilot's radio: {} (takeover switch: channel {}, on above {} us)",

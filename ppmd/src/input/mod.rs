@@ -27,6 +27,8 @@ pub use sim::SimInput;
 
 /// The consumer label a GPIO input is requested with (`gpioinfo` shows it).
 pub const CONSUMER: &str = "ppmd-readback";
+/// The consumer label a pilot's radio's GPIO input is requested with.
+pub const PILOT_CONSUMER: &str = "ppmd-pilot";
 
 /// A source of an input line's edges, in the order they happened.
 pub trait EdgeSource: Send {
@@ -50,9 +52,15 @@ pub trait EdgeSource: Send {
 /// Opens the input `spec` names: a GPIO line requested at once (consumer
 /// [`CONSUMER`]), or a sim trace, which need not exist yet.
 pub fn open(spec: &InputSpec) -> Result<Box<dyn EdgeSource>, InputError> {
+    open_as(spec, CONSUMER)
+}
+
+/// [`open`], a GPIO line requested as `consumer` (what `gpioinfo` shows:
+/// [`PILOT_CONSUMER`] for a pilot's radio).
+pub fn open_as(spec: &InputSpec, consumer: &str) -> Result<Box<dyn EdgeSource>, InputError> {
     match spec {
         InputSpec::Sim { path } => Ok(Box::new(SimInput::open(path))),
-        InputSpec::Gpio { chip, line } => Ok(Box::new(GpioInput::open(chip, line, CONSUMER)?)),
+        InputSpec::Gpio { chip, line } => Ok(Box::new(GpioInput::open(chip, line, consumer)?)),
     }
 }
 
