@@ -58,7 +58,7 @@ static ALLOCATOR: CountingAllocator = CountingAllocator;
 /// out and stops the loop once `frames` are (counted by the loop's own stats,
 /// so polls while the line is still silent do not count).
 struct Counted {
-    inner: IpcSource,
+    inner: Box<dyn CommandSource>,
     stats: Arc<Stats>,
     warmup: u64,
     frames: u64,
@@ -225,7 +225,7 @@ fn run_with(timing: Timing, every_ms: u64, whole_frames: bool, protocol: Protoco
         );
         std::thread::spawn(move || {
             let mut source = Counted {
-                inner: IpcSource::open(&root, &name, timing == Timing::Follow).unwrap(),
+                inner: Box::new(IpcSource::open(&root, &name, timing == Timing::Follow).unwrap()),
                 stats: stats.clone(),
                 warmup: 10,
                 frames: 60,
@@ -484,4 +484,134 @@ fn two_outputs_on_a_bank_do_not_allocate() {
         0,
         "the loop of two outputs on a bank allocated after its first frames"
     );
+}
+
+/// An output that drives a transmitter module, its commands through a
+/// pilot's radio: while another thread flips who flies every 30 ms, stores
+/// a pilot's frame every 10 ms and leaves a module's correction every
+/// 20 ms, the loop takes them all without allocating.
+#[test]
+fn a_module_output_through_a_pilots_radio_does_not_allocate() {
+    use ppm_shared::crsf::module::Correction;
+    use ppmd::emitter::module::ModuleTiming;
+    use ppmd::pilot::{PilotFrame, PilotMux, PilotSlot, PilotState};
+    ALLOCATIONS.store(0, Relaxed);
+    let name = format!("noallocmodule{}", std::process::id());
+    let dir = std::env::temp_dir().join(format!("ppmd-{name}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let root = dir.join("ipc");
+    let model = Config::parse(
+        "[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\n[ppmd]\npilot = 'sim:p.trace'\n[pilot]\nswitch_channel = 5",
+    )
+    .unwrap()
+    .validate()
+    .unwrap();
+    let slot = Arc::new(PilotSlot::default());
+    let timing = Arc::new(ModuleTiming::default());
+    let done = Arc::new(AtomicBool::new(false));
+    let feeder = {
+        let (done, root, name, model, slot, timing) = (
+            done.clone(),
+            root.clone(),
+            name.clone(),
+            model.clone(),
+            slot.clone(),
+            timing.clone(),
+        );
+        std::thread::spawn(move || {
+            let node = ipc::create_node(&root, "noalloc-pub").unwrap();
+            let service = ipc::open_command_service(&node, &name).unwrap();
+            let p = service.publisher_builder().create().unwrap();
+            let mut k = 0u64;
+            while !done.load(Relaxed) {
+                k += 1;
+                let cmd = parse(format!("[{}]", 1000 + k % 1000).as_bytes(), &model).unwrap();
+                let s = CommandSample::new(&cmd, model.fingerprint(), k, clock::now_ns(), 0);
+                p.loan_uninit().unwrap().write_payload(s).send().unwrap();
+                let state = if (k / 3) % 2 == 0 {
+                    PilotState::Groundstation
+                } else {
+                    PilotState::Pilot
+                };
+                let now = clock::now_ns();
+                slot.store(&PilotFrame {
+                    frame: k,
+                    end_mono_ns: now,
+                    end_real_ns: ppm_shared::time::realtime_ns(),
+                    state,
+                    channels: 8,
+                    values_ns: [1_600_000; 16],
+                });
+                slot.set_state(state);
+                if k % 2 == 0 {
+                    let c = Correction {
+                        rate_tenths: 40_000 + (k % 7) as i32 * 1_000,
+                        offset_tenths: (k % 5) as i32 * 500 - 1_000,
+                    };
+                    timing.set(c, now);
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        })
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = Arc::new(Stats::default());
+    let looper = {
+        let (stop, stats, model, trace, slot, timing) = (
+            stop.clone(),
+            stats.clone(),
+            model.clone(),
+            dir.join("t.trace"),
+            slot.clone(),
+            timing.clone(),
+        );
+        std::thread::spawn(move || {
+            let ground = Box::new(IpcSource::open(&root, &name, false).unwrap());
+            let mut source = Counted {
+                inner: Box::new(PilotMux::new(ground, slot, &model)),
+                stats: stats.clone(),
+                warmup: 10,
+                frames: 150,
+                stop: stop.clone(),
+            };
+            let sim = SimLine::create(&trace, &["idle_level 1".into()], u64::MAX).unwrap();
+            let mut line = SimFrameLine::new(sim, Level::High, model.wire().uart(), clock::now_ns);
+            let (mut meter, _reader) = ppmd::meter::meter(100_000_000);
+            let mut outputs = [Output {
+                model: &model,
+                cfg: emitter_config(),
+                source: &mut source,
+                line: LineRef::Whole(&mut line),
+                rec: Recording {
+                    stats: &stats,
+                    meter: &mut meter,
+                    log: None,
+                },
+                sync: Some(&timing),
+            }];
+            emitter::run_outputs(
+                &ppmd::clock::SystemClock,
+                MARGIN,
+                &mut outputs,
+                &mut [],
+                &stop,
+            );
+            COUNTING.with(|c| c.set(false));
+        })
+    };
+    looper.join().unwrap();
+    done.store(true, Relaxed);
+    feeder.join().unwrap();
+    assert!(
+        stats.frames.load(Relaxed) >= 150,
+        "{} frames",
+        stats.frames.load(Relaxed)
+    );
+    assert!(timing.count() >= 10, "{} corrections", timing.count());
+    assert_eq!(
+        ALLOCATIONS.load(Relaxed),
+        0,
+        "the timing loop allocated after its first frames (module, pilot's radio)"
+    );
+    let _ = std::fs::remove_dir_all(dir);
 }
