@@ -528,7 +528,7 @@ fn a_module_output_through_a_pilots_radio_does_not_allocate() {
                 let cmd = parse(format!("[{}]", 1000 + k % 1000).as_bytes(), &model).unwrap();
                 let s = CommandSample::new(&cmd, model.fingerprint(), k, clock::now_ns(), 0);
                 p.loan_uninit().unwrap().write_payload(s).send().unwrap();
-                let state = if (k / 3) % 2 == 0 {
+                let state = if (k / 3).is_multiple_of(2) {
                     PilotState::Groundstation
                 } else {
                     PilotState::Pilot
@@ -543,7 +543,7 @@ fn a_module_output_through_a_pilots_radio_does_not_allocate() {
                     values_ns: [1_600_000; 16],
                 });
                 slot.set_state(state);
-                if k % 2 == 0 {
+                if k.is_multiple_of(2) {
                     let c = Correction {
                         rate_tenths: 40_000 + (k % 7) as i32 * 1_000,
                         offset_tenths: (k % 5) as i32 * 500 - 1_000,
