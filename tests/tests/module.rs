@@ -1,17 +1,16 @@
 //! CRSF to an ExpressLRS transmitter module, end to end with the real
-//! binaries: a simulated module on a pseudo-terminal that frames ppmd's
-//! bytes as ExpressLRS does (`CRSFHandset::handleInput`, ported), keeps its
-//! own radio packet timer and answers as the module does
-//! (`JustSentRFpacket`, `sendSyncPacketToTX`: a timing correction every
-//! 200 ms, and link statistics); a simulated pilot's radio (a PPM trace
-//! read through `ppmd.pilot = "sim:PATH"`) whose takeover switch gives the
-//! pilot the controls; the groundstation's commands over UDP.
+//! binaries: a simulated module on a pseudo-terminal
+//! ([`ppm_tools::module::SimModule`]: frames ppmd's bytes as ExpressLRS does,
+//! keeps its own radio packet timer and answers as the module does, a
+//! timing correction every 200 ms and link statistics); a simulated pilot's
+//! radio (a PPM trace read through `ppmd.pilot = "sim:PATH"`) whose
+//! takeover switch gives the pilot the controls; the groundstation's
+//! commands over UDP.
 
-use ppm_shared::crsf::module::{Correction, HandsetParser, SAFE_MARGIN_TENTHS};
 use ppm_shared::crsf::{self, CrsfReceiver, LinkStatistics, ADDRESS_TRANSMITTER, RC_FRAME_LEN};
 use ppm_shared::time::now_ns;
 use ppm_tests::{at_50hz, status, stop_all, Pty, Sandbox, Sender};
-use std::io::Write;
+use ppm_tools::module::{pilot_radio, SimModule, PILOT_STICKS_US};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::SeqCst};
 use std::sync::{Arc, Mutex};
@@ -33,121 +32,6 @@ const LINK: LinkStatistics = LinkStatistics {
     downlink_link_quality: 97,
     downlink_snr: 7,
 };
-
-/// The simulated module: ExpressLRS's handset side, on the bytes as they
-/// arrive.
-#[derive(Default)]
-struct Module {
-    parser: HandsetParser,
-    /// `dataLastRecv`: when the newest good frame came.
-    last_recv: Option<u64>,
-    /// The radio's next packet, once frames come.
-    next_tick: Option<u64>,
-    /// `OpenTXsyncOffset`, `OpenTXsyncWindow`, tenths of a us.
-    offset: i64,
-    window: i64,
-    last_sync: Option<u64>,
-    /// Every packet tick: (when, how long before it the newest frame came, ns).
-    ticks: Vec<(u64, u64)>,
-    /// Every good frame: when it came, its bytes.
-    frames: Vec<(u64, Vec<u8>)>,
-}
-
-impl Module {
-    /// Bytes at `now`: the module's answer.
-    fn bytes(&mut self, now: u64, bytes: &[u8]) -> Vec<u8> {
-        self.ticks_until(now);
-        let mut frames = Vec::new();
-        self.parser.feed(bytes, |f| frames.push(f.to_vec()));
-        if frames.is_empty() {
-            return Vec::new();
-        }
-        self.last_recv = Some(now);
-        // The radio's timer runs on its own: its phase is anything.
-        self.next_tick.get_or_insert(now + 1_234_567);
-        self.frames.extend(frames.into_iter().map(|f| (now, f)));
-        // handleOutput: a correction when 200 ms have passed, then the
-        // link statistics.
-        if self.last_sync.is_some_and(|s| now - s < 200_000_000) {
-            return Vec::new();
-        }
-        self.last_sync = Some(now);
-        let c = Correction {
-            rate_tenths: (MODULE_INTERVAL_US * 10) as i32,
-            offset_tenths: (self.offset - i64::from(SAFE_MARGIN_TENTHS)) as i32,
-        };
-        let mut out = c.encode().to_vec();
-        // Every frame on the module's serial port starts 0xC8
-        // (`forwardMessage`).
-        out.extend(crsf::frame(
-            crsf::ADDRESS_FLIGHT_CONTROLLER,
-            crsf::TYPE_LINK_STATISTICS,
-            &LINK.encode()[3..3 + LinkStatistics::PAYLOAD_LEN],
-        ));
-        out
-    }
-
-    /// `JustSentRFpacket` at every packet tick up to `now`.
-    fn ticks_until(&mut self, now: u64) {
-        let (Some(last), Some(mut tick)) = (self.last_recv, self.next_tick) else {
-            return;
-        };
-        let interval = MODULE_INTERVAL_US as u64 * 1_000;
-        let size = (20_000 / MODULE_INTERVAL_US).max(1);
-        while tick <= now {
-            let delta_us = (tick.saturating_sub(last) / 1_000) as i64;
-            if delta_us >= MODULE_INTERVAL_US {
-                self.offset = -(delta_us % MODULE_INTERVAL_US) * 10;
-                self.window = 0;
-                self.last_sync = self.last_sync.map(|s| s.saturating_sub(200_000_000));
-            } else {
-                self.window = (self.window + 1).min(size);
-                self.offset = (self.offset * (self.window - 1) + delta_us * 10) / self.window;
-            }
-            self.ticks.push((tick, tick.saturating_sub(last)));
-            tick += interval;
-        }
-        self.next_tick = Some(tick);
-    }
-}
-
-/// The pilot's radio: 8 channels every 22.5 ms into `out` (a trace of
-/// the simulated line), channel 5 the takeover switch (2000 us while
-/// `takeover` is set, 1000 us otherwise); each edge written once its
-/// time has passed. Returns when `stop` is set.
-fn pilot_radio(out: &Path, takeover: &AtomicBool, flipped_at: &AtomicU64, stop: &AtomicBool) {
-    let mut file = std::fs::File::create(out).expect("creating the pilot's trace");
-    file.write_all(b"# idle_level 0\n").unwrap();
-    let mut next = now_ns();
-    let mut pending = std::collections::VecDeque::new();
-    let mut was = false;
-    while !stop.load(SeqCst) {
-        let now = now_ns();
-        let mut text = String::new();
-        while pending.front().is_some_and(|(t, _)| *t <= now) {
-            let (t, level) = pending.pop_front().unwrap();
-            text.push_str(&format!("{t} {t} {level}\n"));
-        }
-        if !text.is_empty() {
-            file.write_all(text.as_bytes()).unwrap();
-            file.flush().unwrap();
-        }
-        if now < next {
-            std::thread::sleep(Duration::from_nanos((next - now).min(500_000)));
-            continue;
-        }
-        let start = next;
-        next += 22_500_000;
-        let on = takeover.load(SeqCst);
-        if on != was {
-            was = on;
-            flipped_at.store(start, SeqCst);
-        }
-        let switch = if on { 2_000 } else { 1_000 };
-        let us = [1_600, 1_450, 1_100, 1_550, switch, 1_500, 1_500, 1_500];
-        pending.extend(ppm_tools::radio::frame_edges(start, &us));
-    }
-}
 
 /// `[ppm]` and the rest for a module on `pty`, with a pilot's radio in
 /// `pilot` (none: `None`).
@@ -186,7 +70,7 @@ fn a_module_without_a_pilots_radio_does_not_start() {
 #[test]
 fn a_module_gets_the_groundstation_then_the_pilot_at_its_own_pace() {
     let sb = Sandbox::new("module");
-    let module = Arc::new(Mutex::new(Module::default()));
+    let module = Arc::new(Mutex::new(SimModule::new(MODULE_INTERVAL_US, LINK)));
     let pty = {
         let m = module.clone();
         Pty::open_answering(move |now, bytes| m.lock().unwrap().bytes(now, bytes))
@@ -254,7 +138,7 @@ fn a_module_gets_the_groundstation_then_the_pilot_at_its_own_pace() {
     seen.dedup();
     assert_eq!(
         seen,
-        [[1_300, 1_700, 1_000, 1_200], [1_600, 1_450, 1_100, 1_550]],
+        [[1_300, 1_700, 1_000, 1_200], PILOT_STICKS_US],
         "the groundstation's command, then the pilot's sticks, nothing else"
     );
 

@@ -13,6 +13,7 @@ pub mod analysis;
 pub mod cyclic;
 pub mod harness;
 pub mod interfere;
+pub mod module;
 /// SVG pictures of latency: histograms with percentile marks, percentile curves.
 pub mod plot;
 pub mod radio;
