@@ -545,12 +545,28 @@ impl Opened {
                             e,
                         )
                     })?;
-                    Ok((node, service, publisher))
+                    // A follow output sleeps until a command's wake-up: the
+                    // pilot's frames wake it as udp-ingress's commands do.
+                    let wake = ipc::open_wake_service(&node, &name)
+                        .and_then(|w| {
+                            let n = w.notifier_builder().create().map_err(|e| {
+                                ipc::IpcError::new(format!("creating the pilot's wake-up notifier of `{name}`"), e)
+                            })?;
+                            Ok((w, n))
+                        })
+                        .map_err(|e| {
+                            log::warn!(
+                                "the pilot's frames will not wake a follow output (it looks for them at its longest sync): {}",
+                                Chain(&e)
+                            )
+                        })
+                        .ok();
+                    Ok((node, service, publisher, wake))
                 })();
                 match opened {
-                    Ok((_node, _service, publisher)) => {
+                    Ok((_node, _service, publisher, wake)) => {
                         let _ = ready_tx.send(Ok(()));
-                        ctx.run(&publisher);
+                        ctx.run(&publisher, wake.as_ref().map(|w| &w.1));
                     }
                     Err(e) => {
                         let _ = ready_tx.send(Err(e));
@@ -616,7 +632,11 @@ struct Ctx {
 }
 
 impl Ctx {
-    fn run(mut self, publisher: &ipc::Publisher<ReadbackSample>) {
+    fn run(
+        mut self,
+        publisher: &ipc::Publisher<ReadbackSample>,
+        wake: Option<&iceoryx2::port::notifier::Notifier<iceoryx2::service::ipc::Service>>,
+    ) {
         let mut buf = [EdgeEvent {
             at_ns: 0,
             level: ppm_shared::Level::Low,
@@ -649,6 +669,16 @@ impl Ctx {
             let now = now_ns();
             self.tracker.tick(now);
             let s = self.tracker.sample;
+            // A pilot's frame (or a change of who flies) the loop should
+            // take now, not at its next look.
+            let flying = self.tracker.slot.state() == PilotState::Pilot;
+            if (s.frames != before.frames && flying) || s.changes != before.changes {
+                if let Some(n) = wake {
+                    if let Err(e) = n.notify() {
+                        log::debug!("waking the timing loop: {e:?}");
+                    }
+                }
+            }
             if s.frames != before.frames
                 || s.changes != before.changes
                 || now.saturating_sub(published) >= PUBLISH_EVERY_NS

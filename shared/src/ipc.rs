@@ -491,7 +491,9 @@ pub fn open_wake_service(node: &Node, name: &str) -> Result<WakeService, IpcErro
     let sn = ServiceName::new(&service).map_err(ipc_err(format!("service name `{service}`")))?;
     node.service_builder(&sn)
         .event()
-        .max_notifiers(2)
+        // udp-ingress (and a restarted one while the old one goes), and a
+        // pilot's radio's thread in ppmd.
+        .max_notifiers(3)
         .max_listeners(2)
         .open_or_create()
         .map_err(ipc_err(format!("opening service `{service}`")))

@@ -23,7 +23,10 @@
 //! 7. the read-back (`ppmd.readback`, a simulated radio): a frame's closing
 //!    edge to its sample published and seen by a subscriber, the read-back
 //!    thread's CPU share at 50 Hz, and the radio's switch flip to the
-//!    sender hearing `overridden`.
+//!    sender hearing `overridden`;
+//! 8. an ExpressLRS module (simulated, with a pilot's radio): send to the
+//!    frame whole at the module and to its next radio packet, the share
+//!    of commands on the line, and the lead it asks for.
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
@@ -44,6 +47,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 mod late;
+mod module;
 mod plots;
 mod readback;
 mod sbus;
@@ -107,6 +111,9 @@ enum Part {
     /// 7. the read-back: edge to published frame, CPU, switch flip to
     ///    `overridden` heard.
     Readback,
+    /// 8. an ExpressLRS module: send to the frame at the module and on
+    ///    the air, commands on the line, the module's margin.
+    Module,
 }
 
 /// How udp-ingress receives in one run.
@@ -807,6 +814,9 @@ fn main() -> Result<()> {
     }
     if runs(Part::Readback) {
         readback::readback()?;
+    }
+    if runs(Part::Module) {
+        module::module()?;
     }
     if let Some(dir) = &cli.plot {
         write_plots(dir, &plots)?;
