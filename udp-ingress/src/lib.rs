@@ -255,6 +255,14 @@ impl Intake {
         self
     }
 
+    /// The output has a pilot's radio `input` (`ppmd.pilot`), whose
+    /// states come on the read-back's service: as a read-back's, with
+    /// STATUSTEXTs that say who flies ([`readback::pilot_statustext`]).
+    pub fn with_pilot(mut self, input: String) -> Intake {
+        self.readback = Some(readback::Readback::pilot(input));
+        self
+    }
+
     /// Applies only commands signed with `key` ([`auth`]) for this output
     /// (`to` is its name) that carry a `seq` greater than the last accepted
     /// one and than `floor` (the last one accepted before a restart). A
@@ -336,7 +344,7 @@ impl Intake {
     ) -> Option<(readback::Change, Option<(SocketAddr, String)>)> {
         let rb = self.readback.as_mut()?;
         let change = rb.seen(sample)?;
-        let (severity, text) = readback::statustext(&self.name, &change);
+        let (severity, text) = rb.statustext(&self.name, &change);
         self.peers.announce(severity, &text);
         Some((change, rb.event(&self.name, &change)))
     }

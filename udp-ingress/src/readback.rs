@@ -68,6 +68,8 @@ struct Target {
 pub struct Readback {
     /// The input read (`ppmd.readback`), as the configuration names it.
     input: String,
+    /// It is a pilot's radio (`ppmd.pilot`): its states say who flies.
+    pilot: bool,
     newest: Option<ReadbackSample>,
     target: Option<Target>,
     counters: EventCounters,
@@ -78,6 +80,7 @@ impl Readback {
     pub fn new(input: String) -> Readback {
         Readback {
             input,
+            pilot: false,
             newest: None,
             target: None,
             counters: EventCounters::default(),
@@ -229,6 +232,43 @@ pub fn event_text(name: &str, change: &Change) -> String {
         "changed_mono_ns": change.sample.changed_mono_ns,
     })
     .to_string()
+}
+
+impl Readback {
+    /// A pilot's radio's states (`ppmd.pilot`) on the read-back's service,
+    /// `input` as the configuration names it.
+    pub fn pilot(input: String) -> Readback {
+        Readback {
+            pilot: true,
+            ..Readback::new(input)
+        }
+    }
+
+    /// The STATUSTEXT of `change` of output `name`: a read-back's
+    /// ([`statustext`]), or a pilot's radio's ([`pilot_statustext`]).
+    pub fn statustext(&self, name: &str, change: &Change) -> (u8, String) {
+        match self.pilot {
+            true => pilot_statustext(name, change),
+            false => statustext(name, change),
+        }
+    }
+}
+
+/// The STATUSTEXT of `change` of a pilot's radio of output `name`: WARNING
+/// for `overridden` ("ppm NAME: the pilot has control") and `no_input`
+/// ("ppm NAME: no pilot's radio, no command goes out"), NOTICE for
+/// `following` ("ppm NAME: the groundstation has control").
+pub fn pilot_statustext(name: &str, change: &Change) -> (u8, String) {
+    let (severity, what) = match ReadbackState::from_code(change.sample.state) {
+        Some(ReadbackState::Following) => (MAV_SEVERITY_NOTICE, "the groundstation has control"),
+        Some(ReadbackState::Overridden) => (MAV_SEVERITY_WARNING, "the pilot has control"),
+        Some(ReadbackState::NoInput) => (
+            MAV_SEVERITY_WARNING,
+            "no pilot's radio, no command goes out",
+        ),
+        None => (MAV_SEVERITY_WARNING, "pilot's radio state unknown"),
+    };
+    (severity, format!("ppm {name}: {what}"))
 }
 
 /// The STATUSTEXT of `change` of output `name`: its severity (a

@@ -529,3 +529,31 @@ fn a_statustext_not_earned_waits_for_the_credit() {
     assert!(out.is_empty());
     assert_eq!(p.counters(), peers::ReplyCounters { sent: 0, held: 3 });
 }
+
+/// A pilot's radio's changes say who flies, at the read-back's severities;
+/// a read-back's keep their words.
+#[test]
+fn a_pilots_radio_says_who_flies() {
+    let change = |state: ReadbackState| Change {
+        from: 0,
+        sample: sample(S, state, 1, S),
+    };
+    let pilot = Readback::pilot("gpio:GPIO17".into());
+    let radio = Readback::new("gpio:GPIO17".into());
+    assert_eq!(
+        pilot.statustext("plane", &change(Following)),
+        (5, "ppm plane: the groundstation has control".into())
+    );
+    assert_eq!(
+        pilot.statustext("plane", &change(Overridden)),
+        (4, "ppm plane: the pilot has control".into())
+    );
+    assert_eq!(
+        pilot.statustext("plane", &change(NoInput)),
+        (4, "ppm plane: no pilot's radio, no command goes out".into())
+    );
+    assert_eq!(
+        radio.statustext("plane", &change(Overridden)),
+        (4, "ppm plane: overridden (instructor has control)".into())
+    );
+}

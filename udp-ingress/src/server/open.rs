@@ -393,7 +393,7 @@ impl Server {
                 "pilot's radio {}: who flies is the read-back member of status replies (following: the groundstation; overridden: the pilot, whose takeover switch is on; no_input: no pilot's radio, so no command goes out); each change goes at once to the sender of the newest JSON command and as STATUSTEXT to MAVLink peers",
                 p.input
             );
-            intake = intake.with_readback(p.input.to_string());
+            intake = intake.with_pilot(p.input.to_string());
         }
         if let Some(port) = cfg.telemetry_port() {
             log::info!(
