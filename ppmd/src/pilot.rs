@@ -52,6 +52,13 @@ use std::time::Duration;
 /// How long the thread waits for edges before it looks at the time again
 /// (the one-second loss rule, the publishing).
 pub const POLL: Duration = crate::readback::POLL;
+/// A pilot's radio whose newest frame ended longer ago than this is taken
+/// as not read by the loop, whatever the slot's state says: the thread
+/// that judges it (1 s without a whole frame) has stopped or hangs.
+pub const STALE_NS: u64 = 1_500_000_000;
+/// Frames in a row that must read the switch off before the pilot gives
+/// the controls back (one is enough to take them).
+pub const RELEASE_FRAMES: u32 = 2;
 /// How often the state is published while nothing changes.
 const PUBLISH_EVERY_NS: u64 = 100_000_000;
 /// Edges read in one go.
@@ -204,9 +211,12 @@ impl PilotSlot {
 ///   its limits, channels the pilot's radio does not send at their
 ///   defaults. No new frame: nothing (the loop repeats the last one, and
 ///   its failsafe takes over if the pilot's frames stop).
-/// - [`PilotState::NoInput`]: nothing, ever (the safety rule: no pilot who
-///   could take over, so no groundstation command goes out; the loop's
-///   failsafe or startup action applies).
+/// - [`PilotState::NoInput`]: nothing, ever, and the source is
+///   [withdrawn](CommandSource::withdrawn) (the safety rule: no pilot who
+///   could take over, so no command goes out at all, not the last one
+///   held, not the failsafe's defaults: the line is silent). So is it when
+///   the newest pilot frame is [`STALE_NS`] old, whatever the state: the
+///   thread that judges the pilot's radio has stopped or hangs.
 ///
 /// The groundstation's source is drained at every call, whatever the
 /// state. [`CommandSource::newest`] neither blocks nor allocates.
@@ -224,6 +234,8 @@ pub struct PilotMux {
     seen: PilotState,
     /// The newest pilot frame handed out.
     handed: u64,
+    /// When the newest pilot frame seen ended (0: none yet).
+    last_end: u64,
 }
 
 impl PilotMux {
@@ -253,6 +265,7 @@ impl PilotMux {
             kept: None,
             seen: PilotState::NoInput,
             handed: 0,
+            last_end: 0,
         }
     }
 
@@ -312,6 +325,18 @@ impl CommandSource for PilotMux {
         }
     }
 
+    /// No pilot's radio read: its state says so, or its newest frame is
+    /// [`STALE_NS`] old (or there is none), so the thread that would say
+    /// so has stopped or hangs.
+    fn withdrawn(&mut self, now_ns: u64) -> bool {
+        if let Some(f) = self.slot.frame() {
+            self.last_end = self.last_end.max(f.end_mono_ns);
+        }
+        self.seen == PilotState::NoInput
+            || self.last_end == 0
+            || now_ns.saturating_sub(self.last_end) > STALE_NS
+    }
+
     fn errors(&self) -> u64 {
         self.inner.errors()
     }
@@ -336,6 +361,8 @@ struct Tracker {
     state: PilotState,
     /// Whether frames without the switch channel were warned about.
     warned_short: bool,
+    /// Frames in a row, while the pilot flies, that read the switch off.
+    off_frames: u32,
     /// The sample published last, updated as frames are read.
     sample: ReadbackSample,
     slot: Arc<PilotSlot>,
@@ -350,6 +377,7 @@ impl Tracker {
             switch_above_ns: settings.switch_above_ns,
             state: PilotState::NoInput,
             warned_short: false,
+            off_frames: 0,
             sample: ReadbackSample::default(),
             slot,
         }
@@ -360,7 +388,19 @@ impl Tracker {
         let Some(f) = self.capture.push(e) else {
             return;
         };
-        let state = self.judge(&f);
+        let mut state = self.judge(&f);
+        // The pilot gets the controls at the first frame that says so, and
+        // gives them back only when RELEASE_FRAMES frames in a row do: one
+        // frame misread (noise on the switch channel) never hands a pilot's
+        // vehicle back to the groundstation.
+        if self.state == PilotState::Pilot && state == PilotState::Groundstation {
+            self.off_frames += 1;
+            if self.off_frames < RELEASE_FRAMES {
+                state = PilotState::Pilot;
+            }
+        } else {
+            self.off_frames = 0;
+        }
         let s = &mut self.sample;
         s.frames += 1;
         match state {
@@ -987,15 +1027,19 @@ mod tests {
     const MS: u64 = 1_000_000;
 
     /// On the simulated clock, ms after its start: the groundstation
-    /// sends a fresh command at every look; the pilot's radio is read from
-    /// 100 ms (switch off), its switch is on from 300 ms (a frame every
-    /// 25 ms, so each comes before a grid frame of its own) and off again
-    /// from 500 ms.
+    /// sends a fresh command at every look; the pilot's radio sends a
+    /// frame every 25 ms from 100 ms (so each comes before a grid frame of
+    /// its own), saying who flies as `script` says at its end (`None`: no
+    /// frame); the slot says `NoInput` from `no_input_from`, as the
+    /// pilot's thread does a second after the last frame.
     struct Scenario {
         sim: crate::clock::sim::Sim,
         slot: Arc<PilotSlot>,
         fingerprint: u64,
-        /// Pilot frames stored.
+        script: fn(u64) -> Option<PilotState>,
+        no_input_from: Option<u64>,
+        /// Frame times passed, and pilot frames stored.
+        ticks: u64,
         frames: u64,
         /// Groundstation commands sent while the state let them out.
         let_out: Rc<Cell<u64>>,
@@ -1009,16 +1053,19 @@ mod tests {
             use crate::clock::sim::START_NS;
             let now = self.sim.at();
             let ms = (now - START_NS) / MS;
-            if (300..500).contains(&ms) {
-                while START_NS + (300 + 25 * self.frames) * MS <= now {
+            while START_NS + (100 + 25 * self.ticks) * MS <= now {
+                let t = 100 + 25 * self.ticks;
+                self.ticks += 1;
+                if let Some(state) = (self.script)(t) {
                     self.frames += 1;
-                    let mut f = frame(self.frames, PilotState::Pilot, &PILOT_US);
-                    f.end_mono_ns = START_NS + (300 + 25 * (self.frames - 1)) * MS;
+                    let mut f = frame(self.frames, state, &PILOT_US);
+                    f.end_mono_ns = START_NS + t * MS;
                     self.slot.store(&f);
-                    self.slot.set_state(PilotState::Pilot);
+                    self.slot.set_state(state);
                 }
-            } else if ms >= 100 {
-                self.slot.set_state(PilotState::Groundstation);
+            }
+            if self.no_input_from.is_some_and(|m| ms >= m) {
+                self.slot.set_state(PilotState::NoInput);
             }
             if self.slot.state() == PilotState::Groundstation {
                 self.let_out.set(self.let_out.get() + 1);
@@ -1042,8 +1089,17 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_loop_flies_the_groundstation_then_the_pilot_then_the_groundstation() {
+    /// Runs a grid output of 4 channels through a [`PilotMux`] on the
+    /// simulated clock until `until_ms`, with failsafe `action` 100 ms
+    /// after the last command: its counters, the groundstation commands
+    /// let out, and the line's whole frames, runs of equal frames taken as
+    /// one (start ms, values us).
+    fn fly(
+        script: fn(u64) -> Option<PilotState>,
+        no_input_from: Option<u64>,
+        action: ppm_shared::config::FailsafeAction,
+        until_ms: u64,
+    ) -> (crate::emitter::Stats, u64, Vec<(u64, Vec<u64>)>) {
         use crate::clock::sim::{Sim, START_NS};
         use crate::emitter::{run_outputs, EmitterConfig, LineRef, Output, Recording, Stats};
         use ppm_shared::config::FailsafeAction;
@@ -1058,6 +1114,9 @@ mod tests {
             sim: sim.clone(),
             slot: slot.clone(),
             fingerprint: model.fingerprint(),
+            script,
+            no_input_from,
+            ticks: 0,
             frames: 0,
             let_out: let_out.clone(),
         };
@@ -1066,7 +1125,7 @@ mod tests {
         let stats = Stats::default();
         let (mut meter, _reader) = crate::meter::meter(1_000_000_000);
         let stop = Arc::new(AtomicBool::new(false));
-        sim.stop_at(START_NS + 600 * MS, stop.clone());
+        sim.stop_at(START_NS + until_ms * MS, stop.clone());
         run_outputs(
             &sim,
             crate::clock::Margin::Fixed(100_000),
@@ -1074,7 +1133,7 @@ mod tests {
                 model: &model,
                 cfg: EmitterConfig {
                     failsafe_after_ns: 100 * MS,
-                    failsafe_action: FailsafeAction::Hold,
+                    failsafe_action: action,
                     startup: FailsafeAction::Silence,
                 },
                 source: &mut mux,
@@ -1089,28 +1148,50 @@ mod tests {
             &mut [],
             &stop,
         );
-        // Every command the loop took was its own and fresh: the pilot's
-        // eight frames (300, 325, ... 475 ms), once each, and the
-        // groundstation's let out.
-        assert_eq!(stats.mismatched.load(Relaxed), 0);
-        assert_eq!(stats.expired.load(Relaxed), 0);
-        assert_eq!(stats.commands.load(Relaxed), let_out.get() + 8);
-        assert_eq!(stats.failsafe_entries.load(Relaxed), 0);
-        // What the line carried, frame by frame, runs of equal frames
-        // taken as one: silence until the pilot's radio is read, the
-        // groundstation, the pilot (clamped), the groundstation again.
         let trace = ppm_shared::trace::Trace {
             edges: line.0,
             idle_level: Some(Level::Low),
             ..Default::default()
         };
-        let frames = trace.decode(false);
         let mut runs: Vec<(u64, Vec<u64>)> = vec![];
-        for f in frames.iter().filter(|f| f.complete) {
+        for f in trace.decode(false).iter().filter(|f| f.complete) {
             if runs.last().is_none_or(|(_, v)| *v != f.channels_us()) {
-                runs.push((f.start_ns, f.channels_us()));
+                runs.push(((f.start_ns - START_NS) / MS, f.channels_us()));
             }
         }
+        let last = trace_last_ms(&trace);
+        runs.push((last, vec![]));
+        (stats, let_out.get(), runs)
+    }
+
+    /// When the line's last edge was, ms after the simulation's start.
+    fn trace_last_ms(trace: &ppm_shared::trace::Trace) -> u64 {
+        trace
+            .edges
+            .last()
+            .map_or(0, |e| (e.actual_ns - crate::clock::sim::START_NS) / MS)
+    }
+
+    #[test]
+    fn the_loop_flies_the_groundstation_then_the_pilot_then_the_groundstation() {
+        use ppm_shared::config::FailsafeAction;
+        let script = |t: u64| {
+            Some(match t {
+                300..500 => PilotState::Pilot,
+                _ => PilotState::Groundstation,
+            })
+        };
+        let (stats, let_out, mut runs) = fly(script, None, FailsafeAction::Hold, 600);
+        runs.pop();
+        // Every command the loop took was its own and fresh: the pilot's
+        // eight frames (300, 325, ... 475 ms), once each, and the
+        // groundstation's let out.
+        assert_eq!(stats.mismatched.load(Relaxed), 0);
+        assert_eq!(stats.expired.load(Relaxed), 0);
+        assert_eq!(stats.commands.load(Relaxed), let_out + 8);
+        assert_eq!(stats.failsafe_entries.load(Relaxed), 0);
+        // What the line carried: silence until the pilot's radio is read,
+        // the groundstation, the pilot (clamped), the groundstation again.
         let values: Vec<&[u64]> = runs.iter().map(|(_, v)| v.as_slice()).collect();
         assert_eq!(
             values,
@@ -1120,9 +1201,48 @@ mod tests {
                 &[1300, 1400, 1500, 1600]
             ]
         );
-        let at: Vec<u64> = runs.iter().map(|(t, _)| (t - START_NS) / MS).collect();
+        let at: Vec<u64> = runs.iter().map(|(t, _)| *t).collect();
         assert!(at[0] >= 100 && at[1] >= 300 && at[2] >= 500, "{at:?}");
         assert!(at[1] < 300 + 23 && at[2] < 500 + 23, "a frame late: {at:?}");
+    }
+
+    /// The pilot's radio goes quiet at 600 ms while the groundstation
+    /// keeps sending: once the slot says `NoInput` (1600 ms, the thread's
+    /// 1 s rule), the line is silent within a frame, neither holding the
+    /// groundstation's command nor sending the failsafe's defaults.
+    #[test]
+    fn losing_the_pilots_radio_silences_the_line_whatever_the_failsafe() {
+        use ppm_shared::config::FailsafeAction;
+        let script = |t: u64| (t < 600).then_some(PilotState::Groundstation);
+        for action in [FailsafeAction::Default, FailsafeAction::Hold] {
+            let (stats, _, runs) = fly(script, Some(1_600), action, 3_000);
+            let (last, _) = runs.last().unwrap();
+            assert_eq!(runs.len(), 2, "{action:?}: {runs:?}");
+            assert_eq!(runs[0].1, [1300, 1400, 1500, 1600], "{action:?}");
+            // Flying until then (a frame is 22.5 ms), nothing a frame after.
+            assert!(
+                (1_600 - 45..1_600 + 23).contains(last),
+                "{action:?}: the line's last edge at {last} ms"
+            );
+            assert_eq!(stats.failsafe_entries.load(Relaxed), 1, "{action:?}");
+        }
+    }
+
+    /// The pilot's thread hangs at 600 ms, leaving `Groundstation` in the
+    /// slot: 1.5 s after the newest frame ended (575 ms) the loop takes the
+    /// pilot's radio as not read, and the line goes silent.
+    #[test]
+    fn a_hung_pilots_thread_silences_the_line() {
+        use ppm_shared::config::FailsafeAction;
+        let script = |t: u64| (t < 600).then_some(PilotState::Groundstation);
+        let (_, _, runs) = fly(script, None, FailsafeAction::Default, 3_000);
+        let (last, _) = runs.last().unwrap();
+        assert_eq!(runs.len(), 2, "{runs:?}");
+        let stale = 575 + STALE_NS / MS;
+        assert!(
+            (stale - 45..stale + 23).contains(last),
+            "the line's last edge at {last} ms"
+        );
     }
 
     /// A pulse's width, ns.
@@ -1180,33 +1300,41 @@ mod tests {
         let high: &[u64] = &[1100, 1200, 1300, 1400, 2000];
         let at: &[u64] = &[1100, 1200, 1300, 1400, 1500];
         let start = 1_000_000_000;
-        let edges = pulses(&leads(start, &[low, low, low, low, high, high, at]));
+        let edges = pulses(&leads(start, &[low, low, low, low, high, high, at, at]));
+        let mut states = vec![];
         for e in &edges {
+            let before = slot.frame().map(|f| f.frame);
             t.edge(*e);
+            if slot.frame().map(|f| f.frame) != before {
+                states.push(slot.state());
+            }
         }
-        // Two frames lock the count of 5; then two low, two high and one
-        // at the threshold (not above it).
+        // Two frames lock the count of 5; then two low, two high and two
+        // at the threshold (not above it): the first of those keeps the
+        // pilot flying, the second gives the controls back.
+        use PilotState::{Groundstation as G, Pilot as P};
+        assert_eq!(states, [G, G, P, P, P, G]);
         let f = slot.frame().unwrap();
-        assert_eq!(f.frame, 5);
+        assert_eq!(f.frame, 6);
         assert_eq!(
             f.values(),
             [1_100_000, 1_200_000, 1_300_000, 1_400_000, 1_500_000]
         );
-        assert_eq!(f.end_mono_ns, start + 7 * 22_500_000);
+        assert_eq!(f.end_mono_ns, start + 8 * 22_500_000);
         assert_eq!(f.state, PilotState::Groundstation);
         assert_eq!(slot.state(), PilotState::Groundstation);
-        let s = t.publish_at(start + 8 * 22_500_000);
-        assert_eq!((s.frames, s.matched, s.mismatched), (5, 3, 2));
+        let s = t.publish_at(start + 9 * 22_500_000);
+        assert_eq!((s.frames, s.matched, s.mismatched), (6, 3, 3));
         assert_eq!(s.state, ReadbackState::Following as u32);
         // no_input -> groundstation -> pilot -> groundstation
         assert_eq!(s.changes, 3);
-        assert_eq!(s.changed_mono_ns, start + 7 * 22_500_000);
+        assert_eq!(s.changed_mono_ns, start + 8 * 22_500_000);
         assert_eq!(s.edges, edges.len() as u64);
         assert_eq!(s.channels, 5);
-        assert_eq!(s.start_mono_ns, start + 6 * 22_500_000);
+        assert_eq!(s.start_mono_ns, start + 7 * 22_500_000);
         assert_eq!(s.refused[6], 2, "the two frames that locked the count");
         // A second after the last frame: no input.
-        let end = start + 7 * 22_500_000;
+        let end = start + 8 * 22_500_000;
         t.tick(end + 999_999_999);
         assert_eq!(slot.state(), PilotState::Groundstation);
         t.tick(end + 1_000_000_000);

@@ -10,6 +10,15 @@ pub trait CommandSource {
     /// block; must not allocate in steady state.
     fn newest(&mut self) -> Option<CommandSample>;
 
+    /// Whether no command may go out now, not the newest, nor a held one,
+    /// nor the failsafe's defaults: the line goes silent, and the command
+    /// the loop kept is forgotten (a pilot's radio that is not read:
+    /// nobody could take over). Called once per decision, after
+    /// [`Self::newest`], with the loop's time; must not block or allocate.
+    fn withdrawn(&mut self, _now_ns: u64) -> bool {
+        false
+    }
+
     /// Receive errors so far (read outside the loop).
     fn errors(&self) -> u64 {
         0

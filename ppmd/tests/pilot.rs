@@ -128,9 +128,9 @@ fn the_switch_gives_the_pilot_the_controls_and_silence_takes_them_from_everyone(
     let name = format!("pilot{}", std::process::id());
     // Six frames with the switch low (the first two lock the count of 5),
     // then three high, the first of those split across the two writes.
-    // The frames lie a second ahead, so the input stays valid however
-    // long this test takes between its writes.
-    let start = now_ns() + 1_000_000_000;
+    // The frames lie 5 s ahead, so the input stays valid however long
+    // this test takes between its writes on a busy machine.
+    let start = now_ns() + 5_000_000_000;
     let all = leads(
         start,
         &[

@@ -115,8 +115,16 @@ fn a_module_gets_the_groundstation_then_the_pilot_at_its_own_pace() {
     takeover.store(true, SeqCst);
     at_50hz(50, |_| sender.send(command));
     let st_pilot = status(sb.addr());
+
+    // The switch off again, then the pilot's radio lost while the
+    // groundstation keeps sending: the line goes silent a second later.
+    takeover.store(false, SeqCst);
+    at_50hz(25, |_| sender.send(command));
     stop.store(true, SeqCst);
     radio.join().unwrap();
+    let lost = now_ns();
+    at_50hz(100, |_| sender.send(command));
+    let st_lost = status(sb.addr());
     stop_all(&mut ppmd, &mut [&mut ingress]);
     drop(pty);
     let m = module.lock().unwrap();
@@ -138,9 +146,27 @@ fn a_module_gets_the_groundstation_then_the_pilot_at_its_own_pace() {
     seen.dedup();
     assert_eq!(
         seen,
-        [[1_300, 1_700, 1_000, 1_200], PILOT_STICKS_US],
-        "the groundstation's command, then the pilot's sticks, nothing else"
+        [
+            [1_300, 1_700, 1_000, 1_200],
+            PILOT_STICKS_US,
+            [1_300, 1_700, 1_000, 1_200]
+        ],
+        "the groundstation's command, the pilot's sticks, the groundstation's, nothing else"
     );
+    // The pilot's thread finds its radio lost after a second without a
+    // whole frame; the loop is silent at its next decision.
+    let after: Vec<u64> = m.frames.iter().map(|f| f.0).filter(|&t| t > lost).collect();
+    let last = after.last().map_or(0, |t| t - lost);
+    eprintln!(
+        "the pilot's radio lost: the last frame {} ms later",
+        last / 1_000_000
+    );
+    assert!(
+        last < 1_300_000_000,
+        "a frame {last} ns after the pilot's radio was lost"
+    );
+    let rb = st_lost.readback.expect("the pilot's state");
+    assert_eq!(rb.state, "no_input", "{rb:?}");
 
     // The module's pace: over the last 1.5 s before the switch, frames
     // at its 5 ms (not ppm's 4 ms), and whole a little before its packet

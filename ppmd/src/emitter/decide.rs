@@ -48,6 +48,20 @@ pub(super) fn decide_frame<C: Clock + ?Sized>(
         }
     }
     let arrived = take_newest(out, p, now);
+    if out.source.withdrawn(now) {
+        // Nobody could take over: silence, whatever the failsafe says, and
+        // only a command that comes after this may fly.
+        p.newest = None;
+        out.rec
+            .transition(now, || clk.realtime_ns(), p.state, LineState::Silent);
+        p.state = LineState::Silent;
+        if let Some(f) = p.pace.follow() {
+            f.armed = false;
+        }
+        p.pace.stop();
+        p.poll_at = now + IDLE_POLL_NS;
+        return;
+    }
     let fresh = p
         .newest
         .filter(|(s, _)| s.fresh(p.started, now, cfg.failsafe_after_ns))

@@ -47,11 +47,16 @@ pub struct Taken {
 impl ModuleTiming {
     /// Leaves correction `c`, read at `now_ns`. One writer only.
     pub fn set(&self, c: Correction, now_ns: u64) {
-        self.seq.fetch_add(1, Ordering::AcqRel);
+        let v = self.seq.load(Ordering::Relaxed);
+        self.seq.store(v + 1, Ordering::Relaxed);
+        // The odd number is seen before any field it guards (a store
+        // after a release fence is not reordered before the fence's
+        // earlier stores; on a Pi's weak memory this matters).
+        std::sync::atomic::fence(Ordering::Release);
         self.rate_ns.store(c.rate_ns(), Ordering::Relaxed);
         self.offset_ns.store(c.offset_ns(), Ordering::Relaxed);
         self.at_ns.store(now_ns, Ordering::Relaxed);
-        self.seq.fetch_add(1, Ordering::Release);
+        self.seq.store(v + 2, Ordering::Release);
     }
 
     /// The newest correction, if there is one and it was not being written

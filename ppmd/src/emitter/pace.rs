@@ -398,11 +398,12 @@ impl Grid {
         module: Option<(&ModuleTiming, u64)>,
     ) {
         let grid_start = self.next_start.expect("placed on the grid");
-        let mut next = grid_start + self.period_ns(model, module);
+        let step = self.period_ns(model, module);
+        let mut next = grid_start + step;
         let end = start + last_pulse;
         if model.wire().kind() == FrameKind::Bytes {
             while next < end + model.sync_window_ns().0 {
-                next += model.frame_ns();
+                next += step;
                 add(&stats.overruns, 1);
             }
         }

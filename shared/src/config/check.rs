@@ -70,6 +70,17 @@ impl Config {
             .map_err(|(key, message)| ConfigError::invalid(key, message))?;
         let readback = self.readback_plan()?;
         let pilot = self.pilot_plan()?;
+        if self.ppm.protocol != crate::wire::Protocol::Crsf
+            && self.ppm.crsf_target == crate::wire::crsf::CrsfTarget::Module
+        {
+            return Err(ConfigError::invalid(
+                "ppm.crsf_target",
+                format!(
+                    "\"module\" drives an ExpressLRS module with CRSF, and ppm.protocol is \"{}\": set ppm.protocol = \"crsf\", or remove ppm.crsf_target",
+                    self.ppm.protocol.name()
+                ),
+            ));
+        }
         if self.ppm.protocol == crate::wire::Protocol::Crsf
             && self.ppm.crsf_target == crate::wire::crsf::CrsfTarget::Module
             && pilot.is_none()

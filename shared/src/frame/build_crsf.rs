@@ -9,7 +9,8 @@ use crate::receiver::{Receiver, ReceiverChoice};
 use crate::signal::Timing;
 use crate::wire::crsf::{
     CrsfFor, CrsfTarget, CrsfWire, BAUD_DEFAULT, BAUD_RANGE, FOLLOW_GAP_MAX_DEFAULT_US,
-    GAP_LEAST_US, GAP_MARGIN_US, GAP_MAX_US, MODULE_BAUD_DEFAULT, MODULE_GAP_LEAST_US, RESYNC_US,
+    GAP_LEAST_US, GAP_MARGIN_US, GAP_MAX_US, MODULE_BAUDS, MODULE_BAUD_DEFAULT,
+    MODULE_GAP_LEAST_US, RESYNC_US,
 };
 use crate::wire::WireModel;
 
@@ -131,12 +132,11 @@ pub(crate) fn build(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
 /// (`ppm.receiver`): ExpressLRS passes the raw values on.
 fn build_module(ppm: &PpmSection, encode_for: CrsfFor) -> Result<FrameModel, InvalidKey> {
     let baud = ppm.crsf_baud.unwrap_or(MODULE_BAUD_DEFAULT);
-    if !(BAUD_RANGE.0..=BAUD_RANGE.1).contains(&baud) {
+    if !MODULE_BAUDS.contains(&baud) {
         return Err(InvalidKey::new(
             "ppm.crsf_baud",
             format!(
-                "{baud} is outside {}..={}: an ExpressLRS module takes 400000 (the default), 115200, 921600, 1870000 or 2250000 from a handset",
-                BAUD_RANGE.0, BAUD_RANGE.1
+                "{baud}: an ExpressLRS module reads a handset at 400000 (the default), 115200, 921600, 1870000 or 2250000 only (it also searches 3750000 and 5250000, above what a Pi's UART makes)"
             ),
         ));
     }

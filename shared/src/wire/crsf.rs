@@ -80,6 +80,9 @@ impl CrsfTarget {
 /// `ppm.crsf_baud`'s default to a module: what EdgeTX sends an external
 /// ExpressLRS module at by default, the first rate the module tries.
 pub const MODULE_BAUD_DEFAULT: u32 = crsf::module::HANDSET_BAUD;
+/// The rates an ExpressLRS module searches for a handset
+/// (`CRSFHandset`'s baud list) that a Pi's UART makes (up to 3 000 000).
+pub const MODULE_BAUDS: [u32; 5] = [400_000, 115_200, 921_600, 1_870_000, 2_250_000];
 /// The least idle line between frames to a module, us: the module frames
 /// by bytes alone (no time-out), so this only leaves it room to answer
 /// (a half-duplex module turns the line around after each good frame).
