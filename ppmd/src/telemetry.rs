@@ -14,7 +14,7 @@
 //! `truncated` (a flight controller sends each frame back to back, and
 //! Betaflight's own receive side resets after 1.75 ms of quiet).
 
-use crate::emitter::module::ModuleTiming;
+use crate::emitter::module::{ModuleTiming, ALIVE_NS};
 use anyhow::{Context, Result};
 use ppm_shared::crsf::TelemetryReader;
 use ppm_shared::ipc::{self, TelemetrySample};
@@ -143,6 +143,8 @@ impl Opened {
         let mut buf = [0u8; 512];
         let mut published = 0u64;
         let mut failing = false;
+        // When the module last sent a good frame (0: never).
+        let mut module_heard = 0u64;
         while !stop.load(Relaxed) {
             let wait = if reader.buffered() > 0 { GAP } else { WAIT };
             let before = reader.counts().frames;
@@ -167,6 +169,18 @@ impl Opened {
                         reader.feed(&buf[..n], |frame, t| sample.take(frame, &t, now));
                         if let Some(timing) = &self.module {
                             if let Some(c) = reader.take_timing() {
+                                // The module is heard by its corrections
+                                // (every 200 ms while it takes frames),
+                                // never by ppm's own frames echoed on a
+                                // half-duplex wire.
+                                if module_heard == 0 || now - module_heard > ALIVE_NS {
+                                    log::info!(
+                                        "{}telemetry: the module answers; the model ID command goes before the next frame",
+                                        self.tag
+                                    );
+                                    timing.request_model_id();
+                                }
+                                module_heard = now;
                                 if timing.count() == 0 {
                                     log::info!(
                                         "{}telemetry: the module asks for a frame every {} us (offset {} us)",

@@ -129,8 +129,18 @@ fn a_module_gets_the_groundstation_then_the_pilot_at_its_own_pace() {
     drop(pty);
     let m = module.lock().unwrap();
 
-    // Every frame is an RC frame to the module; Betaflight behind the
-    // link reads the groundstation's values, then the pilot's.
+    // The module's first answer made ppmd send it the model ID (0 by
+    // default), before a frame of the next ones.
+    assert!(!m.model_ids.is_empty(), "no model ID command");
+    assert_eq!(m.model_ids[0].1, 0);
+    assert!(
+        m.model_ids[0].0 > m.frames[0].0,
+        "the model ID came after the module answered"
+    );
+    assert!(m.model_ids[0].0 < m.frames[0].0 + 100_000_000);
+    assert_eq!(m.other, 0);
+    // Every other frame is an RC frame to the module; Betaflight behind
+    // the link reads the groundstation's values, then the pilot's.
     assert_eq!(m.parser.bad, 0);
     let r = CrsfReceiver::Betaflight;
     let mut seen: Vec<[u64; 4]> = m

@@ -11,7 +11,9 @@
 //! link statistics (`handleOutput`, `sendSyncPacketToTX`), each starting
 //! with the sync byte 0xC8 as on its serial port.
 
-use ppm_shared::crsf::module::{Correction, HandsetParser, SAFE_MARGIN_TENTHS};
+use ppm_shared::crsf::module::{
+    Correction, HandsetParser, MODEL_ID_FRAME_LEN, SAFE_MARGIN_TENTHS, TYPE_COMMAND,
+};
 use ppm_shared::crsf::{self, LinkStatistics};
 use ppm_shared::time::now_ns;
 use std::io::Write;
@@ -42,8 +44,12 @@ pub struct SimModule {
     /// Every packet: when it went, and how long before it the newest frame
     /// came, ns.
     pub ticks: Vec<(u64, u64)>,
-    /// Every good frame: when it came, its bytes.
+    /// Every good RC frame: when it came, its bytes.
     pub frames: Vec<(u64, Vec<u8>)>,
+    /// Every model ID command: when it came, the ID.
+    pub model_ids: Vec<(u64, u8)>,
+    /// Good frames of other types.
+    pub other: u64,
 }
 
 impl SimModule {
@@ -61,6 +67,8 @@ impl SimModule {
             last_sync: None,
             ticks: Vec::new(),
             frames: Vec::new(),
+            model_ids: Vec::new(),
+            other: 0,
         }
     }
 
@@ -75,7 +83,13 @@ impl SimModule {
         self.last_recv = Some(now);
         // The radio's timer runs on its own: its phase is anything.
         self.next_tick.get_or_insert(now + 1_234_567);
-        self.frames.extend(frames.into_iter().map(|f| (now, f)));
+        for f in frames {
+            match f[2] {
+                crsf::TYPE_RC_CHANNELS_PACKED => self.frames.push((now, f)),
+                TYPE_COMMAND if f.len() == MODEL_ID_FRAME_LEN => self.model_ids.push((now, f[7])),
+                _ => self.other += 1,
+            }
+        }
         if self.last_sync.is_some_and(|s| now - s < SYNC_EVERY_NS) {
             return Vec::new();
         }

@@ -5,15 +5,18 @@
 //! What a write is, and which rules it answers to, is the frame's
 //! [`WireFrame`]'s to say.
 
+use super::module::ModuleTiming;
 use super::record::{add, Recording};
 use super::wire::{WholeBuf, WireFrame};
 use super::{LineRef, Output, Progress, MAX_OUTPUTS};
 use crate::clock::{Clock, EdgeTimer, Readable, Wake};
 use crate::framelog::CommandInfo;
-use crate::line::{Bank, FrameLine, Line};
+use crate::line::{Bank, FrameLine, Line, WholeFrame};
+use ppm_shared::crsf::module::MODEL_ID_FRAME_LEN;
 use ppm_shared::frame::{Channels, FrameModel, Level};
 use ppm_shared::line::LineState;
 use ppm_shared::trace::TraceEdge;
+use ppm_shared::wire::{WireModel, MAX_FRAME_BYTES};
 use std::os::fd::RawFd;
 
 /// A frame being emitted: its form on the wire and what the loop records
@@ -178,10 +181,18 @@ fn write_lines<C: Clock + ?Sized>(
             continue;
         };
         let model = out.model;
+        let sync = out.sync;
         let done = match &mut out.line {
-            LineRef::Whole(line) => {
-                send_whole(clk, &mut **line, model, &mut out.rec, p, &f, due, *before)
-            }
+            LineRef::Whole(line) => send_whole(
+                clk,
+                &mut **line,
+                (model, sync),
+                &mut out.rec,
+                p,
+                &f,
+                due,
+                *before,
+            ),
             LineRef::Edges(line) => {
                 write_edge(clk, &mut **line, model, &mut out.rec, p, &f, due, *before)
             }
@@ -277,7 +288,7 @@ fn advance(round: &Round, outputs: &mut [Output], prog: &mut [Progress], margin_
 fn send_whole<C: Clock + ?Sized>(
     clk: &C,
     line: &mut dyn FrameLine,
-    model: &FrameModel,
+    (model, module): (&FrameModel, Option<&ModuleTiming>),
     rec: &mut Recording,
     p: &mut Progress,
     f: &Frame,
@@ -289,6 +300,27 @@ fn send_whole<C: Clock + ?Sized>(
     }
     let mut buf = WholeBuf::new();
     let (frame, n) = f.wire.whole(due, &mut buf);
+    // A transmitter module that came (back) gets its model ID command
+    // right before this frame, in the same write.
+    let mut joined = [0u8; MODEL_ID_FRAME_LEN + MAX_FRAME_BYTES];
+    let frame = match (module, frame) {
+        (Some(m), WholeFrame::Bytes { bytes, due_ns }) => match model.wire() {
+            WireModel::Crsf(c) if m.take_model_id() => match c.model_id_frame() {
+                Some(id) => {
+                    let len = id.len() + bytes.len();
+                    joined[..id.len()].copy_from_slice(&id);
+                    joined[id.len()..len].copy_from_slice(bytes);
+                    WholeFrame::Bytes {
+                        bytes: &joined[..len],
+                        due_ns,
+                    }
+                }
+                None => WholeFrame::Bytes { bytes, due_ns },
+            },
+            _ => WholeFrame::Bytes { bytes, due_ns },
+        },
+        (_, frame) => frame,
+    };
     if line.write_frame(frame).is_err() {
         add(&rec.stats.write_errors, 1);
     }

@@ -8,14 +8,22 @@
 //! The telemetry thread, which reads the module's side of the line, leaves
 //! each correction in a [`ModuleTiming`]; the timing loop reads it when it
 //! places a frame, without a lock or a wait (a sequence-counted copy with
-//! one writer).
+//! one writer). When the module answers for the first time, or again after
+//! [`ALIVE_NS`] of silence, the thread asks for the model ID command, which
+//! the loop writes right before its next RC frame, in the same write (as
+//! EdgeTX sends it when the module comes alive; EdgeTX sends it in place of
+//! an RC frame).
 
 use ppm_shared::crsf::module::Correction;
-use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 
 /// A correction older than this is dropped: the grid goes back to
 /// `ppm.frame_us` (EdgeTX's `isValid`: 2 s without a correction).
 pub const STALE_NS: u64 = 2_000_000_000;
+/// A module silent this long, then answering, has come back (restarted,
+/// or found the handset again after searching the baud rates): it is sent
+/// the model ID again (EdgeTX's `MODULE_ALIVE_TIMEOUT`, 500 ms).
+pub const ALIVE_NS: u64 = 500_000_000;
 /// The longest period a correction may set, ns (EdgeTX's
 /// `MAX_REFRESH_RATE`, 50 ms).
 pub const PERIOD_MAX_NS: u64 = 50_000_000;
@@ -29,6 +37,11 @@ pub struct ModuleTiming {
     rate_ns: AtomicU64,
     offset_ns: AtomicI64,
     at_ns: AtomicU64,
+    /// The module came (back): the next frame goes after a model ID
+    /// command.
+    model_id_due: AtomicBool,
+    /// Model ID commands the loop sent.
+    model_ids: AtomicU64,
 }
 
 /// A correction as the loop reads it.
@@ -79,5 +92,27 @@ impl ModuleTiming {
     /// Corrections left so far.
     pub fn count(&self) -> u64 {
         self.seq.load(Ordering::Relaxed) / 2
+    }
+
+    /// Asks the loop to send the model ID command before its next frame
+    /// (the module answered for the first time, or again after
+    /// [`ALIVE_NS`] of silence).
+    pub fn request_model_id(&self) {
+        self.model_id_due.store(true, Ordering::Relaxed);
+    }
+
+    /// The loop, at a frame: whether the model ID command goes first
+    /// (once per request).
+    pub fn take_model_id(&self) -> bool {
+        let due = self.model_id_due.swap(false, Ordering::Relaxed);
+        if due {
+            self.model_ids.fetch_add(1, Ordering::Relaxed);
+        }
+        due
+    }
+
+    /// Model ID commands sent so far.
+    pub fn model_ids(&self) -> u64 {
+        self.model_ids.load(Ordering::Relaxed)
     }
 }

@@ -102,6 +102,12 @@ impl Config {
             Program::Ppmd => {
                 let module = ppm.protocol == crate::wire::Protocol::Crsf
                     && ppm.crsf_target == crate::wire::crsf::CrsfTarget::Module;
+                if !module && set("ppm.crsf_model_id") {
+                    out.push((
+                        "ppm.crsf_model_id",
+                        "it is the model ID ppmd sends a transmitter module, and ppm.crsf_target is not \"module\"".into(),
+                    ));
+                }
                 if module {
                     for key in [
                         "ppm.timing",
@@ -327,6 +333,14 @@ mod tests {
             ]
         );
         assert!(k("[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5").is_empty());
+        assert_eq!(
+            k("[ppm]\nprotocol = 'crsf'\ncrsf_model_id = 3"),
+            ["ppm.crsf_model_id"]
+        );
+        assert!(k(&format!(
+            "{module}crsf_model_id = 3\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5"
+        ))
+        .is_empty());
     }
 
     #[test]

@@ -28,6 +28,58 @@ pub const CORRECTION_EVERY_MS: u64 = 200;
 /// The margin the module keeps: OFFSET is the measured lead less this, in
 /// tenths of a microsecond (`OpenTXsyncOffsetSafeMargin`, 100 us).
 pub const SAFE_MARGIN_TENTHS: i32 = 1_000;
+/// Frame type of a command (`COMMAND_ID`).
+pub const TYPE_COMMAND: u8 = 0x32;
+/// A command's CRSF sub-command (`SUBCOMMAND_CRSF`).
+pub const SUBCOMMAND_CRSF: u8 = 0x10;
+/// The command that selects the model (receiver) ID
+/// (`COMMAND_MODEL_SELECT_ID`).
+pub const COMMAND_MODEL_SELECT_ID: u8 = 0x05;
+/// The highest model ID (EdgeTX's receiver numbers are 0..=63).
+pub const MODEL_ID_MAX: u8 = 63;
+/// Bytes of the model ID command.
+pub const MODEL_ID_FRAME_LEN: usize = 10;
+
+/// The model ID command a handset sends the module (EdgeTX
+/// `createCrossfireModelIDFrame`): `C8 08 32 EE EA 10 05 ID CRC_BA CRC`, to
+/// the module from the handset, its command checked by [`crc8_ba`] over
+/// type to ID and the frame by the CRC-8/DVB-S2 over type to that. The
+/// module starts its radio at once on it (rather than after its start-up
+/// wait) and uses the ID for model match.
+pub fn model_id_frame(id: u8) -> [u8; MODEL_ID_FRAME_LEN] {
+    let mut f = [
+        super::ADDRESS_FLIGHT_CONTROLLER,
+        8,
+        TYPE_COMMAND,
+        ADDRESS_TRANSMITTER,
+        ADDRESS_RADIO_TRANSMITTER,
+        SUBCOMMAND_CRSF,
+        COMMAND_MODEL_SELECT_ID,
+        id,
+        0,
+        0,
+    ];
+    f[8] = crc8_ba(&f[2..8]);
+    f[9] = crc8(&f[2..9]);
+    f
+}
+
+/// CRC-8 with polynomial 0xBA (initial 0, no reflection): what CRSF
+/// commands carry inside their frame (EdgeTX `crc8_BA`).
+pub fn crc8_ba(bytes: &[u8]) -> u8 {
+    bytes.iter().fold(0u8, |mut crc, &b| {
+        crc ^= b;
+        for _ in 0..8 {
+            crc = if crc & 0x80 != 0 {
+                (crc << 1) ^ 0xBA
+            } else {
+                crc << 1
+            };
+        }
+        crc
+    })
+}
+
 /// The module's default line rate from a handset (EdgeTX's default for
 /// an external ExpressLRS module; the module searches this first).
 pub const HANDSET_BAUD: u32 = 400_000;
@@ -175,6 +227,30 @@ mod tests {
     const SYNC: [u8; 15] = [
         0xC8, 0x0D, 0x3A, 0xEA, 0xEE, 0x10, 0x00, 0x00, 0xC3, 0x50, 0xFF, 0xFF, 0xCF, 0xC7, 0x4F,
     ];
+
+    #[test]
+    fn the_model_id_command_is_edgetxs() {
+        // EdgeTX's crc8tab_BA at 1, 2, 0x10, 0x80 and 0xFF.
+        let t: Vec<u8> = [1u8, 2, 0x10, 0x80, 0xFF]
+            .iter()
+            .map(|&i| crc8_ba(&[i]))
+            .collect();
+        assert_eq!(t, [0xBA, 0xCE, 0x98, 0xE6, 0x44]);
+        // Both CRCs computed apart from the crate (a few lines of Python).
+        assert_eq!(
+            model_id_frame(0),
+            [0xC8, 0x08, 0x32, 0xEE, 0xEA, 0x10, 0x05, 0x00, 0xDC, 0x4D]
+        );
+        assert_eq!(
+            model_id_frame(7),
+            [0xC8, 0x08, 0x32, 0xEE, 0xEA, 0x10, 0x05, 0x07, 0x8E, 0xCC]
+        );
+        // The module's framing takes it.
+        let mut p = HandsetParser::default();
+        let mut taken = 0;
+        p.feed(&model_id_frame(63), |_| taken += 1);
+        assert_eq!((taken, p.bad), (1, 0));
+    }
 
     #[test]
     fn a_correction_is_the_bytes_a_module_sends() {

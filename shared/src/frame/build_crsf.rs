@@ -140,7 +140,17 @@ fn build_module(ppm: &PpmSection, encode_for: CrsfFor) -> Result<FrameModel, Inv
             ),
         ));
     }
-    let wire = CrsfWire::module(encode_for, baud);
+    if ppm.crsf_model_id > crsf::module::MODEL_ID_MAX {
+        return Err(InvalidKey::new(
+            "ppm.crsf_model_id",
+            format!(
+                "{} is outside 0..={}: the model (receiver) ID a radio gives its module",
+                ppm.crsf_model_id,
+                crsf::module::MODEL_ID_MAX
+            ),
+        ));
+    }
+    let wire = CrsfWire::module(encode_for, baud, ppm.crsf_model_id);
     let (names, limits) = resolve_channels(ppm)?;
     let (lo, hi) = encode_for.value_range_us();
     for l in &limits {

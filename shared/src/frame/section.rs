@@ -82,6 +82,9 @@ pub struct PpmSection {
     /// flight controller's receiver port) or `"module"` (an ExpressLRS
     /// transmitter module, as a radio drives one in its bay).
     pub crsf_target: crate::wire::crsf::CrsfTarget,
+    /// CRSF to a module only: the model (receiver) ID sent in the model
+    /// ID command, 0..=63. Default 0.
+    pub crsf_model_id: u8,
 }
 
 impl Default for PpmSection {
@@ -104,6 +107,7 @@ impl Default for PpmSection {
             late_edge_guard_us: LATE_EDGE_GUARD_US,
             crsf_baud: None,
             crsf_target: crate::wire::crsf::CrsfTarget::FlightController,
+            crsf_model_id: 0,
         }
     }
 }

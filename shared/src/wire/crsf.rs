@@ -155,6 +155,8 @@ pub struct CrsfWire {
     pub(crate) baud: u32,
     /// What the line drives.
     pub(crate) target: CrsfTarget,
+    /// To a module: the model ID its model ID command carries.
+    pub(crate) model_id: u8,
 }
 
 impl CrsfWire {
@@ -164,17 +166,25 @@ impl CrsfWire {
             encode_for,
             baud,
             target: CrsfTarget::FlightController,
+            model_id: 0,
         }
     }
 
     /// The settings to a transmitter module: values for the flight
-    /// controller behind its link (`encode_for`), at `baud`.
-    pub fn module(encode_for: CrsfFor, baud: u32) -> CrsfWire {
+    /// controller behind its link (`encode_for`), at `baud`,
+    /// with model ID `model_id`.
+    pub fn module(encode_for: CrsfFor, baud: u32, model_id: u8) -> CrsfWire {
         CrsfWire {
             encode_for,
             baud,
             target: CrsfTarget::Module,
+            model_id,
         }
+    }
+
+    /// To a module, its model ID command (`None` to a flight controller).
+    pub fn model_id_frame(&self) -> Option<[u8; crsf::module::MODEL_ID_FRAME_LEN]> {
+        (self.target == CrsfTarget::Module).then(|| crsf::module::model_id_frame(self.model_id))
     }
 
     /// What the line drives.

@@ -28,6 +28,9 @@ struct ModuleLine {
     frames: Vec<(Vec<u8>, u64)>,
     timing: Arc<ModuleTiming>,
     corrections: Vec<(usize, Correction)>,
+    /// After which frames the module is heard anew (the model ID is asked
+    /// for).
+    heard: Vec<usize>,
 }
 
 impl FrameLine for ModuleLine {
@@ -43,6 +46,9 @@ impl FrameLine for ModuleLine {
         for (_, c) in self.corrections.iter().filter(|(at, _)| *at == k) {
             self.timing.set(*c, self.sim.at());
         }
+        if self.heard.contains(&k) {
+            self.timing.request_model_id();
+        }
         Ok(())
     }
 }
@@ -54,6 +60,17 @@ fn run_module(
     corrections: Vec<(usize, Correction)>,
     until_ms: u64,
 ) -> (Vec<(Vec<u8>, u64)>, Vec<u64>) {
+    run_heard(corrections, vec![], until_ms).0
+}
+
+/// [`run_module`], the module heard anew after the frames `heard`: also
+/// how many model ID commands the loop sent.
+#[allow(clippy::type_complexity)]
+fn run_heard(
+    corrections: Vec<(usize, Correction)>,
+    heard: Vec<usize>,
+    until_ms: u64,
+) -> ((Vec<(Vec<u8>, u64)>, Vec<u64>), u64) {
     let sim = Sim::new();
     let model = module_model();
     let timing = Arc::new(ModuleTiming::default());
@@ -62,6 +79,7 @@ fn run_module(
         frames: Vec::new(),
         timing: timing.clone(),
         corrections,
+        heard,
     };
     let mut src = Fresh::new(&sim, &model, "[1100, 1900, 1500, 1200]");
     let mut kit = Kit::default();
@@ -79,7 +97,33 @@ fn run_module(
         .windows(2)
         .map(|w| (w[1].1 - w[0].1) / 1_000)
         .collect();
-    (line.frames, steps)
+    ((line.frames, steps), timing.model_ids())
+}
+
+#[test]
+fn a_module_heard_anew_gets_the_model_id_before_the_next_frame_once() {
+    use ppm_shared::crsf::module::{model_id_frame, MODEL_ID_FRAME_LEN};
+    let ((frames, steps), sent) = run_heard(vec![], vec![3, 20], 200);
+    assert_eq!(sent, 2);
+    let mut parser = HandsetParser::default();
+    let mut kinds = Vec::new();
+    for (k, (bytes, _)) in frames.iter().enumerate() {
+        let want = if k == 4 || k == 21 {
+            RC_FRAME_LEN + MODEL_ID_FRAME_LEN
+        } else {
+            RC_FRAME_LEN
+        };
+        assert_eq!(bytes.len(), want, "frame {k}");
+        if want > RC_FRAME_LEN {
+            assert_eq!(bytes[..MODEL_ID_FRAME_LEN], model_id_frame(0));
+        }
+        parser.feed(bytes, |f| kinds.push(f[2]));
+    }
+    assert_eq!(parser.bad, 0);
+    assert_eq!(kinds.iter().filter(|&&k| k == 0x32).count(), 2);
+    assert_eq!(kinds.iter().filter(|&&k| k == 0x16).count(), frames.len());
+    // The pace is the grid's, model ID or not.
+    assert!(steps.iter().all(|&s| s == 4_000), "{steps:?}");
 }
 
 fn correction(rate_us: i32, offset_us: i32) -> Correction {

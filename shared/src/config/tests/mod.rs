@@ -504,6 +504,7 @@ fn invalid_keys_are_named() {
         ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\ncrsf_baud = 420000\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.crsf_baud"),
         ("[ppm]\ncrsf_target = 'module'\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.crsf_target"),
         ("[ppm]\nprotocol = 'sbus'\ncrsf_target = 'module'", "ppm.crsf_target"),
+        ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\ncrsf_model_id = 64\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.crsf_model_id"),
         ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\nframe_us = 50001\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.frame_us"),
         ("[ppm]\nprotocol = 'crsf'\ncrsf_target = 'module'\nreceiver = 'edgetx'\n[ppmd]\npilot = 'gpio:GPIO17'\n[pilot]\nswitch_channel = 5\n", "ppm.receiver"),
         (
