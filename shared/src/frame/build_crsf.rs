@@ -2,7 +2,7 @@
 //! flight-controller firmware of `ppm.receiver` and the line rate of
 //! `ppm.crsf_baud`.
 
-use super::build::{model, resolve_channels, Wire};
+use super::build::{model, resolve_channels, ChannelLimits, Wire};
 use super::{us_to_ns, FrameModel, InvalidKey, PpmSection, LATE_EDGE_GUARD_US};
 use crate::crsf::{self, CrsfReceiver};
 use crate::receiver::{Receiver, ReceiverChoice};
@@ -62,21 +62,7 @@ pub(crate) fn build(ppm: &PpmSection) -> Result<FrameModel, InvalidKey> {
         ));
     }
     let wire = CrsfWire::new(encode_for, baud);
-    let (names, limits) = resolve_channels(ppm)?;
-    let (lo, hi) = encode_for.value_range_us();
-    for l in &limits {
-        let (key, v, rule, nearest) = if l.min_us < lo as f64 {
-            (&l.min_key, l.min_us, "raise", lo)
-        } else if l.max_us > hi as f64 {
-            (&l.max_key, l.max_us, "lower", hi)
-        } else {
-            continue;
-        };
-        return Err(InvalidKey::new(
-            key,
-            format!("{v} us: the CRSF values every firmware of {under} reads are {lo}..={hi} us: {rule} {key} to {nearest} us"),
-        ));
-    }
+    let (names, limits) = channels_read_by(ppm, encode_for, &under)?;
     let least = GAP_LEAST_US as f64;
     let gap_min = ppm.follow_sync_min_us.unwrap_or(least);
     if !gap_min.is_finite() || gap_min < least || gap_min > GAP_MAX_US {
@@ -151,21 +137,8 @@ fn build_module(ppm: &PpmSection, encode_for: CrsfFor) -> Result<FrameModel, Inv
         ));
     }
     let wire = CrsfWire::module(encode_for, baud, ppm.crsf_model_id);
-    let (names, limits) = resolve_channels(ppm)?;
-    let (lo, hi) = encode_for.value_range_us();
-    for l in &limits {
-        let (key, v, rule, nearest) = if l.min_us < lo as f64 {
-            (&l.min_key, l.min_us, "raise", lo)
-        } else if l.max_us > hi as f64 {
-            (&l.max_key, l.max_us, "lower", hi)
-        } else {
-            continue;
-        };
-        return Err(InvalidKey::new(
-            key,
-            format!("{v} us: the CRSF values every firmware of ppm.receiver = \"{}\" reads are {lo}..={hi} us: {rule} {key} to {nearest} us", encode_for.name()),
-        ));
-    }
+    let under = format!("ppm.receiver = \"{}\"", encode_for.name());
+    let (names, limits) = channels_read_by(ppm, encode_for, &under)?;
     let least = MODULE_GAP_LEAST_US as f64;
     let wire_us = wire.frame_wire_ns() as f64 / 1e3;
     let period = ppm.frame_us();
@@ -192,4 +165,30 @@ fn build_module(ppm: &PpmSection, encode_for: CrsfFor) -> Result<FrameModel, Inv
     );
     m.timing = Timing::Grid;
     Ok(m)
+}
+
+/// The channels of `[ppm]`, each one's limits within the values every
+/// firmware `encode_for` covers reads (`under`: how a message names that
+/// choice).
+fn channels_read_by(
+    ppm: &PpmSection,
+    encode_for: CrsfFor,
+    under: &str,
+) -> Result<(Vec<String>, Vec<ChannelLimits>), InvalidKey> {
+    let (names, limits) = resolve_channels(ppm)?;
+    let (lo, hi) = encode_for.value_range_us();
+    for l in &limits {
+        let (key, v, rule, nearest) = if l.min_us < lo as f64 {
+            (&l.min_key, l.min_us, "raise", lo)
+        } else if l.max_us > hi as f64 {
+            (&l.max_key, l.max_us, "lower", hi)
+        } else {
+            continue;
+        };
+        return Err(InvalidKey::new(
+            key,
+            format!("{v} us: the CRSF values every firmware of {under} reads are {lo}..={hi} us: {rule} {key} to {nearest} us"),
+        ));
+    }
+    Ok((names, limits))
 }
